@@ -1,0 +1,282 @@
+"""The feature pipeline: one implementation for training, evaluation, replay and the daemon.
+
+Stages, in order, per sample:
+    1. sanitise   a non-finite value (NaN, +-Inf) is replaced by the last finite value of that
+                  channel (0 before any finite value was seen, i.e. "no load") and counted;
+    2. tare       the unloaded offset is subtracted (``offset`` [9, 3], from ``tare_offset`` or 0 when
+                  the sensor's own bias command zeroed it);
+    3. clip       tared forces are clipped to twice the sensor's range, so an absurd value (1e6 N)
+                  becomes a short, bounded spike that the median filter removes;
+    4. select     the manifest's pillars and channels, pillar-major: [P_a fx, P_a fy, P_b fx, ...];
+    5. median     causal median of the last ``median`` samples. At the start of a stream the history
+                  is filled with copies of the first sample (edge padding), so every output is the
+                  median of exactly ``median`` values: defined, exact (an element, no averaging) and
+                  identical between streaming and batch;
+    6. window     ``window`` consecutive filtered samples flattened time-major ([T, C] -> [T*C]).
+                  Windows end every ``stride`` samples (``stride == window``: the method's
+                  non-overlapping windows); the first ends at sample ``window - 1``.
+
+``FeatureStream`` (sample by sample, constant memory) and ``batch_windows`` (whole recordings,
+vectorised) compute the same floating-point operations on the same values and give bit-identical
+windows; ``tests/test_features.py`` proves it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from slipd.geometry import FT_RANGE_N, FZ_RANGE_N, N_PILLARS, OUTER
+
+CHANNEL_INDEX = {"fx": 0, "fy": 1, "fz": 2}
+CLIP_N = np.array([2 * FT_RANGE_N, 2 * FT_RANGE_N, 2 * FZ_RANGE_N], dtype=np.float32)
+"""Bound on tared forces per axis (twice the sensor's range)."""
+
+
+@dataclass(frozen=True)
+class FeatureSpec:
+    """Which pillars and channels feed the model, and how samples become windows.
+
+    The model manifest stores exactly these fields; the daemon refuses a model whose spec differs
+    from what its feature code would produce.
+    """
+
+    pillars: tuple[int, ...] = OUTER
+    channels: tuple[str, ...] = ("fx", "fy")
+    window: int = 40
+    median: int = 21
+    rate_hz: int = 1000
+    stride: int = 0
+    """Samples between decisions; 0 means ``window`` (non-overlapping windows)."""
+    tare_samples: tuple[int, int] = (0, 100)
+    """Default unloaded stretch [start, stop) of a recording used for the offset."""
+    _cols: tuple[int, ...] = field(default=(), repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not self.pillars or any(not 0 <= p < N_PILLARS for p in self.pillars):
+            raise ValueError(f"pillars must be SDK indices 0..8, got {self.pillars}")
+        if len(set(self.pillars)) != len(self.pillars):
+            raise ValueError(f"pillars repeat: {self.pillars}")
+        unknown = [c for c in self.channels if c not in CHANNEL_INDEX]
+        if unknown or not self.channels:
+            raise ValueError(f"channels must be among fx, fy, fz, got {self.channels}")
+        if self.window < 1 or self.median < 1 or self.median % 2 == 0:
+            raise ValueError(f"window >= 1 and an odd median width are required (got {self.window}, {self.median})")
+        if not 0 <= self.stride <= self.window:
+            raise ValueError(f"stride must be in 0..window, got {self.stride}")
+        cols = tuple(p * 3 + CHANNEL_INDEX[c] for p in self.pillars for c in self.channels)
+        object.__setattr__(self, "_cols", cols)
+
+    @property
+    def n_channels(self) -> int:
+        """Features per sample (C)."""
+        return len(self.pillars) * len(self.channels)
+
+    @property
+    def input_size(self) -> int:
+        """Length of one flattened window (T * C)."""
+        return self.window * self.n_channels
+
+    @property
+    def step(self) -> int:
+        """Samples between two consecutive windows."""
+        return self.stride or self.window
+
+    @property
+    def columns(self) -> tuple[int, ...]:
+        """Indices into a flattened [9*3] sample, in feature order."""
+        return self._cols
+
+    def to_dict(self) -> dict:
+        """JSON-friendly form for the manifest."""
+        d = asdict(self)
+        d.pop("_cols", None)
+        d["pillars"] = list(self.pillars)
+        d["channels"] = list(self.channels)
+        d["tare_samples"] = list(self.tare_samples)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> FeatureSpec:
+        """Inverse of ``to_dict``; unknown keys raise ``TypeError``."""
+        d = dict(d)
+        for key in ("pillars", "channels", "tare_samples"):
+            if key in d:
+                d[key] = tuple(d[key])
+        return cls(**d)
+
+    def with_(self, **changes) -> FeatureSpec:
+        """A copy with some fields changed."""
+        d = self.to_dict()
+        d.update(changes)
+        return FeatureSpec.from_dict(d)
+
+
+def tare_offset(force: np.ndarray, start: int = 0, stop: int = 100) -> np.ndarray:
+    """[9, 3] float32 mean of ``force[start:stop]`` (an unloaded stretch), ignoring non-finite values.
+
+    Accumulates in float64 so long stretches do not bias the offset.
+    """
+    seg = np.asarray(force[start:stop], dtype=np.float64)
+    if seg.shape[0] == 0:
+        raise ValueError(f"empty tare stretch [{start}, {stop}) of a {len(force)}-sample recording")
+    finite = np.isfinite(seg)
+    count = finite.sum(axis=0)
+    total = np.where(finite, seg, 0.0).sum(axis=0)
+    return np.where(count > 0, total / np.maximum(count, 1), 0.0).astype(np.float32)
+
+
+def _hold_last_finite(x: np.ndarray) -> tuple[np.ndarray, int]:
+    """Forward-fill non-finite entries along axis 0 (0 before the first finite value)."""
+    bad = ~np.isfinite(x)
+    n_bad = int(bad.sum())
+    if not n_bad:
+        return x, 0
+    idx = np.where(bad, 0, np.arange(len(x))[:, None])
+    np.maximum.accumulate(idx, axis=0, out=idx)
+    filled = x[idx, np.arange(x.shape[1])[None, :]]
+    # Rows before any finite value of the channel: np.maximum.accumulate points at row 0, which is bad.
+    filled = np.where(np.isfinite(filled), filled, np.float32(0.0))
+    return filled.astype(np.float32, copy=False), n_bad
+
+
+def prepare_samples(force: np.ndarray, spec: FeatureSpec, offset: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """Stages 1-4 on a whole recording: [N, 9, 3] raw forces -> [N, C] float32, and the non-finite count."""
+    flat = np.asarray(force, dtype=np.float32).reshape(len(force), N_PILLARS * 3)
+    flat, n_bad = _hold_last_finite(flat)
+    off = np.zeros(N_PILLARS * 3, np.float32) if offset is None else np.asarray(offset, np.float32).reshape(-1)
+    clip = np.tile(CLIP_N, N_PILLARS)
+    tared = np.clip(flat - off, -clip, clip)
+    return np.ascontiguousarray(tared[:, spec.columns]), n_bad
+
+
+def causal_median(x: np.ndarray, width: int) -> np.ndarray:
+    """Causal median of the last ``width`` samples, edge-padded at the start. [N, C] -> [N, C]."""
+    if width == 1 or len(x) == 0:
+        return x.copy()
+    padded = np.concatenate([np.repeat(x[:1], width - 1, axis=0), x], axis=0)
+    return np.median(sliding_window_view(padded, width, axis=0), axis=-1).astype(np.float32)
+
+
+def window_ends(n_samples: int, spec: FeatureSpec) -> np.ndarray:
+    """Indices of the last sample of each window a stream of ``n_samples`` produces."""
+    return np.arange(spec.window - 1, n_samples, spec.step, dtype=np.int64)
+
+
+def batch_windows(
+    force: np.ndarray, spec: FeatureSpec, offset: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The whole pipeline on a recording: ([K, T*C] float32 windows, [K] index of each window's last sample)."""
+    x, _ = prepare_samples(force, spec, offset)
+    filtered = causal_median(x, spec.median)
+    ends = window_ends(len(filtered), spec)
+    if len(ends) == 0:
+        return np.zeros((0, spec.input_size), np.float32), ends
+    starts = ends - spec.window + 1
+    wins = sliding_window_view(filtered, spec.window, axis=0)[starts]  # [K, C, T]
+    return np.ascontiguousarray(wins.transpose(0, 2, 1)).reshape(len(ends), spec.input_size), ends
+
+
+def window_labels(label: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    """Label of each window = label of its last sample (the method's rule)."""
+    return np.asarray(label)[ends]
+
+
+class FeatureStream:
+    """Streaming form of ``batch_windows``: push one raw sample at a time, get a window when one completes.
+
+    Memory is constant: a history of ``median - 1 + window`` prepared samples. The median of a whole
+    window is computed once, when the window completes, with the same vectorised call as the batch
+    path, so both give bit-identical windows and the per-sample cost is a copy into a ring.
+    """
+
+    def __init__(self, spec: FeatureSpec, offset: np.ndarray | None = None) -> None:
+        self.spec = spec
+        self._cols = np.array(spec.columns, dtype=np.intp)
+        self._clip = np.tile(CLIP_N, N_PILLARS)
+        self._hist_len = spec.median - 1 + spec.window
+        # Linear buffer twice the history: writes append, and a shift happens once per history
+        # length, so the window is always a contiguous slice (no per-sample allocation).
+        self._buf = np.zeros((2 * self._hist_len, spec.n_channels), np.float32)
+        self._last_good = np.zeros(N_PILLARS * 3, np.float32)
+        self._scratch = np.zeros(N_PILLARS * 3, np.float32)
+        self.set_offset(offset)
+        self.nonfinite_count = 0
+        self.reset()
+
+    def set_offset(self, offset: np.ndarray | None) -> None:
+        """Replace the tare offset ([9, 3], or None for zero). Takes effect from the next sample."""
+        self._offset = (
+            np.zeros(N_PILLARS * 3, np.float32) if offset is None else np.asarray(offset, np.float32).reshape(-1).copy()
+        )
+
+    def reset(self) -> None:
+        """Forget the history (after a reconnect or a gap): the next sample restarts the stream."""
+        self._n = 0  # samples since reset
+        self._end = 0  # one past the newest row in _buf
+        self._last_good[:] = 0.0
+
+    @property
+    def samples_seen(self) -> int:
+        """Samples pushed since the last reset."""
+        return self._n
+
+    def push(self, force: np.ndarray) -> np.ndarray | None:
+        """Add one raw sample ([9, 3] or [27]); return the flattened window if one ends here, else None.
+
+        The returned array is a fresh copy owned by the caller.
+        """
+        s = self._scratch
+        s[:] = np.asarray(force, dtype=np.float32).reshape(-1)
+        bad = ~np.isfinite(s)
+        if bad.any():
+            self.nonfinite_count += int(bad.sum())
+            s[bad] = self._last_good[bad]
+        self._last_good[:] = s
+        np.subtract(s, self._offset, out=s)
+        np.clip(s, -self._clip, self._clip, out=s)
+        row = s[self._cols]
+        spec = self.spec
+        if self._n == 0:
+            # Edge padding: the history starts as copies of the first sample.
+            self._buf[: spec.median - 1] = row
+            self._end = spec.median - 1
+        if self._end == len(self._buf):
+            keep = self._hist_len - 1
+            self._buf[:keep] = self._buf[self._end - keep : self._end]
+            self._end = keep
+        self._buf[self._end] = row
+        self._end += 1
+        self._n += 1
+        n = self._n
+        if n < spec.window or (n - spec.window) % spec.step:
+            return None
+        hist = self._buf[self._end - self._hist_len : self._end]
+        filtered = causal_median_tail(hist, spec.median)
+        return filtered.reshape(-1).copy()
+
+
+def causal_median_tail(hist: np.ndarray, width: int) -> np.ndarray:
+    """Median filter outputs for the last ``len(hist) - width + 1`` samples of ``hist`` (no padding)."""
+    if width == 1:
+        return hist
+    return np.median(sliding_window_view(hist, width, axis=0), axis=-1).astype(np.float32)
+
+
+def stream_windows(force: np.ndarray, spec: FeatureSpec, offset: np.ndarray | None = None) -> list[np.ndarray]:
+    """Run ``FeatureStream`` over a recording (for tests and replay); returns the windows in order."""
+    fs = FeatureStream(spec, offset)
+    out = []
+    for sample in np.asarray(force):
+        w = fs.push(sample)
+        if w is not None:
+            out.append(w)
+    return out
+
+
+def pillar_order_doc(pillars: Sequence[int]) -> str:
+    """Human-readable description of a pillar order, for manifests and model cards."""
+    return ", ".join(f"P{p}" for p in pillars)

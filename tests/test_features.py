@@ -1,0 +1,135 @@
+"""The feature pipeline: streaming equals batch bit for bit, median and tare arithmetic."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from slipd.features import (
+    FeatureSpec,
+    FeatureStream,
+    batch_windows,
+    causal_median,
+    stream_windows,
+    tare_offset,
+    window_labels,
+)
+
+
+def _signal(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    t = np.arange(n)[:, None, None] / 1000.0
+    base = np.sin(2 * np.pi * 3 * t + rng.uniform(0, 6, (1, 9, 3))) * rng.uniform(0.1, 1, (1, 9, 3))
+    return (base + rng.normal(0, 0.01, (n, 9, 3))).astype(np.float32)
+
+
+@pytest.mark.parametrize("stride", [0, 10, 20])
+def test_stream_equals_batch_exactly(stride: int) -> None:
+    spec = FeatureSpec(stride=stride)
+    force = _signal(1337)
+    off = tare_offset(force, 0, 100)
+    batch, ends = batch_windows(force, spec, off)
+    streamed = np.array(stream_windows(force, spec, off))
+    assert streamed.shape == batch.shape
+    assert np.array_equal(streamed, batch)  # bit-identical, not merely close
+    assert ends[0] == spec.window - 1 and np.all(np.diff(ends) == spec.step)
+
+
+def test_stream_equals_batch_with_nonfinite_and_absurd_values() -> None:
+    spec = FeatureSpec()
+    force = _signal(800, seed=3)
+    force[5, 2, 0] = np.nan
+    force[100:130, 4, :] = np.inf
+    force[300, :, 1] = -np.inf
+    force[400, 1, 0] = 1e6
+    force[0, 7, 1] = np.nan  # non-finite on the very first sample: held at 0
+    batch, _ = batch_windows(force, spec)
+    fs = FeatureStream(spec)
+    streamed = [w for s in force if (w := fs.push(s)) is not None]
+    assert np.array_equal(np.array(streamed), batch)
+    assert np.isfinite(batch).all()
+    assert fs.nonfinite_count == 1 + 30 * 3 + 9 + 1
+
+
+def test_window_is_time_major_and_pillar_major() -> None:
+    # A ramp whose value encodes (sample, pillar, channel) so the layout can be read back.
+    spec = FeatureSpec(median=1)
+    n = 40
+    force = np.zeros((n, 9, 3), np.float32)
+    for p in range(9):
+        for c in range(3):
+            # Kept below the 8 N clip bound: sample * 0.1 + pillar * 0.01 + channel * 0.001.
+            force[:, p, c] = np.arange(n) * 0.1 + p * 0.01 + c * 0.001
+    (win,), _ = batch_windows(force, spec)
+    w = win.reshape(40, 16)
+
+    def code(sample: int, pillar: int, ch: int) -> np.float32:
+        return np.float32(sample * 0.1 + pillar * 0.01 + ch * 0.001)
+
+    assert w[0, 0] == code(0, 0, 0)  # sample 0, pillar P0, fx
+    assert w[0, 1] == code(0, 0, 1)  # sample 0, pillar P0, fy
+    assert w[0, 6] == code(0, 3, 0)  # fourth pillar in OUTER order is P3
+    assert w[0, 8] == code(0, 5, 0)  # then P5: the centre P4 is skipped
+    assert w[39, 15] == code(39, 8, 1)
+
+
+def test_median_removes_short_glitches_exactly() -> None:
+    # A naive (non-median or even-width) filter would leave part of the spike in the output.
+    x = np.full((200, 1), 0.5, np.float32)
+    x[50:60, 0] = 4.0  # a 10-sample spike: shorter than half of the 21-sample window
+    x[120, 0] = -3.0
+    y = causal_median(x, 21)
+    assert np.array_equal(y, np.full_like(x, 0.5))
+
+
+def test_median_start_of_stream_is_edge_padded() -> None:
+    x = np.arange(30, dtype=np.float32)[:, None]
+    y = causal_median(x, 21)
+    # Sample k's history is 20-k copies of x[0] and x[0..k]; its median is x[max(0, k - 10)].
+    assert [float(v) for v in y[:12, 0]] == [0.0] * 11 + [1.0]
+    assert float(y[25, 0]) == 15.0
+
+
+def test_tare_with_large_offset_does_not_bias() -> None:
+    force = _signal(2000, seed=5) * 0.01
+    force += np.float32(1234.5)  # sensor not zeroed
+    off = tare_offset(force, 0, 2000)
+    assert off.dtype == np.float32
+    tared = force.astype(np.float64) - off
+    assert abs(tared.mean()) < 1e-3
+
+
+def test_window_labels_take_last_sample() -> None:
+    spec = FeatureSpec()
+    label = np.zeros(200, np.uint8)
+    label[79] = 1
+    _, ends = batch_windows(np.zeros((200, 9, 3), np.float32), spec)
+    assert window_labels(label, ends).tolist() == [0, 1, 0, 0, 0]
+
+
+def test_spec_roundtrip_and_validation() -> None:
+    spec = FeatureSpec(stride=20)
+    assert FeatureSpec.from_dict(spec.to_dict()) == spec
+    with pytest.raises(ValueError):
+        FeatureSpec(median=20)
+    with pytest.raises(ValueError):
+        FeatureSpec(pillars=(0, 9))
+    with pytest.raises(TypeError):
+        FeatureSpec.from_dict({**spec.to_dict(), "bogus": 1})
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    n=st.integers(0, 300),
+    window=st.sampled_from([10, 20, 40]),
+    median=st.sampled_from([1, 5, 11, 21]),
+    seed=st.integers(0, 2**16),
+)
+def test_stream_equals_batch_property(n: int, window: int, median: int, seed: int) -> None:
+    spec = FeatureSpec(window=window, median=median)
+    force = _signal(n, seed) if n else np.zeros((0, 9, 3), np.float32)
+    batch, _ = batch_windows(force, spec)
+    streamed = stream_windows(force, spec)
+    assert len(streamed) == len(batch)
+    if streamed:
+        assert np.array_equal(np.array(streamed), batch)
