@@ -1,0 +1,139 @@
+"""Detector: raw samples in, decisions out. The one path shared by the live loop, replay and evaluation.
+
+    sample [9, 3] -> tare (startup or given) -> FeatureStream -> Ensemble.step -> Decision.update
+
+Tare: with ``tare_samples > 0`` the first ``tare_samples`` samples after a (re)start are averaged
+(``slipd.features.tare_offset``) while the sensor is unloaded; they are held back and then pushed
+through the pipeline, so the windows are cut exactly as ``batch_windows`` cuts a recording whose
+offset comes from the same stretch. With an explicit ``offset`` (or the sensor's own bias command,
+offset 0) decisions start at once.
+
+Decision stride: the model's window is fixed (40 samples). With ``stride = window / k`` the feature
+stream emits a window every ``stride`` samples and the detector runs ``k`` phase-shifted GRU state
+streams, window ``j`` stepping stream ``j mod k``; each stream sees exactly the non-overlapping
+window sequence the model was trained on, shifted in phase, and a decision is made every ``stride``
+samples.
+
+Contact: when every pillar's normal force falls below the SDK contact threshold after having been in
+contact, the GRU states are reset, so a new grasp starts from the trained initial state (h0 = 0).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slipd.features import FeatureSpec, FeatureStream, tare_offset
+from slipd.geometry import CONTACT_THRESHOLD_N
+
+
+@dataclass(frozen=True, slots=True)
+class Detection:
+    """One decision: made after sample ``index`` (counted since the detector started)."""
+
+    index: int
+    t_us: int
+    p_slip: float
+    risk: float
+    alarm: bool
+    rising_edge: bool
+    valid: bool = True
+
+
+class Detector:
+    """Streams samples through the shared feature pipeline, the ensemble and the decision rule."""
+
+    def __init__(
+        self,
+        ensemble,
+        decision,
+        spec: FeatureSpec | None = None,
+        offset: np.ndarray | None = None,
+        tare_samples: int = 0,
+        contact_reset: bool = True,
+    ) -> None:
+        self.ensemble = ensemble
+        self.decision = decision
+        self.spec = spec or ensemble.feature_spec
+        if self.spec.window % self.spec.step:
+            raise ValueError(f"stride {self.spec.step} must divide the window {self.spec.window}")
+        self.n_streams = self.spec.window // self.spec.step
+        self.features = FeatureStream(self.spec, offset)
+        self.tare_samples = 0 if offset is not None else int(tare_samples)
+        self._tare_buf = np.zeros((max(self.tare_samples, 1), 9, 3), np.float32)
+        self.contact_reset = contact_reset
+        self.index = -1
+        self.windows = 0
+        self.resets = 0
+        self._tared = self.tare_samples == 0
+        self._n_tare = 0
+        self._in_contact = False
+
+    @property
+    def offset(self) -> np.ndarray:
+        """The tare offset in use ([9, 3])."""
+        return self.features._offset.reshape(9, 3).copy()
+
+    def restart(self, retare: bool = False) -> None:
+        """After a reconnect or a counter discontinuity: forget the feature history and GRU states."""
+        self.features.reset()
+        self.ensemble.reset()
+        self.decision.reset()
+        self.windows = 0
+        self.resets += 1
+        if retare and self.tare_samples:
+            self._tared = False
+            self._n_tare = 0
+
+    def push(self, force: np.ndarray, t_us: int = 0) -> Detection | None:
+        """Feed one raw sample; returns a Detection when a window completes, else None."""
+        self.index += 1
+        if not self._tared:
+            self._tare_buf[self._n_tare] = force
+            self._n_tare += 1
+            if self._n_tare < self.tare_samples:
+                return None
+            # Offset known: replay the buffered samples through the pipeline so windows start at the first
+            # sample, exactly as the batch path (training, evaluation) cuts them. Windows completed inside the
+            # tare stretch step the model (state continuity) but only the last one is reported.
+            self.features.set_offset(tare_offset(self._tare_buf, 0, self.tare_samples))
+            self._tared = True
+            last = None
+            for k in range(self.tare_samples):
+                det = self._process(self._tare_buf[k], t_us, self.index - self.tare_samples + 1 + k)
+                last = det or last
+            return last
+        return self._process(force, t_us, self.index)
+
+    def _process(self, force: np.ndarray, t_us: int, index: int) -> Detection | None:
+        if self.contact_reset:
+            fz = np.asarray(force, np.float32).reshape(9, 3)[:, 2] - self.features._offset[2::3]
+            in_contact = bool(np.nanmax(fz) > CONTACT_THRESHOLD_N) if np.isfinite(fz).any() else self._in_contact
+            if self._in_contact and not in_contact:
+                self.ensemble.reset()
+                self.decision.reset()
+                self.resets += 1
+            self._in_contact = in_contact
+        window = self.features.push(force)
+        if window is None:
+            return None
+        stream = self.windows % self.n_streams
+        self.windows += 1
+        result = self.ensemble.step(window, stream=stream)
+        if result is None or not np.isfinite(result.p_slip):
+            # The ensemble refused the window (non-finite) and kept its state: no decision from it.
+            return Detection(index, t_us, float("nan"), 0.0, bool(self.decision.alarm), False, valid=False)
+        d = self.decision.update(result.p_slip, result.p_members)
+        return Detection(index, t_us, float(result.p_slip), float(d.risk), bool(d.alarm), bool(d.rising_edge))
+
+
+def run_recording(detector: Detector, force: np.ndarray, t_us: np.ndarray | None = None) -> list[Detection]:
+    """Push a whole recording through ``detector`` (replay and evaluation); returns every Detection."""
+    out = []
+    ts = np.arange(len(force), dtype=np.int64) * 1000 if t_us is None else t_us
+    for i in range(len(force)):
+        det = detector.push(force[i], int(ts[i]))
+        if det is not None:
+            out.append(det)
+    return out

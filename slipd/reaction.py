@@ -1,0 +1,144 @@
+"""What slipd does on an alarm: stop the arm, tighten the gripper (configurable order and grading).
+
+Each device has its own worker thread (``slipd.worker.DeviceWorker``): the reaction hands the
+vendor calls to them and returns at once, so the arm stop and the gripper tighten run in parallel
+and the control loop never waits on a serial or TCP round trip. Within one device, calls run in the
+order submitted.
+
+Policies:
+- ``actions``: which of ``stop_arm`` / ``tighten_gripper`` run, in this order of submission;
+- ``graded``: tighten to a level proportional to the risk (0..1 between hold and secure) instead of
+  straight to the secure setting, and tighten further when a later alarm carries a higher risk;
+- ``rearm_after_s``: after a reaction, further alarms within this time do not re-issue the same
+  commands (the grasp is being secured already), except a graded escalation.
+Fail-safe (sensor stall, model failure, a device error while reacting): stop the arm, keep the grip.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+
+log = logging.getLogger("slipd.reaction")
+
+ACTIONS = ("stop_arm", "tighten_gripper")
+
+
+@dataclass
+class ReactionRecord:
+    """What was issued for one alarm, with monotonic times (seconds)."""
+
+    t_decision: float
+    risk: float
+    issued: dict[str, float] = field(default_factory=dict)
+    done: dict[str, float] = field(default_factory=dict)
+    errors: dict[str, str] = field(default_factory=dict)
+
+
+class Reaction:
+    """Turns alarms into device commands on the devices' worker threads."""
+
+    def __init__(
+        self,
+        *,
+        actions: tuple[str, ...] | list[str] = ACTIONS,
+        arm=None,
+        gripper=None,
+        arm_worker=None,
+        gripper_worker=None,
+        metrics=None,
+        graded: bool = False,
+        rearm_after_s: float = 1.0,
+        enabled: bool = True,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        unknown = [a for a in actions if a not in ACTIONS]
+        if unknown:
+            raise ValueError(f"unknown reaction action(s) {unknown}; known: {ACTIONS}")
+        self.actions = tuple(actions)
+        self.arm, self.gripper = arm, gripper
+        self.arm_worker, self.gripper_worker = arm_worker, gripper_worker
+        self.metrics = metrics
+        self.graded = graded
+        self.rearm_after_s = rearm_after_s
+        self.enabled = enabled
+        self.clock = clock
+        self.records: list[ReactionRecord] = []
+        self._last_t: float | None = None
+        self._last_level = 0.0
+        self.failsafe_count = 0
+
+    def on_alarm(self, risk: float, t_decision: float | None = None) -> list[Future]:
+        """React to an alarm decided at ``t_decision`` (monotonic); returns the futures of the issued calls."""
+        t0 = self.clock() if t_decision is None else t_decision
+        if not self.enabled:
+            return []
+        level = min(1.0, max(0.0, float(risk))) if self.graded else 1.0
+        recent = self._last_t is not None and t0 - self._last_t < self.rearm_after_s
+        if recent and level <= self._last_level:
+            return []
+        rec = ReactionRecord(t_decision=t0, risk=float(risk))
+        self.records.append(rec)
+        futures: list[Future] = []
+        for action in self.actions:
+            if action == "stop_arm" and self.arm is not None and not recent:
+                futures.append(self._submit(rec, action, self.arm_worker, self.arm.stop, "slip alarm"))
+            elif action == "tighten_gripper" and self.gripper is not None:
+                arg = level if self.graded else None
+                futures.append(self._submit(rec, action, self.gripper_worker, self.gripper.tighten, arg))
+        self._last_t, self._last_level = t0, max(level, self._last_level if recent else 0.0)
+        return futures
+
+    def failsafe(self, reason: str) -> Future | None:
+        """Stop the arm and keep the grip (sensor stalled, model failed, reaction failed)."""
+        self.failsafe_count += 1
+        log.warning("fail-safe: %s: stopping the arm, keeping the grip", reason)
+        if self.metrics is not None:
+            self.metrics.failsafe.labels(reason=reason).inc()
+        if self.arm is None or not self.enabled:
+            return None
+        rec = ReactionRecord(t_decision=self.clock(), risk=1.0)
+        self.records.append(rec)
+        return self._submit(rec, "stop_arm", self.arm_worker, self.arm.stop, f"fail-safe: {reason}")
+
+    def reset(self) -> None:
+        """Forget the last reaction (a new grasp)."""
+        self._last_t = None
+        self._last_level = 0.0
+
+    def _submit(self, rec: ReactionRecord, action: str, worker, fn, arg) -> Future:
+        def call() -> None:
+            rec.issued[action] = self.clock()
+            fn(arg) if arg is not None else fn()
+            rec.done[action] = self.clock()
+
+        fut: Future = worker.submit(call) if worker is not None else _run_inline(call)
+
+        def finished(f: Future) -> None:
+            exc = f.exception()
+            if exc is not None:
+                rec.errors[action] = str(exc)
+                log.error("%s failed: %s", action, exc)
+                if self.metrics is not None:
+                    self.metrics.device_errors.labels(device=action.split("_")[1], kind="reaction").inc()
+                if action != "stop_arm":
+                    # A gripper that cannot tighten leaves the object at risk: halt the arm whatever the policy.
+                    self.failsafe(f"{action} failed")
+            elif self.metrics is not None and action in rec.done:
+                self.metrics.reaction_seconds.observe(rec.done[action] - rec.t_decision)
+
+        fut.add_done_callback(finished)
+        return fut
+
+
+def _run_inline(call: Callable[[], None]) -> Future:
+    fut: Future = Future()
+    try:
+        call()
+        fut.set_result(None)
+    except Exception as exc:  # reported through the future like a worker would
+        fut.set_exception(exc)
+    return fut

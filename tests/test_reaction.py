@@ -1,0 +1,86 @@
+"""Reaction policy (unit level: recording doubles of the devices; the real drivers are tested end to end)."""
+
+import threading
+
+from slipd.metrics import Metrics
+from slipd.reaction import Reaction
+from slipd.worker import DeviceWorker
+
+
+class _Dev:
+    def __init__(self, fail: bool = False) -> None:
+        self.calls: list[tuple] = []
+        self.fail = fail
+        self.event = threading.Event()
+
+    def stop(self, reason: str = "") -> None:
+        self.calls.append(("stop", reason))
+        self.event.set()
+
+    def tighten(self, level: float | None = None) -> None:
+        if self.fail:
+            raise RuntimeError("no status packet")
+        self.calls.append(("tighten", level))
+        self.event.set()
+
+
+class _Clock:
+    t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _reaction(**kw):
+    arm, grip = _Dev(), _Dev(fail=kw.pop("grip_fail", False))
+    clock = _Clock()
+    r = Reaction(arm=arm, gripper=grip, arm_worker=DeviceWorker("arm"), gripper_worker=DeviceWorker("grip"),
+                 metrics=Metrics(), clock=clock, **kw)
+    return r, arm, grip, clock
+
+
+def _wait(futs) -> None:
+    for f in futs:
+        f.exception(timeout=5)
+
+
+def test_alarm_stops_arm_and_tightens_to_secure() -> None:
+    r, arm, grip, _ = _reaction()
+    _wait(r.on_alarm(0.7))
+    assert arm.calls == [("stop", "slip alarm")]
+    assert grip.calls == [("tighten", None)]
+    assert set(r.records[0].done) == {"stop_arm", "tighten_gripper"}
+
+
+def test_rearm_window_suppresses_repeats_but_graded_escalates() -> None:
+    r, arm, grip, clock = _reaction(graded=True, rearm_after_s=1.0)
+    _wait(r.on_alarm(0.4))
+    clock.t += 0.04
+    assert r.on_alarm(0.3) == []  # lower risk inside the re-arm window: nothing new
+    clock.t += 0.04
+    _wait(r.on_alarm(0.9))  # higher risk: tighten further, the arm is already stopping
+    assert [c[0] for c in arm.calls] == ["stop"]
+    assert grip.calls == [("tighten", 0.4), ("tighten", 0.9)]
+    clock.t += 2.0
+    _wait(r.on_alarm(0.5))
+    assert len(arm.calls) == 2
+
+
+def test_actions_order_and_selection() -> None:
+    r, arm, grip, _ = _reaction(actions=["tighten_gripper"])
+    _wait(r.on_alarm(1.0))
+    assert arm.calls == [] and grip.calls == [("tighten", None)]
+
+
+def test_gripper_failure_falls_back_to_arm_stop() -> None:
+    r, arm, _grip, _ = _reaction(actions=["tighten_gripper"], grip_fail=True)
+    _wait(r.on_alarm(1.0))
+    assert arm.event.wait(5)
+    assert arm.calls and arm.calls[0][1].startswith("fail-safe")
+    assert r.failsafe_count == 1 and "tighten_gripper" in r.records[0].errors
+
+
+def test_disabled_reaction_issues_nothing() -> None:
+    r, arm, grip, _ = _reaction(enabled=False)
+    assert r.on_alarm(1.0) == [] and r.failsafe("sensor stalled") is None
+    assert arm.calls == grip.calls == []
