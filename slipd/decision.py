@@ -1,0 +1,69 @@
+"""From ensemble probabilities to a decision: a binary alarm with optional hysteresis, and a risk level.
+
+Alarm: raised when the ensemble mean ``p_slip >= threshold`` (the method's rule, 0.5 by default). With
+``hysteresis > 0`` a raised alarm clears only once ``p_slip < threshold - hysteresis``, so a probability
+wandering around the threshold does not make the alarm chatter (and re-trigger the reaction). With
+``hysteresis = 0`` the decision is exactly the method's per-window rule.
+
+Risk (0..1), a continuous warning level beside the alarm, chosen as ``min(1, p_slip / threshold)``:
+  * it is the same signal the alarm uses, so risk and alarm never contradict each other: risk reaches
+    1 exactly when the alarm rises (without hysteresis);
+  * scaling by the threshold makes graded reaction levels (e.g. "pre-tighten at risk 0.6") keep their
+    meaning when the threshold is re-tuned;
+  * the alternative, the fraction of members alarming, takes only Z + 1 values (0, 0.2, ... for Z = 5)
+    and discards how close each member is; it is reported as ``members_alarming`` instead, a measure
+    of how much the members agree.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class DecisionResult:
+    """One decision: ``alarm`` (state), ``rising_edge`` (alarm raised on this update), ``risk`` 0..1,
+    ``members_alarming`` (fraction of members with P(slip) >= threshold; None when not given)."""
+
+    alarm: bool
+    rising_edge: bool
+    risk: float
+    members_alarming: float | None
+
+
+class Decision:
+    """Stateful thresholding of ensemble outputs. ``update`` once per model step; ``reset`` on a new contact."""
+
+    def __init__(self, threshold: float = 0.5, hysteresis: float = 0.0) -> None:
+        if not 0.0 < threshold < 1.0:
+            raise ValueError(f"threshold must be in (0, 1), got {threshold}")
+        if not 0.0 <= hysteresis < threshold:
+            raise ValueError(f"hysteresis must be in [0, threshold), got {hysteresis} (threshold {threshold})")
+        self.threshold = float(threshold)
+        self.hysteresis = float(hysteresis)
+        self.alarm = False
+
+    def reset(self) -> None:
+        """Clear the alarm state."""
+        self.alarm = False
+
+    def update(self, p_slip: float, p_members: np.ndarray | None = None) -> DecisionResult:
+        """Feed one step's mean P(slip) (and optionally the members' [Z]); return the decision.
+
+        A non-finite or out-of-range ``p_slip`` raises ``ValueError`` and leaves the state unchanged.
+        """
+        p = float(p_slip)
+        if not (math.isfinite(p) and 0.0 <= p <= 1.0):
+            raise ValueError(f"p_slip must be a probability in [0, 1], got {p_slip!r}")
+        # Raised at the threshold; once raised, held down to threshold - hysteresis.
+        alarm = p >= (self.threshold - self.hysteresis if self.alarm else self.threshold)
+        rising = alarm and not self.alarm
+        self.alarm = alarm
+        frac = None
+        if p_members is not None:
+            pm = np.asarray(p_members, dtype=np.float64).reshape(-1)
+            frac = float(np.mean(pm >= self.threshold)) if pm.size else 0.0
+        return DecisionResult(alarm, rising, min(1.0, p / self.threshold), frac)

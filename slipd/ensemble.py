@@ -1,0 +1,241 @@
+"""The slip-detection ensemble at run time: one onnxruntime session of the fused ONNX graph.
+
+``Ensemble.load(manifest_path)`` validates the manifest and its model (``slipd.manifest``), opens a
+session tuned for a latency-bound 25 Hz step on a shared machine (one intra-op thread, no spinning,
+sequential execution, full graph optimisation), checks the session's I/O against the manifest and
+runs a warm-up step before it returns, so the first real decision does not pay for lazy
+initialisation.
+
+Hidden states are kept per *stream* (an integer key: one sensor, one replayed recording, ...).
+``step(window, stream)`` feeds one window (``[T*C]``, or ``[B, T*C]`` for B parallel sequences in one
+stream) and carries that stream's GRU state to the next call. Each stream owns preallocated buffers
+(input, two hidden-state buffers used in turn, outputs) bound once to the session with IOBinding, so a
+step allocates nothing but the small result it returns.
+
+Non-finite policy (the second line of defence; ``slipd.features`` already replaces non-finite samples):
+  * a window containing NaN or +-Inf is refused with ``NonFiniteInput`` before it reaches the model;
+    the stream's state is untouched, so the next good window continues the sequence;
+  * if an output or the next hidden state comes back non-finite, it is not stored: the stream is reset
+    to zeros (the model's initial state) and ``NonFiniteOutput`` is raised, so the caller counts it and
+    treats this window as "no decision".
+Both derive from ``StepError``. An ``Ensemble`` is not thread-safe: one owner calls ``step``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from slipd.features import FeatureSpec
+from slipd.manifest import Manifest, check_session_io, load_manifest, onnx_path_of, open_session
+
+
+class StepError(Exception):
+    """A step that produced no decision. See the module docstring for the policy."""
+
+
+class NonFiniteInput(StepError, ValueError):
+    """The window contains NaN or +-Inf; it was refused and the stream's state is unchanged."""
+
+
+class NonFiniteOutput(StepError, RuntimeError):
+    """The model produced a non-finite output or state; the stream was reset to its initial state."""
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """One decision step. For a 1-D window ``p_slip`` is a float and ``p_members`` is [Z];
+    for a [B, T*C] window they are [B] and [Z, B]."""
+
+    p_slip: float | np.ndarray
+    p_members: np.ndarray
+
+
+@dataclass(frozen=True)
+class SequenceResult:
+    """``step_batch`` output for one sequence of K windows: ``p_slip`` [K], ``p_members`` [Z, K]."""
+
+    p_slip: np.ndarray
+    p_members: np.ndarray
+
+
+class _Stream:
+    """Buffers and bindings of one stream: h ping-pongs between two buffers, so a bad h_next never
+    overwrites the good state."""
+
+    def __init__(self, session: ort.InferenceSession, batch: int, z: int, d: int, h: int) -> None:
+        self.batch = batch
+        self.x = np.zeros((batch, d), np.float32)
+        self.h = [np.zeros((z, batch, h), np.float32), np.zeros((z, batch, h), np.float32)]
+        self.p_slip = np.zeros(batch, np.float32)
+        self.p_members = np.zeros((z, batch), np.float32)
+        self.cur = 0  # index of the buffer holding the current state
+        x_v = ort.OrtValue.ortvalue_from_numpy(self.x)
+        h_v = [ort.OrtValue.ortvalue_from_numpy(a) for a in self.h]
+        p_v = ort.OrtValue.ortvalue_from_numpy(self.p_slip)
+        pm_v = ort.OrtValue.ortvalue_from_numpy(self.p_members)
+        self.bindings = []
+        for src in (0, 1):
+            b = session.io_binding()
+            b.bind_ortvalue_input("window", x_v)
+            b.bind_ortvalue_input("h", h_v[src])
+            b.bind_ortvalue_output("p_slip", p_v)
+            b.bind_ortvalue_output("p_members", pm_v)
+            b.bind_ortvalue_output("h_next", h_v[1 - src])
+            self.bindings.append(b)
+        self._values = (x_v, h_v, p_v, pm_v)  # keep the OrtValues (and so the shared memory) alive
+
+    def reset(self) -> None:
+        self.h[self.cur][:] = 0.0
+
+
+def session_options(threads: int = 1) -> ort.SessionOptions:
+    """Options for a latency-bound step on a shared CPU: no busy-waiting threads, sequential graph."""
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    # Spinning threads would burn the shared cores between the 25 Hz steps.
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    so.add_session_config_entry("session.inter_op.allow_spinning", "0")
+    return so
+
+
+class Ensemble:
+    """The fused ensemble with per-stream GRU states. Create with ``Ensemble.load``."""
+
+    def __init__(self, session: ort.InferenceSession, manifest: Manifest, manifest_path: Path) -> None:
+        self._session = session
+        self.manifest = manifest
+        self.manifest_path = manifest_path
+        self._spec = manifest.spec
+        self._z, self._h, self._d = manifest.members, manifest.hidden, self._spec.input_size
+        self._streams: dict[int, _Stream] = {}
+
+    @classmethod
+    def load(
+        cls, manifest_path: str | os.PathLike, threads: int = 1, expected_spec: FeatureSpec | None = None
+    ) -> Ensemble:
+        """Validate the manifest and model (``ModelError`` on any mismatch), open the session, warm up."""
+        path = Path(manifest_path)
+        manifest = load_manifest(path, expected_spec=expected_spec, check_graph=False)
+        onnx_path = onnx_path_of(manifest, path)
+        session = open_session(onnx_path, session_options(threads))
+        check_session_io(manifest, session, onnx_path)
+        ens = cls(session, manifest, path)
+        ens._warm_up()
+        return ens
+
+    def _warm_up(self) -> None:
+        # Two runs: the first triggers lazy allocations and kernel selection, the second reuses them.
+        warm = _Stream(self._session, 1, self._z, self._d, self._h)
+        for _ in range(2):
+            self._session.run_with_iobinding(warm.bindings[0])
+
+    @property
+    def feature_spec(self) -> FeatureSpec:
+        """The feature layout the model was trained on (from the manifest)."""
+        return self._spec
+
+    @property
+    def members(self) -> int:
+        """Ensemble size Z."""
+        return self._z
+
+    @property
+    def hidden(self) -> int:
+        """GRU hidden size H."""
+        return self._h
+
+    @property
+    def threshold(self) -> float:
+        """The manifest's decision threshold."""
+        return self.manifest.threshold
+
+    @property
+    def streams(self) -> list[int]:
+        """Streams that currently hold a state."""
+        return sorted(self._streams)
+
+    def hidden_state(self, stream: int = 0) -> np.ndarray:
+        """A copy of a stream's GRU state [Z, B, H] (zeros for a stream never stepped)."""
+        st = self._streams.get(stream)
+        return np.zeros((self._z, 1, self._h), np.float32) if st is None else st.h[st.cur].copy()
+
+    def reset(self, stream: int | None = None) -> None:
+        """Forget the state of one stream (back to zeros), or of all streams with ``None``."""
+        if stream is None:
+            self._streams.clear()
+        else:
+            self._streams.pop(stream, None)
+
+    def step(self, window: np.ndarray, stream: int = 0) -> StepResult:
+        """Run one window through the ensemble, carrying ``stream``'s hidden state.
+
+        Raises ``NonFiniteInput`` (state untouched) or ``NonFiniteOutput`` (stream reset); a window of the
+        wrong size raises ``ValueError``.
+        """
+        w = np.asarray(window)
+        single = w.ndim == 1
+        if single:
+            w = w[None, :]
+        if w.ndim != 2 or w.shape[1] != self._d:
+            raise ValueError(f"window must be [{self._d}] or [B, {self._d}], got {np.shape(window)}")
+        if not np.isfinite(w).all():
+            raise NonFiniteInput(f"stream {stream}: window has {int((~np.isfinite(w)).sum())} non-finite values")
+        st = self._streams.get(stream)
+        if st is None:
+            st = self._streams[stream] = _Stream(self._session, w.shape[0], self._z, self._d, self._h)
+        elif st.batch != w.shape[0]:
+            raise ValueError(f"stream {stream} holds {st.batch} sequences, window has {w.shape[0]}; reset it first")
+        np.copyto(st.x, w, casting="same_kind")
+        self._session.run_with_iobinding(st.bindings[st.cur])
+        h_next = st.h[1 - st.cur]
+        if not (np.isfinite(st.p_members).all() and np.isfinite(st.p_slip).all() and np.isfinite(h_next).all()):
+            st.cur = 0
+            st.reset()
+            raise NonFiniteOutput(f"stream {stream}: model output or state is non-finite; stream reset")
+        st.cur = 1 - st.cur
+        if single:
+            return StepResult(float(st.p_slip[0]), st.p_members[:, 0].copy())
+        return StepResult(st.p_slip.copy(), st.p_members.copy())
+
+    def step_batch(self, sequences: Sequence[np.ndarray] | np.ndarray) -> list[SequenceResult]:
+        """Run many independent sequences (each [K_i, T*C], from zero state) in batched calls.
+
+        For evaluation: all sequences advance together, one window per call, and a sequence leaves
+        the batch when it ends. Stream states are not touched. Non-finite windows raise
+        ``NonFiniteInput`` naming the sequence and window.
+        """
+        seqs = [np.asarray(s, dtype=np.float32) for s in sequences]
+        for i, s in enumerate(seqs):
+            if s.ndim != 2 or s.shape[1] != self._d:
+                raise ValueError(f"sequence {i} must be [K, {self._d}], got {s.shape}")
+            bad = ~np.isfinite(s)
+            if bad.any():
+                raise NonFiniteInput(f"sequence {i}, window {int(np.argwhere(bad)[0, 0])}: non-finite values")
+        lengths = np.array([len(s) for s in seqs], dtype=np.int64)
+        order = np.argsort(-lengths, kind="stable")  # longest first: active sequences are a prefix
+        results = [(np.zeros(n, np.float32), np.zeros((self._z, n), np.float32)) for n in lengths]
+        h = np.zeros((self._z, len(seqs), self._h), np.float32)
+        x = np.zeros((len(seqs), self._d), np.float32)
+        sorted_len = lengths[order]
+        for k in range(int(lengths.max(initial=0))):
+            active = int((sorted_len > k).sum())
+            for j in range(active):
+                x[j] = seqs[order[j]][k]
+            p, pm, h_next = self._session.run(None, {"window": x[:active], "h": np.ascontiguousarray(h[:, :active])})
+            if not (np.isfinite(pm).all() and np.isfinite(h_next).all()):
+                raise NonFiniteOutput(f"window {k}: model output or state is non-finite")
+            h[:, :active] = h_next
+            for j in range(active):
+                res = results[order[j]]
+                res[0][k] = p[j]
+                res[1][:, k] = pm[:, j]
+        return [SequenceResult(p, pm) for p, pm in results]
