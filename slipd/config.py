@@ -1,0 +1,696 @@
+"""The daemon's configuration: one YAML file, validated by pydantic models.
+
+Every section rejects unknown keys (a misspelt key is an error, never a silently ignored setting) and
+every field carries a description and bounds. ``load_config`` raises ``ConfigError`` whose message
+has one line per problem, each naming the file, the line where the YAML has one, the key path and the
+reason::
+
+    /etc/slipd/slipd.yaml:42: gripper.secure_pwm: Input should be less than or equal to 885 (got 900)
+
+Relative paths (``model.manifest``, ``recorder.directory``) resolve against the config file's folder.
+``recorder.directory`` left out means ``$STATE_DIRECTORY/recordings`` under systemd
+(``StateDirectory=slipd``), else ``/var/lib/slipd/recordings``.
+
+The models are frozen. A caller that must change a loaded config (the simulated rig fills in the
+ports of its emulated devices) uses ``override(cfg, {"sensor.port": "/dev/pts/3"})``, which validates
+the result again, or pydantic's ``cfg.model_copy(update=...)`` when it knows the values are valid.
+
+``slipd check-config FILE`` (``main_check``) validates the file and the model manifest it points to
+without touching any hardware.
+"""
+
+from __future__ import annotations
+
+import difflib
+import ipaddress
+import os
+import re
+import reprlib
+import stat
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+DEFAULT_STATE_DIR = Path("/var/lib/slipd")
+MAX_CONFIG_BYTES = 1 << 20
+"""A config larger than this is refused before parsing."""
+
+_REPR = reprlib.Repr()
+_REPR.maxstring = _REPR.maxother = 60
+# Values in error messages are shown through reprlib: bounded in depth and items, so a YAML alias
+# bomb (aliases are shared references, cheap to load, exponential to print) cannot hang check-config.
+
+_LABEL = r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+_HOSTNAME = re.compile(rf"^(?=.{{1,253}}$){_LABEL}(\.{_LABEL})*$")
+
+
+class ConfigError(ValueError):
+    """An invalid configuration. ``problems`` holds one line per problem (file, key path, reason)."""
+
+    def __init__(self, problems: list[str]) -> None:
+        self.problems = list(problems)
+        super().__init__("\n".join(self.problems))
+
+
+class FieldProblem(ValueError):
+    """A cross-field check failing on one named field of a section (so the error names that key)."""
+
+    def __init__(self, field: str, reason: str) -> None:
+        self.field = field
+        self.reason = reason
+        super().__init__(reason)
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
+
+
+def _host(value: str, key: str) -> str:
+    """Accept an IPv4/IPv6 address or a DNS host name."""
+    try:
+        ipaddress.ip_address(value)
+        return value
+    except ValueError:
+        pass
+    if not _HOSTNAME.match(value):
+        raise ValueError(f"{key} must be an IP address or a host name")
+    return value
+
+
+def _path_text(value: Any) -> Any:
+    """Paths must be written as non-empty strings (YAML ``123`` or ``[]`` is not a path)."""
+    if isinstance(value, Path):
+        return value
+    if not isinstance(value, str) or not value.strip():
+        raise ValueError("must be a non-empty path string")
+    if "\0" in value:
+        raise ValueError("must not contain a NUL character")
+    return value
+
+
+def _resolve(path: Path, info: ValidationInfo) -> Path:
+    """Expand ``~`` and ``$VARS``; resolve a relative path against the config file's folder."""
+    expanded = os.path.expandvars(os.path.expanduser(str(path)))
+    if "$" in expanded:
+        raise ValueError(f"contains an unset environment variable: {expanded!r}")
+    p = Path(expanded)
+    base = (info.context or {}).get("base_dir")
+    if not p.is_absolute() and base is not None:
+        p = Path(base) / p
+    return Path(os.path.normpath(p))
+
+
+# ---------------------------------------------------------------------------------------------- sections
+class SensorConfig(_Section):
+    """The PapillArray on its USB CDC serial port."""
+
+    port: str = Field(min_length=1, description="serial device of the sensor, e.g. /dev/ttyACM0 or a udev symlink")
+    baudrate: int = Field(
+        115200, ge=1200, le=4_000_000, description="nominal baud rate; USB CDC ignores it, kept for USB-UART bridges"
+    )
+    rate_hz: Literal[100, 250, 500, 1000] = Field(
+        1000, description="sample rate commanded at start-up (f100/f250/f500/f1000); must equal the model's rate"
+    )
+    tare: Literal["bias_command", "startup", "none"] = Field(
+        "bias_command",
+        description="bias_command: send 'z' (sensor zeroes itself, offset 0); startup: average the first "
+        "tare_samples frames while unloaded; none: use the forces as reported",
+    )
+    tare_samples: int = Field(
+        500, ge=1, le=60_000, description="frames averaged for tare=startup (the finger must be unloaded meanwhile)"
+    )
+    bias_timeout_s: float = Field(
+        3.0, ge=0.5, le=30.0, description="how long the bias command may take (sensor needs >= 1 s unloaded, <= 2 s)"
+    )
+    reconnect_initial_s: float = Field(0.1, ge=0.01, le=60.0, description="first reconnection delay after a loss")
+    reconnect_max_s: float = Field(5.0, ge=0.01, le=600.0, description="reconnection delay cap (doubling backoff)")
+    stall_timeout_ms: float = Field(
+        50.0, ge=2.0, le=10_000.0, description="no frame for this long -> fail-safe (reaction.on_failsafe)"
+    )
+    low_latency: bool = Field(True, description="set the serial port's ASYNC_LOW_LATENCY flag (ftdi/cdc latency)")
+    exclusive: bool = Field(True, description="open the port exclusively (TIOCEXCL) so no other process reads it")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> SensorConfig:
+        if self.reconnect_max_s < self.reconnect_initial_s:
+            raise FieldProblem(
+                "reconnect_max_s",
+                f"must be >= reconnect_initial_s ({self.reconnect_initial_s}), got {self.reconnect_max_s}",
+            )
+        period_ms = 1000.0 / self.rate_hz
+        if self.stall_timeout_ms < 2 * period_ms:
+            raise FieldProblem(
+                "stall_timeout_ms",
+                f"must be at least two frame periods at {self.rate_hz} Hz ({2 * period_ms:g} ms), "
+                f"got {self.stall_timeout_ms:g}",
+            )
+        return self
+
+
+class ModelConfig(_Section):
+    """The ONNX ensemble, named by its manifest."""
+
+    manifest: Path = Field(
+        description="model manifest (.json beside the .onnx); a relative path resolves against this file's folder"
+    )
+    threads: int = Field(1, ge=1, le=64, description="onnxruntime intra-op threads (1: lowest jitter)")
+    stride: int = Field(
+        0, ge=0, le=10_000, description="decision every N samples; 0 = the model's window (non-overlapping windows); "
+        "otherwise it must divide the window"
+    )
+    warmup_runs: int = Field(20, ge=0, le=10_000, description="inference runs before the loop starts (warm caches)")
+
+    @field_validator("manifest", mode="before")
+    @classmethod
+    def _manifest_text(cls, v: Any) -> Any:
+        return _path_text(v)
+
+    @field_validator("manifest")
+    @classmethod
+    def _resolve_manifest(cls, v: Path, info: ValidationInfo) -> Path:
+        return _resolve(v, info)
+
+
+class DecisionConfig(_Section):
+    """Turning the ensemble's probability into an alarm."""
+
+    threshold: float | None = Field(
+        None, gt=0.0, lt=1.0, description="alarm when p_slip >= threshold; null: the manifest's threshold"
+    )
+    hysteresis: float = Field(
+        0.0, ge=0.0, lt=0.5, description="alarm clears only when p_slip < threshold - hysteresis (0: off)"
+    )
+    min_consecutive: int = Field(
+        1, ge=1, le=100, description="decisions in a row at or above the threshold before the alarm is raised"
+    )
+
+    @model_validator(mode="after")
+    def _consistent(self) -> DecisionConfig:
+        if self.threshold is not None and self.threshold - self.hysteresis <= 0.0:
+            raise FieldProblem(
+                "hysteresis", f"must be smaller than threshold ({self.threshold}), got {self.hysteresis}"
+            )
+        return self
+
+    def effective_threshold(self, manifest_threshold: float) -> float:
+        """The threshold in force: this section's, else the model manifest's."""
+        return self.threshold if self.threshold is not None else manifest_threshold
+
+
+Action = Literal["stop_arm", "tighten_gripper"]
+
+
+class ReactionConfig(_Section):
+    """What happens on an alarm and on a fail-safe event."""
+
+    actions: list[Action] = Field(
+        default_factory=lambda: ["stop_arm", "tighten_gripper"],
+        description="in this order of submission; [] detects and records only",
+    )
+    graded: bool = Field(False, description="tighten in proportion to the risk (hold..secure) rather than to secure")
+    on_failsafe: Literal["stop_arm", "stop_arm_and_tighten", "log_only"] = Field(
+        "stop_arm",
+        description="on sensor stall or model failure: stop_arm (keep the grip as it is), stop_arm_and_tighten, "
+        "or log_only (not for production)",
+    )
+    rearm_after_s: float = Field(
+        1.0, ge=0.0, le=3600.0, description="after a reaction, further alarms this soon do not re-issue it"
+    )
+
+    @field_validator("actions")
+    @classmethod
+    def _unique(cls, v: list[str]) -> list[str]:
+        if len(set(v)) != len(v):
+            raise ValueError("an action is listed twice")
+        return v
+
+
+class GripperConfig(_Section):
+    """Dynamixel MX-28 gripper servo (dynamixel-sdk)."""
+
+    enabled: bool = Field(True, description="false: no gripper (reaction.actions must not tighten)")
+    port: str | None = Field(None, min_length=1, description="servo bus serial device, e.g. /dev/ttyUSB0")
+    baudrate: int = Field(57600, ge=9600, le=4_500_000, description="servo bus baud rate (MX-28 factory: 57600)")
+    id: int = Field(1, ge=0, le=252, description="servo ID on the bus")
+    protocol: Literal[1.0, 2.0] = Field(2.0, description="Dynamixel protocol of the servo firmware")
+    hold_position: int | None = Field(
+        None, ge=0, le=4095, description="goal position while holding (ticks, 0.088 deg)"
+    )
+    secure_position: int | None = Field(
+        None, ge=0, le=4095, description="goal position when securing the grasp (ticks; closes further)"
+    )
+    hold_pwm: int | None = Field(None, ge=0, le=885, description="protocol 2.0: goal PWM while holding (0..885)")
+    secure_pwm: int | None = Field(None, ge=0, le=885, description="protocol 2.0: goal PWM when securing")
+    hold_torque_limit: int | None = Field(
+        None, ge=0, le=1023, description="protocol 1.0: torque limit while holding (0..1023)"
+    )
+    secure_torque_limit: int | None = Field(
+        None, ge=0, le=1023, description="protocol 1.0: torque limit when securing"
+    )
+    retries: int = Field(3, ge=0, le=20, description="retries of a failed packet before a device error")
+    packet_timeout_ms: float = Field(20.0, ge=1.0, le=1000.0, description="timeout of one status packet")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> GripperConfig:
+        if not self.enabled:
+            return self
+        for key in ("port", "hold_position", "secure_position"):
+            if getattr(self, key) is None:
+                raise FieldProblem(key, "required when the gripper is enabled")
+        if self.protocol == 2.0:
+            need, other, hint = ("hold_pwm", "secure_pwm"), ("hold_torque_limit", "secure_torque_limit"), "pwm"
+        else:
+            need, other, hint = ("hold_torque_limit", "secure_torque_limit"), ("hold_pwm", "secure_pwm"), "torque_limit"
+        for key in other:
+            if getattr(self, key) is not None:
+                raise FieldProblem(key, f"does not apply to protocol {self.protocol}; use the *_{hint} keys")
+        for key in need:
+            if getattr(self, key) is None:
+                raise FieldProblem(key, f"required with protocol {self.protocol}")
+        if getattr(self, need[1]) < getattr(self, need[0]):
+            raise FieldProblem(need[1], f"must be >= {need[0]} ({getattr(self, need[0])}): securing never loosens")
+        if self.secure_position == self.hold_position:
+            raise FieldProblem("secure_position", "must differ from hold_position (tightening must move the fingers)")
+        return self
+
+    @property
+    def hold_effort(self) -> int:
+        """Holding PWM (2.0) or torque limit (1.0)."""
+        return int(self.hold_pwm if self.protocol == 2.0 else self.hold_torque_limit)  # type: ignore[arg-type]
+
+    @property
+    def secure_effort(self) -> int:
+        """Securing PWM (2.0) or torque limit (1.0)."""
+        return int(self.secure_pwm if self.protocol == 2.0 else self.secure_torque_limit)  # type: ignore[arg-type]
+
+
+class ArmConfig(_Section):
+    """Universal Robots arm over RTDE (ur_rtde)."""
+
+    enabled: bool = Field(True, description="false: no arm (reaction.actions must not stop it)")
+    host: str | None = Field(None, min_length=1, description="controller IP address or host name")
+    rtde_frequency: float = Field(
+        500.0, ge=1.0, le=500.0, description="RTDE frequency (Hz): 500 on e-Series, 125 on CB3"
+    )
+    stop_deceleration: float = Field(
+        2.0, gt=0.0, le=40.0, description="deceleration of the stop (m/s^2 for stopl, rad/s^2 for stopj)"
+    )
+    stop_method: Literal["stopl", "stopj", "protective_stop"] = Field(
+        "stopl", description="stopl/stopj: controlled stop; protective_stop: needs an operator to resume"
+    )
+
+    @field_validator("host")
+    @classmethod
+    def _valid_host(cls, v: str | None) -> str | None:
+        return None if v is None else _host(v, "host")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ArmConfig:
+        if self.enabled and self.host is None:
+            raise FieldProblem("host", "required when the arm is enabled")
+        return self
+
+
+class MetricsConfig(_Section):
+    """Prometheus exporter."""
+
+    enabled: bool = Field(True, description="serve /metrics over HTTP")
+    host: str = Field("127.0.0.1", min_length=1, description="listen address (loopback unless scraped remotely)")
+    port: int = Field(9477, ge=1, le=65535, description="listen port")
+
+    @field_validator("host")
+    @classmethod
+    def _valid_host(cls, v: str) -> str:
+        return _host(v, "host")
+
+
+def _default_recording_dir() -> Path:
+    state = os.environ.get("STATE_DIRECTORY", "")
+    # systemd joins several StateDirectory= entries with ':'; the first is slipd's own.
+    first = state.split(":")[0] if state else ""
+    return (Path(first) if first else DEFAULT_STATE_DIR) / "recordings"
+
+
+class RecorderConfig(_Section):
+    """Recordings of raw frames and decisions around alarms."""
+
+    enabled: bool = Field(True, description="record around alarms")
+    directory: Path = Field(
+        default_factory=_default_recording_dir,
+        description="where recordings go; default $STATE_DIRECTORY/recordings, else /var/lib/slipd/recordings",
+    )
+    seconds_before: float = Field(2.0, ge=0.0, le=60.0, description="raw history kept before an alarm")
+    seconds_after: float = Field(1.0, ge=0.0, le=60.0, description="recording continues this long after it")
+    max_total_mb: float = Field(
+        500.0, gt=0.0, le=1_000_000.0, description="MiB for all recordings; the oldest are deleted beyond it"
+    )
+    formats: list[Literal["npz", "csv"]] = Field(
+        default_factory=lambda: ["npz"], min_length=1, description="npz and/or Contactile SDK CSV"
+    )
+
+    @field_validator("directory", mode="before")
+    @classmethod
+    def _directory_text(cls, v: Any) -> Any:
+        return _path_text(v)
+
+    @field_validator("directory")
+    @classmethod
+    def _resolve_dir(cls, v: Path, info: ValidationInfo) -> Path:
+        return _resolve(v, info)
+
+    @field_validator("formats")
+    @classmethod
+    def _unique(cls, v: list[str]) -> list[str]:
+        if len(set(v)) != len(v):
+            raise ValueError("a format is listed twice")
+        return v
+
+    @model_validator(mode="after")
+    def _consistent(self) -> RecorderConfig:
+        if self.enabled and self.seconds_before + self.seconds_after <= 0:
+            raise FieldProblem("seconds_after", "seconds_before + seconds_after must be > 0 when recording")
+        return self
+
+
+class ControlConfig(_Section):
+    """The control loop and its supervision."""
+
+    watchdog: bool = Field(True, description="ping the systemd watchdog (WatchdogSec= in the unit) from the loop")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="logging threshold")
+    max_overrun_ms: float = Field(
+        5.0, gt=0.0, le=1000.0, description="a loop iteration later than this past its deadline counts as an overrun"
+    )
+
+    @field_validator("log_level", mode="before")
+    @classmethod
+    def _upper(cls, v: Any) -> Any:
+        return v.upper() if isinstance(v, str) else v
+
+
+class SlipdConfig(_Section):
+    """The whole configuration file."""
+
+    sensor: SensorConfig = Field(description="the PapillArray")
+    model: ModelConfig = Field(description="the ONNX ensemble")
+    decision: DecisionConfig = Field(default_factory=DecisionConfig, description="alarm rule")
+    reaction: ReactionConfig = Field(default_factory=ReactionConfig, description="what an alarm does")
+    gripper: GripperConfig = Field(description="the Dynamixel gripper servo")
+    arm: ArmConfig = Field(description="the UR arm")
+    metrics: MetricsConfig = Field(default_factory=MetricsConfig, description="Prometheus exporter")
+    recorder: RecorderConfig = Field(default_factory=RecorderConfig, description="alarm recordings")
+    control: ControlConfig = Field(default_factory=ControlConfig, description="the loop and supervision")
+
+    @model_validator(mode="after")
+    def _devices_for_actions(self) -> SlipdConfig:
+        needs = {"stop_arm": ("arm", self.arm.enabled), "tighten_gripper": ("gripper", self.gripper.enabled)}
+        for action in self.reaction.actions:
+            device, enabled = needs[action]
+            if not enabled:
+                raise _SectionProblem(("reaction", "actions"), f"{action} needs {device}.enabled: true")
+        if self.reaction.on_failsafe != "log_only" and not self.arm.enabled:
+            raise _SectionProblem(("reaction", "on_failsafe"), f"{self.reaction.on_failsafe} needs arm.enabled: true")
+        if self.reaction.on_failsafe == "stop_arm_and_tighten" and not self.gripper.enabled:
+            raise _SectionProblem(("reaction", "on_failsafe"), "stop_arm_and_tighten needs gripper.enabled: true")
+        return self
+
+
+class _SectionProblem(FieldProblem):
+    """A cross-section check naming a full key path."""
+
+    def __init__(self, loc: tuple[str, ...], reason: str) -> None:
+        super().__init__(".".join(loc), reason)
+        self.loc = loc
+
+
+# ---------------------------------------------------------------------------------------------- loading
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that rejects duplicate keys (YAML would silently keep the last one)."""
+
+
+def _construct_mapping(loader: _Loader, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+    seen: dict[Any, yaml.Node] = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        try:
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    "while constructing a mapping", node.start_mark, f"found duplicate key {key!r}", key_node.start_mark
+                )
+            seen[key] = key_node
+        except TypeError:
+            pass  # unhashable key: construct_mapping below reports it with its position
+    return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
+
+
+_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+
+
+def _key_lines(node: yaml.Node | None, prefix: tuple[Any, ...] = ()) -> dict[tuple[Any, ...], int]:
+    """Map key paths to 1-based line numbers, so validation errors can point into the file."""
+    lines: dict[tuple[Any, ...], int] = {}
+    if isinstance(node, yaml.MappingNode):
+        for k, v in node.value:
+            if isinstance(k, yaml.ScalarNode):
+                path = (*prefix, k.value)
+                lines[path] = k.start_mark.line + 1
+                lines.update(_key_lines(v, path))
+    elif isinstance(node, yaml.SequenceNode):
+        for i, v in enumerate(node.value):
+            path = (*prefix, i)
+            lines[path] = v.start_mark.line + 1
+            lines.update(_key_lines(v, path))
+    return lines
+
+
+def _allowed_keys(loc: tuple[Any, ...]) -> list[str] | None:
+    """Field names of the section that ``loc`` (ending at an unknown key) sits in."""
+    model: Any = SlipdConfig
+    for part in loc[:-1]:
+        field = model.model_fields.get(part) if isinstance(part, str) else None
+        if field is None or not (isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel)):
+            return None
+        model = field.annotation
+    return list(model.model_fields)
+
+
+def _fmt_loc(loc: tuple[Any, ...]) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int) and not isinstance(part, bool):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + str(part)
+    return out or "(top level)"
+
+
+def _short(value: Any) -> str:
+    return _REPR.repr(value)
+
+
+def _problems(exc: ValidationError, source: str, lines: Mapping[tuple[Any, ...], int]) -> list[str]:
+    """One line per pydantic error: ``file:line: key.path: reason (got value)``."""
+    out = []
+    for err in exc.errors():
+        loc = tuple(err["loc"])
+        reason = err["msg"]
+        cause = (err.get("ctx") or {}).get("error")
+        if isinstance(cause, _SectionProblem):
+            loc, reason = cause.loc, cause.reason
+        elif isinstance(cause, FieldProblem):
+            loc, reason = (*loc, cause.field), cause.reason
+        elif err["type"] == "extra_forbidden":
+            allowed = _allowed_keys(loc)
+            reason = "unknown key"
+            if allowed:
+                close = difflib.get_close_matches(str(loc[-1]), allowed, n=1)
+                reason += f" (did you mean {close[0]!r}?)" if close else f" (allowed: {', '.join(allowed)})"
+        elif err["type"] == "missing":
+            reason = "required key is missing"
+        elif err["type"] == "value_error" and reason.startswith("Value error, "):
+            reason = reason[len("Value error, ") :]
+        if err["type"] not in ("missing", "extra_forbidden") and not isinstance(cause, FieldProblem):
+            reason += f" (got {_short(err.get('input'))})"
+        line = None
+        for n in range(len(loc), 0, -1):  # the deepest key of the path that the file has
+            if loc[:n] in lines:
+                line = lines[loc[:n]]
+                break
+        where = f"{source}:{line}" if line else source
+        out.append(f"{where}: {_fmt_loc(loc)}: {reason}")
+    return out
+
+
+def parse_config(text: str, source: str = "<config>", base_dir: str | os.PathLike | None = None) -> SlipdConfig:
+    """Validate YAML text; ``source`` names it in errors, ``base_dir`` anchors relative paths."""
+    try:
+        loader = _Loader(text)
+        try:
+            node = loader.get_single_node()
+            data = loader.construct_document(node) if node is not None else None
+        finally:
+            loader.dispose()
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        where = f"{source}:{mark.line + 1}:{mark.column + 1}" if mark else source
+        problem = " ".join(str(p) for p in (exc.context, exc.problem) if p)
+        raise ConfigError([f"{where}: YAML syntax error: {problem}"]) from None
+    except yaml.YAMLError as exc:  # reader errors (control characters) carry a position, not a mark
+        raise ConfigError([f"{source}: YAML error: {exc}".replace("\n", " ")]) from None
+    except RecursionError:
+        raise ConfigError([f"{source}: YAML nested too deeply"]) from None
+    if data is None:
+        raise ConfigError([f"{source}: the file is empty; expected a mapping with sensor, model, gripper, arm, ..."])
+    if not isinstance(data, dict):
+        raise ConfigError([f"{source}: top level must be a mapping of sections, got {type(data).__name__}"])
+    return _validate(data, source, base_dir, _key_lines(node))
+
+
+def _validate(
+    data: Mapping[str, Any],
+    source: str,
+    base_dir: str | os.PathLike | None,
+    lines: Mapping[tuple[Any, ...], int] | None = None,
+) -> SlipdConfig:
+    try:
+        return SlipdConfig.model_validate(data, context={"base_dir": base_dir})
+    except ValidationError as exc:
+        raise ConfigError(_problems(exc, source, lines or {})) from None
+    except RecursionError:
+        raise ConfigError([f"{source}: values nested too deeply"]) from None
+
+
+def config_from_dict(
+    data: Mapping[str, Any], source: str = "<dict>", base_dir: str | os.PathLike | None = None
+) -> SlipdConfig:
+    """Validate an already-parsed mapping (tests, the simulated rig)."""
+    return _validate(data, source, base_dir)
+
+
+def load_config(path: str | os.PathLike) -> SlipdConfig:
+    """Read and validate a YAML config file; raise ``ConfigError`` naming the file, key path and reason."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if size > MAX_CONFIG_BYTES:
+            raise ConfigError([f"{path}: {size} bytes is too large for a config file (limit {MAX_CONFIG_BYTES})"])
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError([f"{path}: cannot read ({exc.strerror or exc})"]) from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError([f"{path}: not UTF-8 text (byte {exc.start})"]) from None
+    return parse_config(text, str(path), path.resolve().parent)
+
+
+def override(cfg: SlipdConfig, updates: Mapping[str, Any]) -> SlipdConfig:
+    """A copy of ``cfg`` with dotted keys replaced (``{"sensor.port": "/dev/pts/3"}``), validated again.
+
+    Paths in ``cfg`` are already absolute; a relative path in ``updates`` resolves against the
+    current directory.
+    """
+    data = cfg.model_dump()
+    for dotted, value in updates.items():
+        parts = dotted.split(".")
+        node = data
+        for part in parts[:-1]:
+            if not isinstance(node.get(part), dict):
+                raise ConfigError([f"<override>: {dotted}: no such section {part!r}"])
+            node = node[part]
+        node[parts[-1]] = value
+    return _validate(data, "<override>", Path.cwd())
+
+
+# ---------------------------------------------------------------------------------------------- check-config
+def summary(cfg: SlipdConfig, manifest: Any = None) -> str:
+    """One line saying what this config will drive."""
+    thr = cfg.decision.threshold
+    if thr is None and manifest is not None:
+        thr = manifest.threshold
+    parts = [
+        f"sensor {cfg.sensor.port} @ {cfg.sensor.rate_hz} Hz (tare {cfg.sensor.tare})",
+        f"model {cfg.model.manifest.name}" + (f" ({manifest.sha256[:12]})" if manifest is not None else ""),
+        f"threshold {thr:.3g}" if thr is not None else "threshold from manifest",
+        f"actions {'+'.join(cfg.reaction.actions) or 'none'}" + (" graded" if cfg.reaction.graded else ""),
+    ]
+    g = cfg.gripper
+    parts.append(f"gripper id {g.id} p{g.protocol:g} on {g.port}" if g.enabled else "gripper off")
+    parts.append(f"arm {cfg.arm.host} ({cfg.arm.stop_method})" if cfg.arm.enabled else "arm off")
+    parts.append(f"metrics {cfg.metrics.host}:{cfg.metrics.port}" if cfg.metrics.enabled else "metrics off")
+    parts.append(f"recorder {cfg.recorder.directory}" if cfg.recorder.enabled else "recorder off")
+    return "; ".join(parts)
+
+
+def check_against_manifest(cfg: SlipdConfig, manifest: Any, source: str) -> list[str]:
+    """Problems between the config and a loaded model manifest (rate, stride, threshold)."""
+    problems = []
+    if cfg.sensor.rate_hz != manifest.sample_rate_hz:
+        problems.append(
+            f"{source}: sensor.rate_hz: {cfg.sensor.rate_hz} Hz, but the model was trained at "
+            f"{manifest.sample_rate_hz} Hz"
+        )
+    stride = cfg.model.stride
+    if stride and (stride > manifest.window or manifest.window % stride):
+        problems.append(f"{source}: model.stride: must divide the model's window ({manifest.window}), got {stride}")
+    thr = cfg.decision.effective_threshold(manifest.threshold)
+    if thr - cfg.decision.hysteresis <= 0:
+        problems.append(
+            f"{source}: decision.hysteresis: must be smaller than the threshold ({thr}), got {cfg.decision.hysteresis}"
+        )
+    return problems
+
+
+def permission_warnings(path: str | os.PathLike) -> list[str]:
+    """Warnings about who may change the config (it decides what the robot does)."""
+    mode = Path(path).stat().st_mode
+    warnings = []
+    if mode & stat.S_IWOTH:
+        warnings.append(f"warning: {path} is world-writable; anyone on this machine can change what the robot does "
+                        f"(chmod o-w)")
+    return warnings
+
+
+def main_check(args: Any) -> int:
+    """``slipd check-config FILE``: 0 valid, 3 invalid config, 4 invalid model. Touches no hardware."""
+    from slipd.__main__ import EXIT_CONFIG, EXIT_MODEL, EXIT_OK
+
+    path = Path(args.config)
+    try:
+        cfg = load_config(path)
+    except ConfigError as exc:
+        print(exc, file=sys.stderr)
+        return EXIT_CONFIG
+    for w in permission_warnings(path):
+        print(w, file=sys.stderr)
+    manifest = None
+    try:
+        from slipd.manifest import ModelError, load_manifest
+    except ImportError:  # the model module is optional for a config-only check
+        if not cfg.model.manifest.is_file():
+            print(f"{path}: model.manifest: {cfg.model.manifest}: file not found", file=sys.stderr)
+            return EXIT_MODEL
+        print("warning: slipd.manifest unavailable; the model was not checked", file=sys.stderr)
+    else:
+        try:
+            manifest = load_manifest(cfg.model.manifest)
+        except ModelError as exc:
+            print(f"{path}: model.manifest: {exc}", file=sys.stderr)
+            return EXIT_MODEL
+        problems = check_against_manifest(cfg, manifest, str(path))
+        if problems:
+            print("\n".join(problems), file=sys.stderr)
+            return EXIT_CONFIG
+    print(f"OK {path}: {summary(cfg, manifest)}")
+    return EXIT_OK
