@@ -1,0 +1,597 @@
+"""PapillArray PTSCOM 2.0 codec: frames (decode with resync and checksum, encode) and ASCII commands.
+
+Wire format (Contactile PTSCOM_2.0_SPEC_SEP22, little-endian)::
+
+    55 66 77 88 | payload (L bytes) | u16 checksum | AA BB CC DD        whole frame <= 2048 bytes
+
+The checksum is the sum of the payload bytes truncated to 16 bits. Payload indices count from the
+first byte after the start marker.
+
+Payload::
+
+    byte 0            index size ISZ (bytes per offset; the controller sends 2)
+    table             (type u16, offset ISZ) entries; the table ends where the first block begins
+    type 1  hub       u32 packet counter, u64 timestamp (us)
+    type 3  pillars   Ns u16, Ns sensor offsets; per sensor: Np u16, Np pillar offsets;
+                      per pillar: u16 0x0002, Fx Fy Fz (N) Dx Dy Dz (mm) float32
+    type 4  global    Ns u16, Ns sensor offsets; per sensor: u16 0x0002, Fx Fy Fz (N) Tx Ty Tz (N mm) float32
+    type 5  pillar slip  Ns u16, Ns sensor offsets; per sensor: Np u16, Np pillar offsets;
+                      per pillar: u16 0x0001, slip state int8, friction float32
+    type 6  sensor slip  Ns u16, Ns sensor offsets; per sensor: u16 0x0001, state u8,
+                      friction estimate float32, target grip force float32
+
+With all blocks and one sensor a frame is 433 bytes, which is the figure the public material quotes;
+that count only works out if types 4, 5 and 6 carry the same sensor (and, for 5, pillar) offset tables
+as type 3, so that is the layout used here.
+
+Choices where the public text is ambiguous (encoder and decoder agree on all of them):
+
+- Sensor and pillar offsets are absolute payload indices (like the top-level table). The encoder
+  writes records contiguously in order; the decoder reads them sequentially (as the vendor's layout is
+  contiguous) and only checks that every offset lies inside the payload, so a device that used
+  block-relative offsets would still decode.
+- Block sizes follow from their counts; a known block must end at or before the next block's offset.
+  The payload ends where the last block ends, so the end marker must sit exactly there: a frame whose
+  end marker is elsewhere is ``bad_length``. When the last block's type is unknown (not 1, 3-6) its
+  size cannot be computed; then the first end marker after it whose checksum matches ends the frame.
+- Types 1 and 3 are required (no counter or no forces: ``bad_structure``); 4, 5, 6 are optional.
+- A :class:`Frame` holds one sensor: sensor 0 of a frame, which must have 9 pillars. Further sensors
+  (a controller with two arrays) are checked for structure and otherwise skipped.
+- ISZ 1, 2 and 4 are accepted; anything else is ``bad_structure``.
+- Type 6 state: 0 slip detection off, 1 on, 2 on with the reference loaded (the vendor's reading).
+
+Error accounting of :class:`FrameDecoder`: every byte that is not part of a valid frame is counted in
+``garbage_bytes``; each rejected start marker is counted once under its reason (``bad_checksum``,
+``bad_length``, ``bad_structure``), after which the search resumes one byte further on, so a valid
+frame that begins inside a corrupt one is still found. Nothing in here raises on bad input.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from slipd.geometry import N_PILLARS
+
+START = b"\x55\x66\x77\x88"
+END = b"\xaa\xbb\xcc\xdd"
+MAX_FRAME_BYTES = 2048
+"""Largest whole frame (markers and checksum included) the protocol allows."""
+MAX_PAYLOAD_BYTES = MAX_FRAME_BYTES - len(START) - 2 - len(END)
+MIN_PAYLOAD_BYTES = 1 + 2 * (2 + 1) + 12 + 2  # index size, two table entries, hub, a pillar block header
+
+TYPE_HUB = 1
+TYPE_PILLARS = 3
+TYPE_GLOBAL = 4
+TYPE_PILLAR_SLIP = 5
+TYPE_SENSOR_SLIP = 6
+_KNOWN_TYPES = (TYPE_HUB, TYPE_PILLARS, TYPE_GLOBAL, TYPE_PILLAR_SLIP, TYPE_SENSOR_SLIP)
+_MAX_TABLE_ENTRIES = 32
+_MAX_SENSORS = 8
+
+_PILLAR_TAG = 0x0002
+_GLOBAL_TAG = 0x0002
+_PILLAR_SLIP_TAG = 0x0001
+_SENSOR_SLIP_TAG = 0x0001
+_PILLAR_REC = 2 + 6 * 4  # tag + 6 float32
+_GLOBAL_REC = 2 + 6 * 4
+_PILLAR_SLIP_REC = 2 + 1 + 4
+_SENSOR_SLIP_REC = 2 + 1 + 4 + 4
+_HUB_SIZE = 4 + 8
+
+_ISZ_FORMAT = {1: "<B", 2: "<H", 4: "<I"}
+_U16 = struct.Struct("<H")
+_HUB = struct.Struct("<IQ")
+_SENSOR_SLIP = struct.Struct("<HBff")
+
+SLIP_INELIGIBLE, SLIP_LOST_CONTACT, SLIP_NONE, SLIP_CONTACT_AT_START, SLIP_TLOADING, SLIP_SLIPPED = -2, -1, 0, 1, 2, 3
+"""Per-pillar slip states of the controller's own slip detection (type 5)."""
+
+
+# ---------------------------------------------------------------------- frame
+@dataclass(slots=True)
+class Frame:
+    """One decoded sample of one sensor.
+
+    ``force`` and ``disp`` are [9, 3] float32 in SDK pillar order (fx fy fz in N; dx dy dz in mm).
+    ``wrench`` is the global [6] Fx Fy Fz (N) Tx Ty Tz (N mm) of type 4; ``slip_state`` [9] int8 and
+    ``friction`` [9] float32 come from type 5; ``sensor_state``, ``friction_est`` and
+    ``target_grip_force`` from type 6. Each optional part is None when its block is absent.
+
+    ``dropped_before`` and ``discontinuity`` are not on the wire: the serial reader sets them from the
+    packet counter (frames missing before this one; counter went backwards or the link was re-opened,
+    so the consumer should reset its filter and model state).
+    """
+
+    counter: int
+    t_us: int
+    force: np.ndarray
+    disp: np.ndarray
+    wrench: np.ndarray | None = None
+    slip_state: np.ndarray | None = None
+    friction: np.ndarray | None = None
+    sensor_state: int | None = None
+    friction_est: float | None = None
+    target_grip_force: float | None = None
+    dropped_before: int = 0
+    discontinuity: bool = False
+
+
+# ---------------------------------------------------------------------- encoder
+class _Layout(NamedTuple):
+    template: bytes
+    payload_len: int
+    hub: int
+    pillars: int  # payload index of the first pillar record of sensor 0
+    glob: int  # -1 when absent
+    pillar_slip: int
+    sensor_slip: int
+
+
+_LAYOUTS: dict[tuple[bool, bool, bool], _Layout] = {}
+
+
+def _build_layout(has_global: bool, has_pillar_slip: bool, has_sensor_slip: bool) -> _Layout:
+    """Lay out one single-sensor payload (ISZ 2, records contiguous) and return a zero-filled template."""
+    types = [TYPE_HUB, TYPE_PILLARS]
+    if has_global:
+        types.append(TYPE_GLOBAL)
+    if has_pillar_slip:
+        types.append(TYPE_PILLAR_SLIP)
+    if has_sensor_slip:
+        types.append(TYPE_SENSOR_SLIP)
+    isz = 2
+    sizes = {
+        TYPE_HUB: _HUB_SIZE,
+        TYPE_PILLARS: 2 + isz + 2 + N_PILLARS * isz + N_PILLARS * _PILLAR_REC,
+        TYPE_GLOBAL: 2 + isz + _GLOBAL_REC,
+        TYPE_PILLAR_SLIP: 2 + isz + 2 + N_PILLARS * isz + N_PILLARS * _PILLAR_SLIP_REC,
+        TYPE_SENSOR_SLIP: 2 + isz + _SENSOR_SLIP_REC,
+    }
+    offsets: dict[int, int] = {}
+    pos = 1 + len(types) * (2 + isz)
+    for t in types:
+        offsets[t] = pos
+        pos += sizes[t]
+    payload = bytearray(pos)
+    payload[0] = isz
+    for k, t in enumerate(types):
+        struct.pack_into("<HH", payload, 1 + k * (2 + isz), t, offsets[t])
+
+    def per_pillar(block: int, rec: int, tag: int) -> int:
+        """Write the sensor/pillar tables of a per-pillar block; return the first record's index."""
+        sensor = block + 2 + isz
+        first = sensor + 2 + N_PILLARS * isz
+        struct.pack_into("<HH", payload, block, 1, sensor)
+        _U16.pack_into(payload, sensor, N_PILLARS)
+        for p in range(N_PILLARS):
+            _U16.pack_into(payload, sensor + 2 + p * isz, first + p * rec)
+            _U16.pack_into(payload, first + p * rec, tag)
+        return first
+
+    def per_sensor(block: int, tag: int) -> int:
+        rec = block + 2 + isz
+        struct.pack_into("<HHH", payload, block, 1, rec, tag)
+        return rec
+
+    pillars = per_pillar(offsets[TYPE_PILLARS], _PILLAR_REC, _PILLAR_TAG)
+    glob = per_sensor(offsets[TYPE_GLOBAL], _GLOBAL_TAG) if has_global else -1
+    pslip = per_pillar(offsets[TYPE_PILLAR_SLIP], _PILLAR_SLIP_REC, _PILLAR_SLIP_TAG) if has_pillar_slip else -1
+    sslip = per_sensor(offsets[TYPE_SENSOR_SLIP], _SENSOR_SLIP_TAG) if has_sensor_slip else -1
+    frame = START + bytes(payload) + b"\x00\x00" + END
+    return _Layout(frame, len(payload), offsets[TYPE_HUB], pillars, glob, pslip, sslip)
+
+
+def _layout(has_global: bool, has_pillar_slip: bool, has_sensor_slip: bool) -> _Layout:
+    key = (has_global, has_pillar_slip, has_sensor_slip)
+    lay = _LAYOUTS.get(key)
+    if lay is None:
+        lay = _LAYOUTS[key] = _build_layout(*key)
+    return lay
+
+
+def _as_f32(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float32)
+    if arr.shape != shape:
+        raise ValueError(f"Frame.{name} must have shape {shape}; got {arr.shape}")
+    return arr
+
+
+def encode_frame(frame: Frame) -> bytes:
+    """Encode one frame as the controller sends it (single sensor, ISZ 2).
+
+    Blocks 4, 5 and 6 are written when ``wrench``, ``slip_state``/``friction`` and ``sensor_state``
+    are set (a missing half of type 5 is sent as state 0 / friction -1; missing type 6 values as -1).
+    Raises ValueError for shapes or counter/timestamp values the wire format cannot carry.
+    """
+    if not 0 <= frame.counter < 2**32:
+        raise ValueError(f"Frame.counter must fit u32; got {frame.counter}")
+    if not 0 <= frame.t_us < 2**64:
+        raise ValueError(f"Frame.t_us must fit u64; got {frame.t_us}")
+    has_pslip = frame.slip_state is not None or frame.friction is not None
+    lay = _layout(frame.wrench is not None, has_pslip, frame.sensor_state is not None)
+    buf = bytearray(lay.template)
+    p0 = len(START)
+    _HUB.pack_into(buf, p0 + lay.hub, frame.counter, frame.t_us)
+    rec = np.ndarray((N_PILLARS, 6), dtype="<f4", buffer=buf, offset=p0 + lay.pillars + 2, strides=(_PILLAR_REC, 4))
+    rec[:, :3] = _as_f32("force", frame.force, (N_PILLARS, 3))
+    rec[:, 3:] = _as_f32("disp", frame.disp, (N_PILLARS, 3))
+    if lay.glob >= 0:
+        g = np.ndarray((6,), dtype="<f4", buffer=buf, offset=p0 + lay.glob + 2)
+        g[:] = _as_f32("wrench", frame.wrench, (6,))
+    if lay.pillar_slip >= 0:
+        base = p0 + lay.pillar_slip + 2
+        st = np.ndarray((N_PILLARS,), dtype="i1", buffer=buf, offset=base, strides=(_PILLAR_SLIP_REC,))
+        fr = np.ndarray((N_PILLARS,), dtype="<f4", buffer=buf, offset=base + 1, strides=(_PILLAR_SLIP_REC,))
+        if frame.slip_state is None:
+            st[:] = 0
+        else:
+            states = np.asarray(frame.slip_state)
+            if states.shape != (N_PILLARS,):
+                raise ValueError(f"Frame.slip_state must have shape (9,); got {states.shape}")
+            st[:] = states.astype(np.int8)
+        fr[:] = -1.0 if frame.friction is None else _as_f32("friction", frame.friction, (N_PILLARS,))
+    if lay.sensor_slip >= 0:
+        state = int(frame.sensor_state)  # type: ignore[arg-type]
+        if not 0 <= state < 256:
+            raise ValueError(f"Frame.sensor_state must fit u8; got {state}")
+        fe = -1.0 if frame.friction_est is None else float(frame.friction_est)
+        tg = -1.0 if frame.target_grip_force is None else float(frame.target_grip_force)
+        _SENSOR_SLIP.pack_into(buf, p0 + lay.sensor_slip, _SENSOR_SLIP_TAG, state, fe, tg)
+    total = int(np.frombuffer(buf, dtype=np.uint8, count=lay.payload_len, offset=p0).sum()) & 0xFFFF
+    _U16.pack_into(buf, p0 + lay.payload_len, total)
+    return bytes(buf)
+
+
+def checksum(payload: bytes | bytearray | memoryview) -> int:
+    """PTSCOM checksum of a payload: the byte sum truncated to 16 bits."""
+    return int(np.frombuffer(payload, dtype=np.uint8).sum()) & 0xFFFF
+
+
+# ---------------------------------------------------------------------- decoder
+class _Reject(Exception):
+    """Internal: a start marker does not begin a valid frame (kind is the counter to bump)."""
+
+    def __init__(self, kind: str) -> None:
+        self.kind = kind
+
+
+class _NeedMore(Exception):
+    """Internal: the buffer ends before the frame can be judged."""
+
+
+_BUFFER_BYTES = 1 << 16
+_CHUNK_BYTES = _BUFFER_BYTES - MAX_FRAME_BYTES
+
+
+class FrameDecoder:
+    """Incremental PTSCOM 2.0 decoder: feed it whatever the serial port gave, get whole frames back.
+
+    Frames split across reads are joined, garbage is skipped by searching for the start marker, and a
+    corrupt frame is counted and skipped (never raised). Bytes live in one preallocated buffer that is
+    compacted in place; pillar values are read through strided views of it and copied once into the
+    frame's own arrays (one [2, 9, 3] allocation per frame, ``force`` and ``disp`` being its halves).
+
+    Counters (cumulative): ``frames``, ``garbage_bytes``, ``bad_checksum``, ``bad_length``,
+    ``bad_structure``; ``errors()`` returns the three error counters by kind.
+    """
+
+    ERROR_KINDS = ("bad_checksum", "bad_length", "bad_structure")
+
+    def __init__(self) -> None:
+        self._buf = bytearray(_BUFFER_BYTES)
+        self._u8 = np.frombuffer(self._buf, dtype=np.uint8)
+        self._start = 0
+        self._end = 0
+        # (payload length, structural byte indices, their values, block record positions) of the last
+        # fully validated frame: the controller sends one layout, so later frames are checked against it.
+        self._layout: tuple[int, np.ndarray, np.ndarray, dict[int, int]] | None = None
+        self._value_ranges: list[tuple[int, int]] = []
+        self.frames = 0
+        self.garbage_bytes = 0
+        self.bad_checksum = 0
+        self.bad_length = 0
+        self.bad_structure = 0
+
+    def errors(self) -> dict[str, int]:
+        """Error counters by kind (the ``kind`` label of the frame_errors metric)."""
+        return {"bad_checksum": self.bad_checksum, "bad_length": self.bad_length, "bad_structure": self.bad_structure}
+
+    @property
+    def buffered(self) -> int:
+        """Bytes held back waiting for the rest of a frame (or a possible start marker)."""
+        return self._end - self._start
+
+    def reset(self) -> None:
+        """Drop buffered bytes (after a reconnect the old tail belongs to a dead stream). Counters stay."""
+        self._start = self._end = 0
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Frame]:
+        """Add bytes from the port; return the frames completed by them, in order."""
+        out: list[Frame] = []
+        view = memoryview(data).cast("B")
+        for i in range(0, len(view), _CHUNK_BYTES):
+            chunk = view[i : i + _CHUNK_BYTES]
+            if self._end + len(chunk) > _BUFFER_BYTES:
+                n = self._end - self._start
+                self._buf[:n] = self._buf[self._start : self._end]  # same length: no resize, views stay valid
+                self._start, self._end = 0, n
+            self._buf[self._end : self._end + len(chunk)] = chunk
+            self._end += len(chunk)
+            self._scan(out)
+        return out
+
+    # The scan keeps its state in self._start so that a _NeedMore leaves everything in place for the
+    # next feed.
+    def _scan(self, out: list[Frame]) -> None:
+        buf = self._buf
+        while True:
+            s = buf.find(START, self._start, self._end)
+            if s < 0:
+                # Keep a tail that might be the first bytes of a start marker split across reads.
+                keep = min(len(START) - 1, self._end - self._start)
+                drop = self._end - self._start - keep
+                self.garbage_bytes += drop
+                self._start += drop
+                return
+            if s > self._start:
+                self.garbage_bytes += s - self._start
+                self._start = s
+            try:
+                frame, length = self._decode_at(s)
+            except _NeedMore:
+                return
+            except _Reject as rej:
+                setattr(self, rej.kind, getattr(self, rej.kind) + 1)
+                self.garbage_bytes += 1
+                self._start = s + 1
+                continue
+            out.append(frame)
+            self.frames += 1
+            self._start = s + length
+
+    # ------------------------------------------------------------ one frame
+    def _decode_at(self, s: int) -> tuple[Frame, int]:
+        """Decode the frame starting at buffer index ``s`` (its start marker). Returns it and its length."""
+        p0 = s + len(START)
+        cache = self._layout
+        if cache is not None:
+            plen, idx, vals, found = cache
+            if self._end - p0 >= plen + 2 + len(END) and self._buf[p0 + plen + 2 : p0 + plen + 6] == END:
+                u8 = self._u8
+                if np.array_equal(u8[p0 + idx], vals):
+                    # Same structure as a frame already validated in full: only the values differ.
+                    if (int(u8[p0 : p0 + plen].sum()) & 0xFFFF) != _U16.unpack_from(self._buf, p0 + plen)[0]:
+                        raise _Reject("bad_checksum")
+                    return self._build(p0, found), len(START) + plen + 2 + len(END)
+        frame, total, found = self._decode_full(p0)
+        self._remember_layout(p0, total - len(START) - 2 - len(END), found)
+        return frame, total
+
+    def _remember_layout(self, p0: int, payload_len: int, found: dict[int, int]) -> None:
+        """Cache which payload bytes are structure (everything but values) for the fast path."""
+        mask = np.ones(payload_len, dtype=bool)
+        for a, b in self._value_ranges:
+            mask[a:b] = False
+        idx = np.flatnonzero(mask)
+        self._layout = (payload_len, idx, self._u8[p0 + idx].copy(), dict(found))
+
+    def _decode_full(self, p0: int) -> tuple[Frame, int, dict[int, int]]:
+        """Validate and decode a frame whose payload starts at buffer index ``p0``, walking its structure."""
+        buf = self._buf
+        avail = self._end - p0  # payload bytes (and beyond) present so far
+        self._value_ranges: list[tuple[int, int]] = []
+
+        def need(n: int) -> None:
+            """Payload bytes [0, n) must be present; beyond the protocol's maximum the frame is bad."""
+            if n > MAX_PAYLOAD_BYTES:
+                raise _Reject("bad_length")
+            if n > avail:
+                raise _NeedMore
+
+        need(1)
+        isz = buf[p0]
+        ifmt = _ISZ_FORMAT.get(isz)
+        if ifmt is None:
+            raise _Reject("bad_structure")
+        entry = 2 + isz
+
+        # ---- index table: entries until the first block begins
+        offsets: dict[int, int] = {}
+        pos = 1
+        first_block = MAX_PAYLOAD_BYTES
+        while pos < first_block:
+            if len(offsets) >= _MAX_TABLE_ENTRIES:
+                raise _Reject("bad_structure")
+            need(pos + entry)
+            typ = _U16.unpack_from(buf, p0 + pos)[0]
+            off = struct.unpack_from(ifmt, buf, p0 + pos + 2)[0]
+            pos += entry
+            if typ == 0 or typ in offsets or off < pos or off >= MAX_PAYLOAD_BYTES:
+                raise _Reject("bad_structure")
+            offsets[typ] = off
+            first_block = min(first_block, off)
+        if pos != first_block or TYPE_HUB not in offsets or TYPE_PILLARS not in offsets:
+            raise _Reject("bad_structure")
+
+        # ---- block extents (sequential layout) and where the payload ends
+        blocks = sorted(offsets.items(), key=lambda kv: kv[1])
+        found: dict[int, int] = {}  # type -> payload index of sensor 0's first record
+        payload_len = -1
+        for k, (typ, off) in enumerate(blocks):
+            nxt = blocks[k + 1][1] if k + 1 < len(blocks) else None
+            if nxt is not None and nxt == off:
+                raise _Reject("bad_structure")
+            if typ not in _KNOWN_TYPES:
+                if nxt is None:
+                    payload_len = self._unknown_tail_length(p0, off)
+                self._value_ranges.append((off, nxt if nxt is not None else payload_len))
+                continue
+            end, first_rec = self._block_extent(p0, typ, off, isz, need)
+            if nxt is not None and end > nxt:
+                raise _Reject("bad_structure")
+            found[typ] = first_rec
+            if nxt is None:
+                payload_len = end
+
+        total = len(START) + payload_len + 2 + len(END)
+        if total > MAX_FRAME_BYTES:
+            raise _Reject("bad_length")
+        need(payload_len + 2 + len(END))
+        if buf[p0 + payload_len + 2 : p0 + payload_len + 2 + len(END)] != END:
+            raise _Reject("bad_length")
+        # Sub-table offsets are only required to point inside the payload (see the module docstring).
+        self._check_sub_offsets(p0, offsets, isz, payload_len)
+        if (int(self._u8[p0 : p0 + payload_len].sum()) & 0xFFFF) != _U16.unpack_from(buf, p0 + payload_len)[0]:
+            raise _Reject("bad_checksum")
+        return self._build(p0, found), total, found
+
+    def _block_extent(
+        self, p0: int, typ: int, off: int, isz: int, need: Callable[[int], None]
+    ) -> tuple[int, int]:
+        """End (payload index) of a known block and the index of sensor 0's first record."""
+        buf = self._buf
+        if typ == TYPE_HUB:
+            need(off + _HUB_SIZE)
+            self._value_ranges.append((off, off + _HUB_SIZE))
+            return off + _HUB_SIZE, off
+        need(off + 2)
+        ns = _U16.unpack_from(buf, p0 + off)[0]
+        if not 1 <= ns <= _MAX_SENSORS:
+            raise _Reject("bad_structure")
+        pos = off + 2 + ns * isz
+        if typ in (TYPE_GLOBAL, TYPE_SENSOR_SLIP):
+            rec = _GLOBAL_REC if typ == TYPE_GLOBAL else _SENSOR_SLIP_REC
+            tag = _GLOBAL_TAG if typ == TYPE_GLOBAL else _SENSOR_SLIP_TAG
+            end = pos + ns * rec
+            need(end)
+            for k in range(ns):
+                if _U16.unpack_from(buf, p0 + pos + k * rec)[0] != tag:
+                    raise _Reject("bad_structure")
+                self._value_ranges.append((pos + k * rec + 2, pos + (k + 1) * rec))
+            return end, pos
+        rec = _PILLAR_REC if typ == TYPE_PILLARS else _PILLAR_SLIP_REC
+        tag = _PILLAR_TAG if typ == TYPE_PILLARS else _PILLAR_SLIP_TAG
+        first = -1
+        for k in range(ns):
+            need(pos + 2)
+            npil = _U16.unpack_from(buf, p0 + pos)[0]
+            if (k == 0 and npil != N_PILLARS) or not 1 <= npil <= 64:
+                raise _Reject("bad_structure")
+            recs = pos + 2 + npil * isz
+            end = recs + npil * rec
+            need(end)
+            tags = np.ndarray((npil,), dtype="<u2", buffer=buf, offset=p0 + recs, strides=(rec,))
+            if not (tags == tag).all():
+                raise _Reject("bad_structure")
+            self._value_ranges.extend((recs + j * rec + 2, recs + (j + 1) * rec) for j in range(npil))
+            if k == 0:
+                first = recs
+            pos = end
+        return pos, first
+
+    def _unknown_tail_length(self, p0: int, off: int) -> int:
+        """Payload length when the last block's type is unknown: the first end marker with a valid checksum."""
+        buf = self._buf
+        search = p0 + off
+        limit = min(self._end, p0 + MAX_PAYLOAD_BYTES + 2 + len(END))
+        while True:
+            e = buf.find(END, search, limit)
+            if e < 0:
+                if self._end >= p0 + MAX_PAYLOAD_BYTES + 2 + len(END):
+                    raise _Reject("bad_length")
+                raise _NeedMore
+            plen = e - 2 - p0
+            if plen > off and (int(self._u8[p0 : p0 + plen].sum()) & 0xFFFF) == _U16.unpack_from(buf, p0 + plen)[0]:
+                return plen
+            search = e + 1
+
+    def _check_sub_offsets(self, p0: int, offsets: dict[int, int], isz: int, payload_len: int) -> None:
+        buf = self._buf
+        dt = {1: "u1", 2: "<u2", 4: "<u4"}[isz]
+        for typ in (TYPE_PILLARS, TYPE_GLOBAL, TYPE_PILLAR_SLIP, TYPE_SENSOR_SLIP):
+            off = offsets.get(typ)
+            if off is None:
+                continue
+            ns = _U16.unpack_from(buf, p0 + off)[0]
+            sensor_offs = np.ndarray((ns,), dtype=dt, buffer=buf, offset=p0 + off + 2)
+            if (sensor_offs >= payload_len).any():
+                raise _Reject("bad_structure")
+            if typ in (TYPE_PILLARS, TYPE_PILLAR_SLIP):
+                rec = _PILLAR_REC if typ == TYPE_PILLARS else _PILLAR_SLIP_REC
+                pos = off + 2 + ns * isz
+                for _ in range(ns):
+                    npil = _U16.unpack_from(buf, p0 + pos)[0]
+                    pill_offs = np.ndarray((npil,), dtype=dt, buffer=buf, offset=p0 + pos + 2)
+                    if (pill_offs >= payload_len).any():
+                        raise _Reject("bad_structure")
+                    pos += 2 + npil * isz + npil * rec
+
+    def _build(self, p0: int, found: dict[int, int]) -> Frame:
+        buf = self._buf
+        counter, t_us = _HUB.unpack_from(buf, p0 + found[TYPE_HUB])
+        rec = np.ndarray(
+            (N_PILLARS, 2, 3), dtype="<f4", buffer=buf, offset=p0 + found[TYPE_PILLARS] + 2,
+            strides=(_PILLAR_REC, 12, 4),
+        )
+        fd = np.empty((2, N_PILLARS, 3), dtype=np.float32)
+        np.copyto(fd, rec.transpose(1, 0, 2))
+        frame = Frame(counter, t_us, fd[0], fd[1])
+        g = found.get(TYPE_GLOBAL)
+        if g is not None:
+            frame.wrench = np.frombuffer(buf, dtype="<f4", count=6, offset=p0 + g + 2).astype(np.float32)
+        ps = found.get(TYPE_PILLAR_SLIP)
+        if ps is not None:
+            base = p0 + ps + 2
+            frame.slip_state = np.ndarray(
+                (N_PILLARS,), dtype="i1", buffer=buf, offset=base, strides=(_PILLAR_SLIP_REC,)
+            ).copy()
+            frame.friction = np.ndarray(
+                (N_PILLARS,), dtype="<f4", buffer=buf, offset=base + 1, strides=(_PILLAR_SLIP_REC,)
+            ).astype(np.float32)
+        ss = found.get(TYPE_SENSOR_SLIP)
+        if ss is not None:
+            _tag, state, fe, tg = _SENSOR_SLIP.unpack_from(buf, p0 + ss)
+            frame.sensor_state, frame.friction_est, frame.target_grip_force = state, fe, tg
+        return frame
+
+
+# ---------------------------------------------------------------------- commands
+CMD_BIAS = b"z\n"
+CMD_SLIP_ON = b"S\n"
+CMD_SLIP_OFF = b"s\n"
+RATES_HZ = (100, 250, 500, 1000)
+
+
+def rate_command(hz: int) -> bytes:
+    """The sample-rate command, e.g. ``rate_command(1000) == b"f1000\\n"``; only 100/250/500/1000 Hz exist."""
+    if hz not in RATES_HZ:
+        raise ValueError(f"sample rate {hz!r} Hz not supported by the PapillArray; choose one of {RATES_HZ}")
+    return f"f{hz}\n".encode("ascii")
+
+
+class Command(NamedTuple):
+    """A parsed controller command: kind is "bias", "rate" (value = Hz) or "slip" (value = on/off)."""
+
+    kind: str
+    value: int | bool | None = None
+
+
+def parse_command(line: bytes) -> Command:
+    """Parse one command line (trailing newline optional) as the controller would; ValueError if unknown."""
+    text = bytes(line).rstrip(b"\r\n")
+    if text == b"z":
+        return Command("bias")
+    if text == b"S":
+        return Command("slip", True)
+    if text == b"s":
+        return Command("slip", False)
+    if text[:1] == b"f" and text[1:].isdigit():
+        hz = int(text[1:])
+        if hz in RATES_HZ:
+            return Command("rate", hz)
+    raise ValueError(f"unknown PapillArray command {bytes(line)!r}")
