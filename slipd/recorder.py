@@ -1,0 +1,331 @@
+"""Recordings around alarms: a ring buffer of raw frames and decisions, dumped off the control loop.
+
+The control loop calls ``push_frame`` for every sensor frame and ``push_decision`` for every model
+decision. Both copy into preallocated ring buffers (no allocation per sample). The ring holds
+``seconds_before + seconds_after`` of frames, so when an alarm (a decision with ``alarm=True``, or
+``trigger()`` for a fail-safe event) has been followed by ``seconds_after`` of frames, the ring holds
+exactly the stretch [alarm - before, alarm + after). That stretch is copied once and handed to the
+recorder's own worker thread, which writes it as a ``slipd.recording.Recording`` (``.npz`` and/or the
+Contactile SDK CSV) with the decisions of the stretch in ``meta["decisions"]``.
+
+Crash safety: each file is first written under a staging name (``*.part``, itself written through
+``Recording.save``'s ``*.tmp`` + rename), flushed to disk, given mode 0640, and only then renamed to
+its final ``.npz`` / ``.csv`` name. A crash at any point leaves either the complete file or only
+staging files, which ``slipd.recording.list_recordings`` (suffix ``.npz``/``.csv``) never returns and
+the next ``Recorder`` deletes. The directory is created with mode 0750.
+
+Size bound: after every write the oldest recordings are deleted until all of them together fit
+``max_total_mb`` (MiB). The newest recording is always kept, even alone above the bound.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import threading
+import time
+from collections.abc import Mapping
+from concurrent.futures import Future
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slipd.geometry import N_PILLARS
+from slipd.recording import Recording, write_sdk_csv
+from slipd.worker import DeviceWorker
+
+log = logging.getLogger("slipd.recorder")
+
+FILE_MODE = 0o640
+DIR_MODE = 0o750
+PREFIX = "slip-"
+STAGING_SUFFIXES = (".part", ".tmp")
+FORMATS = ("npz", "csv")
+
+
+@dataclass
+class _Snapshot:
+    """One stretch to write, copied out of the rings."""
+
+    name: str
+    t_us: np.ndarray
+    force: np.ndarray
+    disp: np.ndarray
+    meta: dict[str, Any]
+
+
+class Recorder:
+    """Ring buffer of the last seconds of frames and decisions; writes a recording around each alarm.
+
+    ``push_frame``/``push_decision``/``trigger`` are for the control loop thread only (not thread-safe
+    among themselves); the files are written on the ``recorder`` worker thread.
+    """
+
+    def __init__(
+        self,
+        directory: str | os.PathLike,
+        rate_hz: float,
+        *,
+        seconds_before: float = 2.0,
+        seconds_after: float = 1.0,
+        max_total_mb: float = 500.0,
+        formats: tuple[str, ...] | list[str] = ("npz",),
+        meta: Mapping[str, Any] | None = None,
+        worker: DeviceWorker | None = None,
+        max_pending: int = 4,
+    ) -> None:
+        if rate_hz <= 0 or seconds_before < 0 or seconds_after < 0:
+            raise ValueError(f"rate_hz > 0 and non-negative seconds required, got {rate_hz}, "
+                             f"{seconds_before}, {seconds_after}")
+        unknown = [f for f in formats if f not in FORMATS]
+        if unknown or not formats:
+            raise ValueError(f"formats must be among {FORMATS}, got {list(formats)}")
+        self.directory = Path(directory)
+        self.rate_hz = float(rate_hz)
+        self.seconds_before = float(seconds_before)
+        self.seconds_after = float(seconds_after)
+        self.max_total_bytes = int(max_total_mb * 2**20)
+        self.formats = tuple(formats)
+        self.meta = dict(meta or {})
+        self.before = math.ceil(seconds_before * rate_hz)
+        self.after = math.ceil(seconds_after * rate_hz)
+        self.capacity = max(1, self.before + self.after)
+        n = self.capacity
+        self._t = np.zeros(n, dtype=np.int64)
+        self._force = np.zeros((n, N_PILLARS, 3), dtype=np.float32)
+        self._disp = np.zeros((n, N_PILLARS, 3), dtype=np.float32)
+        # At most one decision per frame, so the same capacity covers the same stretch of time.
+        self._dt = np.zeros(n, dtype=np.int64)
+        self._dp = np.zeros(n, dtype=np.float32)
+        self._da = np.zeros(n, dtype=bool)
+        self.frames_seen = 0
+        self.decisions_seen = 0
+        self._pending_end: int | None = None  # frames_seen at which the current dump is complete
+        self._trigger: dict[str, Any] = {}
+        self._seq = 0
+        self.max_pending = max_pending
+        self._futures: list[Future[list[Path]]] = []
+        self._lock = threading.Lock()  # counters below are written on the worker thread
+        self.written: list[Path] = []
+        self.deleted: list[Path] = []
+        self.failures = 0
+        self.dropped = 0
+        self._own_worker = worker is None
+        self.worker = worker or DeviceWorker("recorder")
+        self._prepare_directory()
+
+    @classmethod
+    def from_config(
+        cls, cfg: Any, rate_hz: float, meta: Mapping[str, Any] | None = None, worker: DeviceWorker | None = None
+    ) -> Recorder:
+        """Build from a ``slipd.config.RecorderConfig``."""
+        return cls(
+            cfg.directory,
+            rate_hz,
+            seconds_before=cfg.seconds_before,
+            seconds_after=cfg.seconds_after,
+            max_total_mb=cfg.max_total_mb,
+            formats=tuple(cfg.formats),
+            meta=meta,
+            worker=worker,
+        )
+
+    # ------------------------------------------------------------------ control-loop side
+    @property
+    def recording(self) -> bool:
+        """True between an alarm and the end of its ``seconds_after``."""
+        return self._pending_end is not None
+
+    def push_frame(self, t_us: int, force: np.ndarray, disp: np.ndarray) -> None:
+        """Add one raw frame (``force``/``disp`` shaped [9, 3]); completes a dump when one is due."""
+        i = self.frames_seen % self.capacity
+        self._t[i] = t_us
+        self._force[i] = force
+        self._disp[i] = disp
+        self.frames_seen += 1
+        if self._pending_end is not None and self.frames_seen >= self._pending_end:
+            self._dump()
+
+    def push_decision(self, t_us: int, p_slip: float, alarm: bool) -> None:
+        """Add one model decision; an alarm starts a recording unless one is already running."""
+        i = self.decisions_seen % self.capacity
+        self._dt[i] = t_us
+        self._dp[i] = p_slip
+        self._da[i] = alarm
+        self.decisions_seen += 1
+        if alarm and self._pending_end is None:
+            self.trigger(t_us, "alarm", p_slip=float(p_slip))
+
+    def trigger(self, t_us: int, reason: str, **details: Any) -> bool:
+        """Start a recording around now (an alarm, a fail-safe event); False if one is already running.
+
+        The stretch ends ``seconds_after`` of frames from now; alarms meanwhile are part of it.
+        """
+        if self._pending_end is not None:
+            return False
+        self._trigger = {"t_us": int(t_us), "reason": reason, "wall_time": time.time(), **details}
+        self._pending_end = self.frames_seen + self.after
+        if self.after == 0:
+            self._dump()
+        return True
+
+    def close(self, timeout: float | None = 30.0) -> None:
+        """Write a recording still in progress (shorter ``after``), wait for writes, stop the worker."""
+        if self._pending_end is not None:
+            self._dump()
+        self.wait(timeout)
+        if self._own_worker:
+            self.worker.close(wait=True)
+
+    def wait(self, timeout: float | None = 30.0) -> list[Path]:
+        """Block until the queued writes are done; returns every file written so far."""
+        for fut in list(self._futures):
+            # A failed write is already logged and counted by the worker; a timeout leaves it queued.
+            with contextlib.suppress(Exception):
+                fut.result(timeout=timeout)
+        self._futures = [f for f in self._futures if not f.done()]
+        with self._lock:
+            return list(self.written)
+
+    def _ordered(self, count: int, t: np.ndarray, *arrays: np.ndarray) -> list[np.ndarray]:
+        """Copies of the ring arrays, oldest entry first (the one allocation per dump)."""
+        n = min(count, self.capacity)
+        start = (count - n) % self.capacity
+        idx = (np.arange(n) + start) % self.capacity
+        return [a[idx] for a in (t, *arrays)]
+
+    def _dump(self) -> None:
+        trig, self._trigger = self._trigger, {}
+        self._pending_end = None
+        self._futures = [f for f in self._futures if not f.done()]
+        if len(self._futures) >= self.max_pending:
+            # The disk cannot keep up; losing a recording is better than growing memory without bound.
+            self.dropped += 1
+            log.warning("recorder: %d writes pending, recording of %s dropped", len(self._futures), trig)
+            return
+        t, force, disp = self._ordered(self.frames_seen, self._t, self._force, self._disp)
+        dt, dp, da = self._ordered(self.decisions_seen, self._dt, self._dp, self._da)
+        if len(t):
+            keep = (dt >= t[0]) & (dt <= t[-1])
+            dt, dp, da = dt[keep], dp[keep], da[keep]
+        meta = dict(self.meta)
+        meta.update(
+            source="slipd-recorder",
+            rate_hz=self.rate_hz,
+            seconds_before=self.seconds_before,
+            seconds_after=self.seconds_after,
+            trigger=trig,
+            decisions={"t_us": dt.tolist(), "p_slip": [round(float(p), 6) for p in dp], "alarm": da.tolist()},
+        )
+        if len(t):
+            meta["events"] = {trig.get("reason", "alarm"): (trig.get("t_us", int(t[0])) - int(t[0])) / 1e6}
+        self._seq += 1
+        stamp = datetime.fromtimestamp(trig.get("wall_time", time.time()), tz=timezone.utc)
+        name = f"{PREFIX}{stamp:%Y%m%dT%H%M%S.%fZ}-{os.getpid()}-{self._seq:04d}"
+        snap = _Snapshot(name, t, force, disp, meta)
+        self._futures.append(self.worker.submit(self._write_logged, snap))
+
+    # ------------------------------------------------------------------ worker side
+    def _prepare_directory(self) -> None:
+        """Create the directory (0750) and remove staging files a crash left behind."""
+        self.directory.mkdir(parents=True, exist_ok=True, mode=DIR_MODE)
+        st = self.directory.stat()
+        if st.st_uid == os.geteuid() and (st.st_mode & 0o777) != DIR_MODE:
+            os.chmod(self.directory, DIR_MODE)
+        for p in self.directory.iterdir():
+            if p.name.startswith(PREFIX) and p.name.endswith(STAGING_SUFFIXES) and p.is_file():
+                log.info("recorder: removing %s left by an interrupted write", p)
+                p.unlink(missing_ok=True)
+
+    def _write_logged(self, snap: _Snapshot) -> list[Path]:
+        try:
+            paths = self._write(snap)
+        except Exception:
+            with self._lock:
+                self.failures += 1
+            log.exception("recorder: writing %s failed", snap.name)
+            raise
+        with self._lock:
+            self.written.extend(paths)
+        log.info("recorder: wrote %s", ", ".join(str(p) for p in paths))
+        try:
+            self._enforce_bound(keep=snap.name)
+        except OSError:
+            log.exception("recorder: enforcing max_total_mb failed")
+        return paths
+
+    def _write(self, snap: _Snapshot) -> list[Path]:
+        rec = Recording(t_us=snap.t_us, force=snap.force, disp=snap.disp, meta=snap.meta)
+        paths = []
+        for fmt in self.formats:
+            final = self.directory / f"{snap.name}.{fmt}"
+            staging = final.with_name(final.name + ".part")
+            if fmt == "npz":
+                rec.save(staging)
+            else:
+                write_sdk_csv(rec, staging)
+            _finalize(staging, final)
+            paths.append(final)
+        _fsync_dir(self.directory)
+        return paths
+
+    def recordings(self) -> dict[str, list[Path]]:
+        """Complete recordings in the directory: name stem -> its files, oldest first."""
+        groups: dict[str, list[Path]] = {}
+        for p in self.directory.iterdir():
+            if p.name.startswith(PREFIX) and p.suffix in (".npz", ".csv") and p.is_file():
+                groups.setdefault(p.stem, []).append(p)
+        return dict(sorted(groups.items()))
+
+    def total_bytes(self) -> int:
+        """Bytes used by the complete recordings in the directory."""
+        return sum(_size(p) for files in self.recordings().values() for p in files)
+
+    def _enforce_bound(self, keep: str) -> None:
+        groups = self.recordings()
+        total = sum(_size(p) for files in groups.values() for p in files)
+        for stem, files in groups.items():
+            if total <= self.max_total_bytes:
+                break
+            if stem == keep:
+                continue
+            for p in files:
+                total -= _size(p)
+                p.unlink(missing_ok=True)
+                with self._lock:
+                    self.deleted.append(p)
+            log.info("recorder: deleted %s (max_total_mb)", stem)
+        if total > self.max_total_bytes:
+            log.warning("recorder: newest recording alone (%d bytes) exceeds max_total_mb", total)
+
+
+def _size(p: Path) -> int:
+    try:
+        return p.stat().st_size
+    except FileNotFoundError:
+        return 0
+
+
+def _finalize(staging: Path, final: Path) -> None:
+    """Flush the staged file to disk, set its mode, then give it its final name (atomic rename)."""
+    fd = os.open(staging, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+        os.fchmod(fd, FILE_MODE)
+    finally:
+        os.close(fd)
+    os.replace(staging, final)
+
+
+def _fsync_dir(directory: Path) -> None:
+    """Make the renames durable (a power cut keeps the directory entries)."""
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

@@ -1,0 +1,239 @@
+"""Recorder: ring buffer, dump around an alarm, size bound, file modes, crash mid-write."""
+
+from __future__ import annotations
+
+import os
+import signal
+import stat
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slipd.recorder import DIR_MODE, FILE_MODE, Recorder
+from slipd.recording import Recording, list_recordings
+
+ROOT = Path(__file__).resolve().parents[1]
+RATE = 1000
+
+
+def frame(i: int) -> tuple[int, np.ndarray, np.ndarray]:
+    """Frame i carries its own index in every value, so a dump shows exactly which frames it holds."""
+    force = np.full((9, 3), i, dtype=np.float32)
+    force[0, 0] = -i
+    disp = np.full((9, 3), i / 1000.0, dtype=np.float32)
+    return 1000 * i, force, disp
+
+
+def feed(rec: Recorder, start: int, stop: int, alarm_at: set[int] = frozenset(), every: int = 40) -> None:
+    for i in range(start, stop):
+        rec.push_frame(*frame(i))
+        if i % every == every - 1 or i in alarm_at:
+            rec.push_decision(1000 * i, 0.9 if i in alarm_at else 0.1, i in alarm_at)
+
+
+def test_ring_wraps_and_dump_holds_the_stretch_around_the_alarm(tmp_path):
+    rec = Recorder(tmp_path, RATE, seconds_before=0.1, seconds_after=0.05)
+    assert rec.capacity == 150
+    # Several wraps of the ring before the alarm at frame 1000.
+    feed(rec, 0, 1000)
+    assert not rec.recording
+    feed(rec, 1000, 1001, alarm_at={1000})
+    assert rec.recording
+    feed(rec, 1001, 1200)
+    rec.close()
+    files = list_recordings(tmp_path)
+    assert len(files) == 1
+    r = Recording.load(files[0])
+    # 100 frames before the alarm frame ... 49 after it: [alarm - before, alarm + after).
+    idx = np.arange(901, 1051)
+    np.testing.assert_array_equal(r.t_us, 1000 * idx)
+    np.testing.assert_array_equal(r.force[:, 1, 2], idx.astype(np.float32))
+    np.testing.assert_array_equal(r.force[:, 0, 0], -idx.astype(np.float32))
+    np.testing.assert_allclose(r.disp[:, 8, 1], idx / 1000.0, rtol=1e-6)
+    d = r.meta["decisions"]
+    assert all(901_000 <= t <= 1_050_000 for t in d["t_us"])
+    assert d["t_us"] == sorted(d["t_us"])
+    assert 1_000_000 in d["t_us"] and d["alarm"][d["t_us"].index(1_000_000)] is True
+    assert r.meta["trigger"]["reason"] == "alarm" and r.meta["trigger"]["t_us"] == 1_000_000
+    assert r.events["alarm"] == pytest.approx(0.099)
+
+
+def test_alarm_early_in_the_stream_and_close_while_recording(tmp_path):
+    rec = Recorder(tmp_path, RATE, seconds_before=0.5, seconds_after=0.5, formats=["npz", "csv"])
+    feed(rec, 0, 20, alarm_at={10})
+    rec.close()  # stream ended 9 frames after the alarm: a shorter recording, not none
+    files = list_recordings(tmp_path)
+    assert [f.suffix for f in files] == [".csv", ".npz"]
+    for f in files:
+        r = Recording.load(f)
+        np.testing.assert_array_equal(r.t_us, 1000 * np.arange(20))
+        assert r.meta["trigger"]["t_us"] == 10_000
+
+
+def test_second_alarm_during_recording_is_part_of_it_and_later_one_starts_another(tmp_path):
+    rec = Recorder(tmp_path, RATE, seconds_before=0.05, seconds_after=0.05)
+    feed(rec, 0, 300, alarm_at={100, 120, 250})
+    rec.close()
+    files = list_recordings(tmp_path)
+    assert len(files) == 2
+    first, second = (Recording.load(f) for f in files)
+    assert first.meta["trigger"]["t_us"] == 100_000 and 120_000 in first.meta["decisions"]["t_us"]
+    assert second.meta["trigger"]["t_us"] == 250_000
+
+
+def test_trigger_for_failsafe_and_meta(tmp_path):
+    rec = Recorder(tmp_path, RATE, seconds_before=0.01, seconds_after=0.0, meta={"model": "m1"})
+    feed(rec, 0, 30)
+    assert rec.trigger(29_000, "sensor_stall", stalled_ms=55.0)
+    rec.close()
+    (f,) = list_recordings(tmp_path)
+    r = Recording.load(f)
+    assert len(r) == 10 and r.t_us[-1] == 29_000
+    assert r.meta["model"] == "m1"
+    assert r.meta["trigger"]["reason"] == "sensor_stall" and r.meta["trigger"]["stalled_ms"] == 55.0
+
+
+def test_modes(tmp_path):
+    d = tmp_path / "rec" / "dir"
+    rec = Recorder(d, RATE, seconds_before=0.01, seconds_after=0.01, formats=["npz", "csv"])
+    feed(rec, 0, 50, alarm_at={20})
+    rec.close()
+    assert stat.S_IMODE(d.stat().st_mode) == DIR_MODE
+    files = list_recordings(d)
+    assert len(files) == 2
+    for f in files:
+        assert stat.S_IMODE(f.stat().st_mode) == FILE_MODE
+
+
+def test_size_bound_deletes_oldest(tmp_path):
+    one = Recorder(tmp_path / "probe", RATE, seconds_before=0.2, seconds_after=0.1)
+    feed(one, 0, 400, alarm_at={250})
+    one.close()
+    size = one.total_bytes()
+    assert size > 0
+    # Room for about 2.5 recordings: after 6 alarms only the newest 2 remain.
+    rec = Recorder(tmp_path / "bounded", RATE, seconds_before=0.2, seconds_after=0.1,
+                   max_total_mb=2.5 * size / 2**20, max_pending=16)
+    alarms = {400 + 400 * k for k in range(6)}
+    feed(rec, 0, 2900, alarm_at=alarms)
+    rec.close()
+    left = [Recording.load(f) for f in list_recordings(tmp_path / "bounded")]
+    assert [r.meta["trigger"]["t_us"] for r in left] == [2000 * 1000, 2400 * 1000]
+    assert rec.total_bytes() <= rec.max_total_bytes
+    assert len(rec.deleted) == 4 and len(rec.written) == 6
+
+
+def test_no_allocation_per_sample(tmp_path):
+    rec = Recorder(tmp_path, RATE, seconds_before=0.1, seconds_after=0.1)
+    buffers = (rec._t, rec._force, rec._disp, rec._dt, rec._dp, rec._da)
+    ids = [id(b) for b in buffers]
+    feed(rec, 0, 500)
+    assert [id(b) for b in (rec._t, rec._force, rec._disp, rec._dt, rec._dp, rec._da)] == ids
+    rec.close()
+
+
+def test_bad_arguments(tmp_path):
+    with pytest.raises(ValueError, match="formats"):
+        Recorder(tmp_path, RATE, formats=["h5"])
+    with pytest.raises(ValueError, match="rate_hz"):
+        Recorder(tmp_path, 0)
+
+
+def test_from_config(tmp_path):
+    from slipd.config import RecorderConfig
+
+    cfg = RecorderConfig(directory=tmp_path / "r", seconds_before=0.02, seconds_after=0.01, formats=["csv"])
+    rec = Recorder.from_config(cfg, RATE)
+    feed(rec, 0, 60, alarm_at={30})
+    rec.close()
+    assert [f.suffix for f in list_recordings(tmp_path / "r")] == [".csv"]
+
+
+# The child records around an alarm; the write is frozen half-way (the format's writer is patched to
+# stop after some bytes and announce it) and the parent kills it with SIGKILL at that moment.
+CHILD = textwrap.dedent(
+    """
+    import sys, time
+    import numpy as np
+    sys.path.insert(0, {root!r})
+    import slipd.recording as recording
+    from slipd.recorder import Recorder
+
+    fmt = {fmt!r}
+
+    def freeze():
+        print("MIDWRITE", flush=True)
+        time.sleep(60)
+
+    if fmt == "npz":
+        def savez(fh, **arrays):
+            fh.write(b"PK\\x03\\x04" + b"\\0" * 5000)  # the start of a zip, never finished
+            fh.flush()
+            freeze()
+        recording.np.savez_compressed = savez
+    else:
+        real_writer = recording.csv.writer
+        def writer(fh):
+            w = real_writer(fh)
+            class Half:
+                n = 0
+                def writerow(self, row):
+                    w.writerow(row)
+                    Half.n += 1
+                    if Half.n == 50:
+                        fh.flush()
+                        freeze()
+            return Half()
+        recording.csv.writer = writer
+
+    rec = Recorder({directory!r}, 1000, seconds_before=0.1, seconds_after=0.1, formats=[fmt])
+    for i in range(400):
+        rec.push_frame(1000 * i, np.full((9, 3), i, np.float32), np.zeros((9, 3), np.float32))
+        if i == 200:
+            rec.push_decision(1000 * i, 0.9, True)
+    rec.wait(timeout=120)
+    """
+)
+
+
+@pytest.mark.parametrize("fmt", ["npz", "csv"])
+def test_crash_mid_write_leaves_no_valid_looking_file(tmp_path, fmt):
+    d = tmp_path / "rec"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CHILD.format(root=str(ROOT), directory=str(d), fmt=fmt)],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout.readline().strip() == "MIDWRITE"
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+    leftovers = sorted(p.name for p in d.iterdir())
+    assert leftovers, "the child should have left its partial file behind"
+    assert all(n.endswith((".part", ".tmp")) for n in leftovers), leftovers
+    assert list_recordings(d) == []  # replay sees nothing
+    # The next recorder on that directory removes the debris.
+    Recorder(d, 1000).close()
+    assert list(d.iterdir()) == []
+
+
+def test_slow_disk_drops_recordings_instead_of_queueing_without_bound(tmp_path):
+    import threading
+
+    from slipd.worker import DeviceWorker
+
+    worker = DeviceWorker("recorder-test")
+    gate = threading.Event()
+    worker.submit(gate.wait, 30)  # the disk "hangs": the worker is busy until the gate opens
+    rec = Recorder(tmp_path, RATE, seconds_before=0.01, seconds_after=0.01, worker=worker, max_pending=2)
+    feed(rec, 0, 200, alarm_at={20, 60, 100, 140})
+    assert rec.dropped == 2
+    gate.set()
+    rec.close()
+    worker.close()
+    assert len(list_recordings(tmp_path)) == 2 and rec.failures == 0
