@@ -1,0 +1,261 @@
+"""Training and augmentation: each augmentation does what it claims; --tiny trains loadable members."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from slipd.features import FeatureSpec, batch_windows, tare_offset
+from slipd.geometry import N_PILLARS, OUTER
+from slipd.recording import Recording, RecordingError
+from tools import augment as A
+from tools import train as T
+from tools.slipnet import SlipNet
+
+TARE = (0, 100)
+
+
+def synthetic_recording(rng: np.random.Generator, n: int = 1200, kind: str = "slip") -> Recording:
+    """A crude stick-slip sequence: press, then a lateral ramp; pillars saturate at mu * fz one by one.
+
+    Shorter pillars (corners, then edges) carry less normal force, so they reach the friction limit
+    first: the incipient-slip span runs from the first to the last outer pillar sliding. A "stop"
+    recording halts the ramp before any pillar slides.
+    """
+    t = np.arange(n)
+    bias = rng.normal(0.0, 0.3, size=(N_PILLARS, 3)).astype(np.float32)  # an untared sensor offset
+    press = np.clip((t - 150) / 200.0, 0.0, 1.0)
+    base = np.array([0.5, 0.8, 0.5, 0.8, 1.2, 0.8, 0.5, 0.8, 0.5]) + rng.uniform(-0.15, 0.15, N_PILLARS)
+    fz_peak = rng.uniform(1.0, 2.0) * base
+    fz = press[:, None] * fz_peak[None, :]
+    mu = 0.8 * rng.uniform(0.9, 1.1, N_PILLARS)
+    theta = rng.uniform(0, 2 * np.pi)
+    move0 = 400
+    limit = mu * fz + 1e-9
+    # Tangential force asked per sample (N): every outer pillar slides before the end of the recording.
+    rate = rng.uniform(1.2, 2.5) * (mu * fz_peak)[list(OUTER)].max() / (n - move0)
+    # A stop halts while the least-loaded pillar is at 60 % of its friction limit.
+    stop_at = n if kind == "slip" else move0 + int(0.6 * (mu * fz_peak).min() / rate)
+    travel = np.clip(t, move0, stop_at) - move0
+    demand = travel[:, None] * rate * np.ones(N_PILLARS)
+    slip = (demand >= limit) & (t[:, None] >= move0) & (t[:, None] < stop_at)
+    slip[:, 4] = False  # the centre pillar (tallest, most loaded) sticks in this toy
+    ft = np.where(slip, 0.85 * limit, np.minimum(demand, limit))
+    force = np.zeros((n, N_PILLARS, 3), np.float32)
+    force[..., 0] = ft * np.cos(theta)
+    force[..., 1] = ft * np.sin(theta)
+    force[..., 2] = fz
+    force += bias + rng.normal(0.0, 0.01, size=force.shape).astype(np.float32)
+    label = A.label_from_slip(slip)
+    return Recording(t_us=t * 1000, force=force, disp=np.zeros_like(force), slip=slip, label=label,
+                     meta={"kind": kind, "tare_samples": list(TARE)})
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory) -> Path:
+    rng = np.random.default_rng(7)
+    folder = tmp_path_factory.mktemp("recs")
+    for i in range(8):
+        synthetic_recording(rng, kind="stop" if i % 4 == 3 else "slip").save(folder / f"rec_{i:03d}.npz")
+    (folder / "index.json").write_text(json.dumps({"summary": {"recordings": 8, "generator": "test"}}))
+    return folder
+
+
+def _seq(rng: np.random.Generator, n: int = 1200, kind: str = "slip") -> A.Seq:
+    rec = synthetic_recording(rng, n, kind)
+    return A.Seq(rec.force - tare_offset(rec.force, *TARE), rec.label, rec.slip)
+
+
+# ---------------------------------------------------------------------------------- augmentations
+def test_synthetic_recordings_have_an_incipient_span() -> None:
+    rec = synthetic_recording(np.random.default_rng(1))
+    assert 0 < rec.label.sum() < len(rec) / 2
+    assert not synthetic_recording(np.random.default_rng(1), kind="stop").label.any()
+
+
+def test_taring_before_the_pipeline_equals_the_pipelines_own_tare() -> None:
+    rec = synthetic_recording(np.random.default_rng(2))
+    spec = FeatureSpec()
+    offset = tare_offset(rec.force, *TARE)
+    direct, ends_a = batch_windows(rec.force, spec, offset)
+    pre, ends_b = batch_windows(rec.force - offset, spec, None)
+    np.testing.assert_array_equal(direct, pre)
+    np.testing.assert_array_equal(ends_a, ends_b)
+
+
+def test_rotation_preserves_magnitude_and_rotates_fx_fy() -> None:
+    seq = _seq(np.random.default_rng(3))
+    theta = 1.1
+    rot = A.rotate_forces(seq, theta)
+    mag = np.hypot(seq.force[..., 0], seq.force[..., 1])
+    np.testing.assert_allclose(np.hypot(rot.force[..., 0], rot.force[..., 1]), mag, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(rot.force[..., 2], seq.force[..., 2])
+    big = mag > 0.5  # angle is well defined only for a clear tangential force
+    turned = np.angle((rot.force[..., 0] + 1j * rot.force[..., 1])[big]) - np.angle(
+        (seq.force[..., 0] + 1j * seq.force[..., 1])[big])
+    np.testing.assert_allclose(np.angle(np.exp(1j * (turned - theta))), 0.0, atol=1e-5)
+    np.testing.assert_array_equal(rot.label, seq.label)
+
+
+def test_grid90_moves_pillars_with_their_forces() -> None:
+    seq = _seq(np.random.default_rng(4))
+    perm = A.grid90_permutation(1)
+    assert perm[4] == 4 and sorted(perm) == list(range(9))
+    # 90 degrees CCW: the pillar at (7, 7) (P0) moves to (-7, 7) (P2).
+    assert perm[2] == 0
+    rot = A.rotate_grid_90(seq, 1)
+    np.testing.assert_allclose(rot.force[:, 2, 0], -seq.force[:, 0, 1], atol=1e-6)
+    np.testing.assert_allclose(rot.force[:, 2, 1], seq.force[:, 0, 0], atol=1e-6)
+    np.testing.assert_array_equal(rot.slip[:, 2], seq.slip[:, 0])
+    four = A.rotate_grid_90(A.rotate_grid_90(rot, 1), 2)
+    np.testing.assert_allclose(four.force, seq.force, atol=1e-5)
+
+
+@pytest.mark.parametrize("rate", A.SPEED_RATES)
+def test_speed_variation_shortens_by_the_rate_and_keeps_labels_aligned(rate: float) -> None:
+    seq = _seq(np.random.default_rng(5))
+    # Tag each sample so we can find where it came from: fz of pillar 4 = its original index.
+    seq.force[:, 4, 2] = np.arange(len(seq))
+    out = A.drop_samples(seq, rate, np.random.default_rng(0))
+    assert len(out) == len(seq) - round(rate * len(seq))
+    src = out.force[:, 4, 2].astype(int)
+    assert np.all(np.diff(src) > 0)  # order kept, no repeats
+    np.testing.assert_array_equal(out.label, seq.label[src])
+    np.testing.assert_array_equal(out.slip, seq.slip[src])
+    np.testing.assert_array_equal(out.force, seq.force[src])
+
+
+def test_unloaded_pillars_become_small_noise_and_stop_slipping() -> None:
+    seq = _seq(np.random.default_rng(6), n=4000)
+    rng = np.random.default_rng(0)
+    hits = 0
+    trials = 400
+    for _ in range(trials):
+        out = A.unload_pillars(seq, rng)
+        if out is seq:
+            continue
+        hits += 1
+        gone = np.flatnonzero(~out.loaded)
+        assert 1 <= len(gone) <= 3
+        noise = out.force[:, gone]
+        assert abs(noise.mean()) < 2e-4 and 0.0008 < noise.std() < 0.0012
+        assert not out.slip[:, gone].any()
+        kept = [p for p in OUTER if out.loaded[p]]
+        np.testing.assert_array_equal(out.label, A.label_from_slip(out.slip, kept))
+        np.testing.assert_array_equal(out.force[:, out.loaded], seq.force[:, out.loaded])
+    assert 0.15 < hits / trials < 0.25  # p = 0.2
+
+
+def test_mixing_takes_pillars_from_sources_and_relabels_from_slip_truth() -> None:
+    rng = np.random.default_rng(8)
+    sources = [_seq(rng, n=1000 + 50 * i, kind="stop" if i % 3 == 0 else "slip") for i in range(9)]
+    for i, s in enumerate(sources):
+        s.force[:, :, 2] += 1000.0 * (i + 1)  # fz identifies the source recording (before any scaling)
+    for seed in range(20):
+        out = A.mix_pillars(sources, np.random.default_rng(seed))
+        assert len(out) == 1000  # cut to the shortest source
+        np.testing.assert_array_equal(out.label, A.label_from_slip(out.slip, OUTER))
+        # Every position holds a whole pillar sequence of one source, maybe scaled by [0.2, 2].
+        used = set()
+        for pos in range(N_PILLARS):
+            col = out.force[:, pos]
+            match = None
+            for i, s in enumerate(sources):
+                for p in range(N_PILLARS):
+                    ref = s.force[:1000, p]
+                    k = float(col[0, 2] / ref[0, 2])
+                    if 0.2 - 1e-6 <= k <= 2.0 + 1e-6 and np.allclose(col, ref * k, rtol=1e-4, atol=1e-4):
+                        match = (i, p)
+                        np.testing.assert_array_equal(out.slip[:, pos], s.slip[:1000, p])
+            assert match is not None
+            used.add(match[0])
+        assert len(used) == 9  # nine different recordings
+    with pytest.raises(ValueError, match="slip truth"):
+        A.mix_pillars([A.Seq(sources[0].force, sources[0].label, None)], np.random.default_rng(0))
+
+
+def test_label_rule_some_but_not_all() -> None:
+    slip = np.zeros((4, 9), bool)
+    slip[1, 0] = True
+    slip[2, list(OUTER)] = True
+    slip[3, 4] = True  # only the centre: not considered
+    np.testing.assert_array_equal(A.label_from_slip(slip), [0, 1, 0, 0])
+    np.testing.assert_array_equal(A.label_from_slip(slip, []), [0, 0, 0, 0])
+
+
+def test_bootstrap_is_forty_percent_with_replacement() -> None:
+    rng = np.random.default_rng(0)
+    idx = T.bootstrap_indices(300, 0.4, rng)
+    assert len(idx) == 120 and idx.min() >= 0 and idx.max() < 300
+    draws = [T.bootstrap_indices(300, 0.4, rng) for _ in range(20)]
+    assert any(len(np.unique(d)) < len(d) for d in draws)  # repeats happen: with replacement
+    assert not all(np.array_equal(draws[0], d) for d in draws[1:])  # re-drawn each time
+
+
+def test_pack_lanes_resets_h_at_each_sequence_start() -> None:
+    items = [T.Item(np.full((k, 3), i, np.float32), np.full(k, i % 2, np.int64)) for i, k in enumerate([5, 3, 4, 2])]
+    lanes = T.pack_lanes(items, 2, np.random.default_rng(0))
+    assert lanes.x.shape[0] == 2 and int(lanes.valid.sum()) == 14
+    assert int((lanes.keep == 0).sum()) == 4
+    # every window of every sequence is present exactly once
+    got = sorted(lanes.x[..., 0][lanes.valid].tolist())
+    assert got == sorted(sum(([float(i)] * k for i, k in enumerate([5, 3, 4, 2])), []))
+
+
+# ----------------------------------------------------------------------------------------- train
+def test_tiny_training_writes_loadable_members_whose_loss_falls(data_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    assert T.main(["--data", str(data_dir), "--out", str(out), "--tiny", "--epochs", "6", "--quiet",
+                   "--seed", "3", "--threads", "1"]) == 0
+    for k in range(2):
+        ckpt = torch.load(out / f"member_{k}.pt", map_location="cpu", weights_only=False)
+        assert set(ckpt) >= {"state_dict", "config", "feature_spec", "provenance", "history"}
+        assert FeatureSpec.from_dict(ckpt["feature_spec"]) == FeatureSpec()
+        net = SlipNet(**ckpt["config"])
+        net.load_state_dict(ckpt["state_dict"])
+        assert ckpt["config"]["input_size"] == 640 and ckpt["config"]["hidden"] == 16
+        prov = ckpt["provenance"]
+        assert prov["seed"] == 3 and prov["data"] == str(data_dir)
+        assert prov["index"] == {"recordings": 8, "generator": "test"}
+        assert prov["args"]["augs"] == ["mixing", "rotation", "speed", "unloaded"]
+        hist = ckpt["history"]
+        assert len(hist) == 6
+        assert hist[-1]["loss"] < hist[0]["loss"]
+        p, _ = net.eval()(torch.zeros(3, 640), torch.zeros(3, 16))
+        torch.testing.assert_close(p.sum(1), torch.ones(3))
+    lines = [json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines()]
+    assert sum(1 for e in lines if "epoch" in e) == 12
+    assert sum(1 for e in lines if e.get("event") == "done") == 2
+
+    # Resumable: existing members are skipped, and the same seed reproduces the same weights.
+    before = (out / "member_0.pt").stat().st_mtime_ns
+    assert T.main(["--data", str(data_dir), "--out", str(out), "--tiny", "--epochs", "6", "--quiet",
+                   "--seed", "3", "--threads", "1", "--members", "1"]) == 0
+    assert (out / "member_0.pt").stat().st_mtime_ns == before
+    assert json.loads((out / "train_log.jsonl").read_text().splitlines()[-1])["event"] == "skipped"
+    again = tmp_path / "again"
+    assert T.main(["--data", str(data_dir), "--out", str(again), "--tiny", "--epochs", "6", "--quiet",
+                   "--seed", "3", "--threads", "1", "--members", "1", "--no-eval"]) == 0
+    a = torch.load(out / "member_0.pt", weights_only=False)["state_dict"]
+    b = torch.load(again / "member_0.pt", weights_only=False)["state_dict"]
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], rtol=0, atol=0)
+
+
+def test_no_advanced_aug_and_bad_input(data_dir: Path, tmp_path: Path) -> None:
+    args = T.parse_args(["--data", str(data_dir), "--out", str(tmp_path), "--no-advanced-aug"])
+    assert args.augs == ["rotation", "speed"] and args.members == 5 and args.enc == 1024
+    with pytest.raises(SystemExit):
+        T.parse_args(["--data", str(data_dir), "--out", str(tmp_path), "--aug", "rotation,flip"])
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert T.main(["--data", str(empty), "--out", str(tmp_path / "o"), "--tiny", "--quiet"]) == 2
+    rec = synthetic_recording(np.random.default_rng(0))
+    rec.label = None
+    rec.save(empty / "nolabel.npz")
+    with pytest.raises(RecordingError, match="nolabel.npz.*label"):
+        T.load_sequences(empty, FeatureSpec())

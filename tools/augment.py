@@ -1,0 +1,204 @@
+"""The method's training augmentations, applied to raw sequences BEFORE the feature pipeline.
+
+Every function here takes and returns a ``Seq``: tared forces [N, 9, 3] (offset already removed,
+so an unloaded pillar reads ~0 N), the [N] window-label source and the optional [N, 9] per-pillar
+slip truth. Filtering and windowing are always left to ``slipd.features`` afterwards, so augmented
+training data passes through exactly the code the daemon runs.
+
+Why tared forces: removing the offset commutes with the pipeline's first stages (holding the last
+finite value, then subtracting a constant), so ``batch_windows(force - offset, spec, None)`` equals
+``batch_windows(force, spec, offset)`` bit for bit, and it makes the physical augmentations
+meaningful: a rotated, scaled or "unloaded" pillar is rotated, scaled or zeroed around its unloaded
+reading, not around an arbitrary sensor bias. It also keeps the tare stretch valid after samples are
+dropped or pillars are mixed from different recordings.
+
+Augmentations (names used by ``tools/train.py --aug``):
+    rotation   ``rotate_forces``: every (fx, fy) pair of a sequence rotated by one theta ~ U[0, 2 pi).
+               This is the method's version. It rotates the force vectors only, not the pillar
+               positions, so it is not an exact physical symmetry of the 3x3 array (a rotated sensor
+               would also move its pillars; the shorter corner pillars would land on edge positions
+               unless theta is a multiple of 90 degrees). ``rotate_grid_90`` is the exact symmetry
+               for multiples of 90 degrees (positions permuted AND vectors rotated); it is offered
+               as the extra augmentation ``grid90``.
+    speed      ``drop_samples``: drop a fraction of samples (rates 0, 0.1, 0.2, 0.3, 0.4), keep the
+               1 kHz spacing; labels and slip truth are dropped alongside.
+    unloaded   ``unload_pillars``: with p = 0.2 replace 1..3 pillars (all three axes) by N(0, 0.001 N).
+    mixing     ``mix_pillars``: nine pillar sequences from different recordings, some scaled by a
+               factor in [0.2, 2.0], at permuted positions; the label is recomputed from the slip
+               truth of the pillars used (``label_from_slip``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from slipd.geometry import N_PILLARS, OUTER, PILLAR_XY_MM
+
+SPEED_RATES = (0.0, 0.1, 0.2, 0.3, 0.4)
+"""The method's sample-drop rates for speed variation."""
+UNLOADED_SIGMA_N = 0.001
+"""Noise of an unloaded pillar in the method (N)."""
+
+
+@dataclass
+class Seq:
+    """One training sequence before the feature pipeline (tared forces, labels, optional slip truth)."""
+
+    force: np.ndarray
+    """[N, 9, 3] float32, offset removed."""
+    label: np.ndarray
+    """[N] uint8, 1 = incipient slip."""
+    slip: np.ndarray | None = None
+    """[N, 9] bool per-pillar sliding truth, or None when the recording has none."""
+    loaded: np.ndarray | None = None
+    """[9] bool: False where a pillar was replaced by unloaded noise (None = all loaded)."""
+
+    def __post_init__(self) -> None:
+        n = len(self.force)
+        if self.force.shape != (n, N_PILLARS, 3):
+            raise ValueError(f"force must be [N, 9, 3], got {self.force.shape}")
+        if self.label.shape != (n,):
+            raise ValueError(f"label must be [{n}], got {self.label.shape}")
+        if self.slip is not None and self.slip.shape != (n, N_PILLARS):
+            raise ValueError(f"slip must be [{n}, 9], got {self.slip.shape}")
+
+    def __len__(self) -> int:
+        return len(self.force)
+
+
+def label_from_slip(slip: np.ndarray, considered: Sequence[int] = OUTER) -> np.ndarray:
+    """The method's labelling rule: incipient slip (1) while some but not all considered pillars slip.
+
+    ``slip`` is [N, 9] bool; ``considered`` lists the pillars that count (the outer eight by default:
+    the centre pillar never slips under rotation). With no considered pillar the label is all 0.
+    """
+    cols = np.asarray(list(considered), dtype=np.intp)
+    if cols.size == 0:
+        return np.zeros(len(slip), np.uint8)
+    n_slip = np.asarray(slip, bool)[:, cols].sum(axis=1)
+    return ((n_slip > 0) & (n_slip < cols.size)).astype(np.uint8)
+
+
+def rotate_forces(seq: Seq, theta: float) -> Seq:
+    """Rotate every (fx, fy) pair by ``theta`` radians (the method's rotation augmentation).
+
+    fz, labels and slip truth are unchanged; per-pillar tangential magnitude is preserved.
+    """
+    c, s = np.cos(theta), np.sin(theta)
+    f = seq.force.copy()
+    fx, fy = seq.force[..., 0], seq.force[..., 1]
+    f[..., 0] = c * fx - s * fy
+    f[..., 1] = s * fx + c * fy
+    return Seq(f.astype(np.float32, copy=False), seq.label, seq.slip, seq.loaded)
+
+
+def grid90_permutation(k: int) -> np.ndarray:
+    """``perm`` such that after rotating the sensor by k * 90 degrees, new pillar j holds old pillar perm[j]."""
+    ang = k * np.pi / 2
+    c, s = np.cos(ang), np.sin(ang)
+    rotated = PILLAR_XY_MM @ np.array([[c, s], [-s, c]])  # row i: old pillar i's position after rotation
+    perm = np.empty(N_PILLARS, np.intp)
+    for i, xy in enumerate(rotated):
+        j = int(np.argmin(np.linalg.norm(PILLAR_XY_MM - xy, axis=1)))
+        perm[j] = i
+    return perm
+
+
+def rotate_grid_90(seq: Seq, k: int) -> Seq:
+    """Exact symmetry of the array: rotate positions and force vectors by k * 90 degrees.
+
+    The slip truth moves with its pillar; the label is unchanged (the outer ring maps onto itself).
+    """
+    perm = grid90_permutation(k % 4)
+    rotated = rotate_forces(seq, k * np.pi / 2)
+    slip = None if seq.slip is None else seq.slip[:, perm]
+    loaded = None if seq.loaded is None else seq.loaded[perm]
+    return Seq(np.ascontiguousarray(rotated.force[:, perm]), seq.label, slip, loaded)
+
+
+def drop_samples(seq: Seq, rate: float, rng: np.random.Generator) -> Seq:
+    """Drop a fraction ``rate`` of samples at random (keeping order and the 1 kHz spacing).
+
+    The result has ``len(seq) - round(rate * len(seq))`` samples; labels and slip truth are dropped
+    alongside so every kept sample keeps its own label.
+    """
+    if not 0.0 <= rate < 1.0:
+        raise ValueError(f"drop rate must be in [0, 1), got {rate}")
+    n = len(seq)
+    n_drop = int(round(rate * n))
+    if n_drop == 0:
+        return seq
+    keep = np.sort(rng.choice(n, size=n - n_drop, replace=False))
+    slip = None if seq.slip is None else seq.slip[keep]
+    return Seq(seq.force[keep], seq.label[keep], slip, seq.loaded)
+
+
+def unload_pillars(
+    seq: Seq,
+    rng: np.random.Generator,
+    p: float = 0.2,
+    n_range: tuple[int, int] = (1, 3),
+    sigma: float = UNLOADED_SIGMA_N,
+    considered: Sequence[int] = OUTER,
+) -> Seq:
+    """With probability ``p`` replace 1..3 pillars (fx, fy, fz) by N(0, sigma) noise.
+
+    An unloaded pillar touches nothing, so it cannot slip: its slip truth is cleared and, when the
+    sequence has slip truth, the label is recomputed over the considered pillars still loaded.
+    Without slip truth the label is kept (the method's version).
+    """
+    if rng.random() >= p:
+        return seq
+    k = int(rng.integers(n_range[0], n_range[1] + 1))
+    chosen = rng.choice(N_PILLARS, size=k, replace=False)
+    force = seq.force.copy()
+    force[:, chosen, :] = rng.normal(0.0, sigma, size=(len(seq), k, 3)).astype(np.float32)
+    loaded = np.ones(N_PILLARS, bool) if seq.loaded is None else seq.loaded.copy()
+    loaded[chosen] = False
+    if seq.slip is None:
+        return Seq(force, seq.label, None, loaded)
+    slip = seq.slip.copy()
+    slip[:, chosen] = False
+    label = label_from_slip(slip, [p_ for p_ in considered if loaded[p_]])
+    return Seq(force, label, slip, loaded)
+
+
+def mix_pillars(
+    sources: Sequence[Seq],
+    rng: np.random.Generator,
+    scale_p: float = 0.5,
+    scale_range: tuple[float, float] = (0.2, 2.0),
+    considered: Sequence[int] = OUTER,
+) -> Seq:
+    """Build one sequence from nine pillar sequences of different recordings (the method's mixing).
+
+    Each of the nine slots takes a random pillar of a different source (sources repeat only when
+    fewer than nine are given), each slot is scaled by U[scale_range] with probability ``scale_p``,
+    and the slots are placed at a random permutation of the pillar positions. All sources are cut to
+    the shortest one. Every source needs slip truth: the label is recomputed with ``label_from_slip``
+    over the considered positions, from the slip truth of the pillars placed there.
+    """
+    if not sources:
+        raise ValueError("mix_pillars needs at least one source sequence")
+    if any(s.slip is None for s in sources):
+        raise ValueError("mix_pillars needs slip truth in every source (to recompute the label)")
+    n = min(len(s) for s in sources)
+    src = rng.choice(len(sources), size=N_PILLARS, replace=len(sources) < N_PILLARS)
+    pillar = rng.integers(0, N_PILLARS, size=N_PILLARS)
+    positions = rng.permutation(N_PILLARS)  # slot j goes to pillar position positions[j]
+    scale = np.where(rng.random(N_PILLARS) < scale_p, rng.uniform(*scale_range, size=N_PILLARS), 1.0)
+    force = np.empty((n, N_PILLARS, 3), np.float32)
+    slip = np.empty((n, N_PILLARS), bool)
+    loaded = np.ones(N_PILLARS, bool)
+    for j in range(N_PILLARS):
+        s = sources[src[j]]
+        pos = positions[j]
+        force[:, pos] = s.force[:n, pillar[j]] * np.float32(scale[j])
+        slip[:, pos] = s.slip[:n, pillar[j]]  # type: ignore[index]
+        if s.loaded is not None:
+            loaded[pos] = s.loaded[pillar[j]]
+    label = label_from_slip(slip, [p for p in considered if loaded[p]])
+    return Seq(force, label, slip, loaded)
