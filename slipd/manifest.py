@@ -20,7 +20,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from slipd.features import FeatureSpec
 
@@ -84,43 +84,45 @@ class Manifest(BaseModel):
     pillar_mapping: str
     metrics: dict[str, Any] = Field(default_factory=dict)
 
-    @model_validator(mode="after")
-    def _consistent(self) -> Manifest:
-        if self.format_version != FORMAT_VERSION:
-            raise ValueError(f"format_version {self.format_version} is not supported (expected {FORMAT_VERSION})")
-        spec = self.spec  # raises ValueError with the reason on a bad dict
-        # The spelled-out fields are for people; they must say the same as the spec the code uses.
-        pairs = {
-            "sample_rate_hz": (self.sample_rate_hz, spec.rate_hz),
-            "window": (self.window, spec.window),
-            "median": (self.median, spec.median),
-            "stride": (self.stride, spec.step),
-            "pillars": (self.pillars, list(spec.pillars)),
-            "channels": (self.channels, list(spec.channels)),
-        }
-        for key, (mine, theirs) in pairs.items():
-            if mine != theirs:
-                raise ValueError(f"{key}={mine!r} disagrees with feature_spec ({theirs!r})")
-        if [t.name for t in self.inputs] != list(INPUT_NAMES):
-            raise ValueError(f"inputs must be named {list(INPUT_NAMES)}, got {[t.name for t in self.inputs]}")
-        if [t.name for t in self.outputs] != list(OUTPUT_NAMES):
-            raise ValueError(f"outputs must be named {list(OUTPUT_NAMES)}, got {[t.name for t in self.outputs]}")
-        expected = expected_io(spec.input_size, self.members, self.hidden)
-        for t in (*self.inputs, *self.outputs):
-            if t.shape != expected[t.name]:
-                raise ValueError(
-                    f"{t.name} shape {t.shape} does not match the feature spec and ensemble size "
-                    f"(expected {expected[t.name]})"
-                )
-        return self
-
     @property
     def spec(self) -> FeatureSpec:
         """The feature layout as the ``FeatureSpec`` the feature code uses."""
-        try:
-            return FeatureSpec.from_dict(self.feature_spec)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"feature_spec is not a valid FeatureSpec: {exc}") from exc
+        return FeatureSpec.from_dict(self.feature_spec)
+
+
+def check_consistency(manifest: Manifest, path: str | os.PathLike) -> None:
+    """The manifest agrees with itself: format version, feature spec, its spelled-out copies, I/O shapes."""
+    if manifest.format_version != FORMAT_VERSION:
+        raise ModelError(path, "format_version", f"{manifest.format_version} is not supported (expected "
+                         f"{FORMAT_VERSION})")
+    try:
+        spec = manifest.spec
+    except (TypeError, ValueError) as exc:
+        raise ModelError(path, "feature_spec", f"not a valid FeatureSpec: {exc}") from exc
+    # The spelled-out fields are for people; they must say the same as the spec the code uses.
+    pairs = {
+        "sample_rate_hz": (manifest.sample_rate_hz, spec.rate_hz),
+        "window": (manifest.window, spec.window),
+        "median": (manifest.median, spec.median),
+        "stride": (manifest.stride, spec.step),
+        "pillars": (manifest.pillars, list(spec.pillars)),
+        "channels": (manifest.channels, list(spec.channels)),
+    }
+    for key, (mine, theirs) in pairs.items():
+        if mine != theirs:
+            raise ModelError(path, key, f"{mine!r} disagrees with feature_spec ({theirs!r})")
+    for kind, infos, names in (("inputs", manifest.inputs, INPUT_NAMES), ("outputs", manifest.outputs, OUTPUT_NAMES)):
+        if [t.name for t in infos] != list(names):
+            raise ModelError(path, kind, f"must be named {list(names)}, got {[t.name for t in infos]}")
+    expected = expected_io(spec.input_size, manifest.members, manifest.hidden)
+    for kind, infos in (("inputs", manifest.inputs), ("outputs", manifest.outputs)):
+        for t in infos:
+            if t.shape != expected[t.name]:
+                raise ModelError(
+                    path, f"{kind}.{t.name}.shape",
+                    f"{t.shape} does not fit the feature spec (T*C = {spec.input_size}), members and hidden size "
+                    f"(expected {expected[t.name]})",
+                )
 
 
 def expected_io(input_size: int, members: int, hidden: int) -> dict[str, list[Dim]]:
@@ -181,7 +183,7 @@ def write_manifest(manifest: Manifest, path: str | os.PathLike) -> None:
 
 
 def read_manifest(path: str | os.PathLike) -> Manifest:
-    """Parse and validate the manifest JSON only (no file or graph checks)."""
+    """Parse the manifest JSON and check it is consistent (no file or graph checks)."""
     path = Path(path)
     if not path.is_file():
         raise ModelError(path, "manifest", "file not found")
@@ -190,11 +192,13 @@ def read_manifest(path: str | os.PathLike) -> Manifest:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ModelError(path, "manifest", f"not readable JSON: {exc}") from exc
     try:
-        return Manifest.model_validate(data)
+        manifest = Manifest.model_validate(data)
     except ValidationError as exc:
         err = exc.errors()[0]
         field = ".".join(str(p) for p in err["loc"]) or "manifest"
         raise ModelError(path, field, err["msg"]) from exc
+    check_consistency(manifest, path)
+    return manifest
 
 
 def onnx_path_of(manifest: Manifest, manifest_path: str | os.PathLike) -> Path:
