@@ -1,0 +1,347 @@
+"""Serial reader of the PapillArray: PTSCOM 2.0 frames into the asyncio loop, with reconnects.
+
+The port is read on the loop's own thread: ``loop.add_reader`` wakes us when bytes are waiting, one
+non-blocking ``readv`` fills a preallocated buffer, the decoder turns it into frames and
+``on_frames(frames)`` gets them at once. No thread hop per sample, no allocation per read beyond the
+frames themselves.
+
+Opening: pyserial with ``exclusive=True`` (an flock, so a second daemon cannot interleave reads),
+then the kernel's low-latency flag (TIOCSSERIAL ASYNC_LOW_LATENCY) where the driver supports it, and a
+warning when an FTDI adapter's latency timer would batch frames (the PapillArray itself is USB CDC ACM,
+which has none).
+
+Packet counter accounting, per frame:
+    counter + 1                  normal
+    counter + 2 .. + max_gap     ``dropped_before`` = missing frames, counted in ``dropped_frames``
+    equal, backwards, or a jump larger than ``max_gap``
+                                 ``discontinuity`` = True (the consumer resets its state), counted in
+                                 ``discontinuities``; nothing counted as dropped
+The first frame after a reconnect is flagged as a discontinuity too (the link was down; how many frames
+that cost is unknowable when the controller restarts its counter). The counter wraps at 2**32.
+
+On EOF, EIO or hangup the reader closes the port, calls ``on_disconnect(reason)`` and retries the open
+with exponential backoff (``reconnect_initial_s`` doubling up to ``reconnect_max_s``); each success
+after a loss counts in ``reconnects``.
+"""
+
+from __future__ import annotations
+
+import array
+import asyncio
+import contextlib
+import errno
+import fcntl
+import logging
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import serial
+
+from slipd.metrics import Metrics
+from slipd.pts import Frame, FrameDecoder
+
+log = logging.getLogger(__name__)
+
+# linux/serial.h and asm-generic/ioctls.h
+_TIOCGSERIAL = 0x541E
+_TIOCSSERIAL = 0x541F
+_ASYNC_LOW_LATENCY = 1 << 13
+_SERIAL_FLAGS_OFFSET = 16  # struct serial_struct: int type, int line, unsigned port, int irq, int flags
+_SERIAL_STRUCT_BYTES = 128  # larger than the kernel's struct on every ABI; the kernel copies its own size
+
+FTDI_SYSFS = "/sys/bus/usb-serial/devices"
+
+
+class SensorError(RuntimeError):
+    """The sensor port cannot be opened or written; the message names the port and the reason."""
+
+
+def set_low_latency(fd: int, port: str = "") -> bool:
+    """Set ASYNC_LOW_LATENCY on a serial fd. Returns False (logged at debug) where the driver lacks it."""
+    buf = array.array("b", bytes(_SERIAL_STRUCT_BYTES))
+    try:
+        fcntl.ioctl(fd, _TIOCGSERIAL, buf, True)
+        flags = int.from_bytes(buf[_SERIAL_FLAGS_OFFSET : _SERIAL_FLAGS_OFFSET + 4].tobytes(), "little", signed=True)
+        if flags & _ASYNC_LOW_LATENCY:
+            return True
+        flags |= _ASYNC_LOW_LATENCY
+        buf[_SERIAL_FLAGS_OFFSET : _SERIAL_FLAGS_OFFSET + 4] = array.array(
+            "b", flags.to_bytes(4, "little", signed=True)
+        )
+        fcntl.ioctl(fd, _TIOCSSERIAL, buf, True)
+    except OSError as exc:
+        # A pty or a CDC ACM device without TIOCSSERIAL: nothing to set, reads are already immediate.
+        log.debug("%s: low-latency mode not supported (%s)", port or fd, exc)
+        return False
+    log.debug("%s: low-latency mode set", port or fd)
+    return True
+
+
+def check_latency_timer(port: str, sysfs_root: str | Path = FTDI_SYSFS) -> int | None:
+    """Warn when a USB-serial adapter's latency timer (ms) would batch 1 kHz frames; returns it or None."""
+    tty = os.path.basename(os.path.realpath(port))
+    path = Path(sysfs_root) / tty / "latency_timer"
+    try:
+        value = int(path.read_text().strip())
+    except (OSError, ValueError):
+        return None
+    if value > 1:
+        log.warning(
+            "%s: USB latency timer is %d ms (%s); frames arrive in batches. Set it to 1: echo 1 > %s",
+            port, value, path, path,
+        )
+    return value
+
+
+class SerialSensor:
+    """Reads PTSCOM 2.0 frames from a serial port inside the running asyncio loop.
+
+    ``on_frames(frames)`` and ``on_disconnect(reason)`` are called on the loop's thread; an exception
+    they raise is logged and does not stop the reader. ``baudrate`` is nominal (CDC ignores it).
+    """
+
+    def __init__(
+        self,
+        port: str,
+        on_frames: Callable[[list[Frame]], None],
+        *,
+        baudrate: int = 115200,
+        on_disconnect: Callable[[str], None] | None = None,
+        reconnect_initial_s: float = 0.05,
+        reconnect_max_s: float = 2.0,
+        metrics: Metrics | None = None,
+        max_gap: int = 60_000,
+        read_bytes: int = 1 << 16,
+        sysfs_root: str | Path = FTDI_SYSFS,
+    ) -> None:
+        if reconnect_initial_s <= 0 or reconnect_max_s < reconnect_initial_s:
+            raise ValueError(
+                f"reconnect backoff needs 0 < initial ({reconnect_initial_s}) <= max ({reconnect_max_s})"
+            )
+        self.port = port
+        self.baudrate = baudrate
+        self.on_frames = on_frames
+        self.on_disconnect = on_disconnect
+        self.reconnect_initial_s = reconnect_initial_s
+        self.reconnect_max_s = reconnect_max_s
+        self.max_gap = max_gap
+        self.sysfs_root = sysfs_root
+        self.decoder = FrameDecoder()
+        self._rbuf = bytearray(read_bytes)
+        self._rview = memoryview(self._rbuf)
+        self._serial: serial.Serial | None = None
+        self._fd = -1
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._reconnect_task: asyncio.Task[None] | None = None
+        self._stopping = False
+        self._connected = asyncio.Event()
+        self._last_counter: int | None = None
+        self._after_reconnect = False
+        # Counters (cumulative over reconnects).
+        self.frames = 0
+        self.dropped_frames = 0
+        self.discontinuities = 0
+        self.reconnects = 0
+        self.disconnects = 0
+        self.low_latency = False
+        self.last_frame_time: float | None = None
+        """time.monotonic() of the read that delivered the latest frame (None before the first)."""
+        self._metrics = metrics
+        self._seen_errors = dict.fromkeys(FrameDecoder.ERROR_KINDS, 0)
+        self._seen_garbage = 0
+        if metrics is not None:
+            kinds = (*FrameDecoder.ERROR_KINDS, "discontinuity")
+            self._m_errors = {k: metrics.frame_errors.labels(kind=k) for k in kinds}
+            self._m_reconnects = metrics.reconnects.labels(device="sensor")
+
+    # ------------------------------------------------------------ lifecycle
+    @property
+    def connected(self) -> bool:
+        """True while the port is open and being read."""
+        return self._fd >= 0
+
+    @property
+    def last_counter(self) -> int | None:
+        """Packet counter of the latest frame."""
+        return self._last_counter
+
+    async def start(self) -> None:
+        """Open the port and start reading. Raises SensorError when the first open fails."""
+        self._loop = asyncio.get_running_loop()
+        self._stopping = False
+        try:
+            self._open()
+        except (serial.SerialException, OSError) as exc:
+            raise SensorError(f"{self.port}: cannot open sensor port ({exc})") from exc
+
+    async def wait_connected(self, timeout: float | None = None) -> bool:
+        """Wait until the port is open (after a reconnect); False on timeout."""
+        try:
+            await asyncio.wait_for(self._connected.wait(), timeout)
+        except asyncio.TimeoutError:
+            return False
+        return True
+
+    async def stop(self) -> None:
+        """Stop reading, cancel reconnecting and close the port."""
+        self._stopping = True
+        task, self._reconnect_task = self._reconnect_task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self._close()
+
+    def send_command(self, data: bytes) -> None:
+        """Write a controller command (see slipd.pts: CMD_BIAS, rate_command(...)). SensorError if not open."""
+        if self._fd < 0:
+            raise SensorError(f"{self.port}: cannot send {data!r}: sensor not connected")
+        view = memoryview(data)
+        deadline = time.monotonic() + 0.1
+        while view:
+            try:
+                n = os.write(self._fd, view)
+            except BlockingIOError:
+                # Commands are a few bytes; a full output queue for 100 ms means the device is not reading.
+                if time.monotonic() > deadline:
+                    raise SensorError(f"{self.port}: output queue full, command {data!r} not sent") from None
+                time.sleep(0.001)
+                continue
+            except OSError as exc:
+                self._lost(f"write error: {exc}")
+                raise SensorError(f"{self.port}: cannot send {data!r} ({exc})") from exc
+            view = view[n:]
+
+    # ------------------------------------------------------------ port
+    def _open(self) -> None:
+        ser = serial.Serial(self.port, self.baudrate, timeout=0, write_timeout=0, exclusive=True)
+        try:
+            fd = ser.fileno()
+            flags = fcntl.fcntl(fd, fcntl.F_GETFL)
+            fcntl.fcntl(fd, fcntl.F_SETFL, flags | os.O_NONBLOCK)
+            self.low_latency = set_low_latency(fd, self.port)
+            check_latency_timer(self.port, self.sysfs_root)
+            assert self._loop is not None
+            self._loop.add_reader(fd, self._on_readable)
+        except BaseException:
+            ser.close()
+            raise
+        self._serial, self._fd = ser, fd
+        self.decoder.reset()
+        self._connected.set()
+        log.info("%s: sensor port open", self.port)
+
+    def _close(self) -> None:
+        if self._fd >= 0 and self._loop is not None:
+            self._loop.remove_reader(self._fd)
+        if self._serial is not None:
+            with contextlib.suppress(Exception):
+                self._serial.close()
+        self._serial, self._fd = None, -1
+        self._connected.clear()
+
+    def _lost(self, reason: str) -> None:
+        """The link died: close, tell the consumer, and start reconnecting."""
+        if self._fd < 0:
+            return
+        self._close()
+        self.disconnects += 1
+        self._after_reconnect = True
+        log.warning("%s: sensor disconnected (%s)", self.port, reason)
+        if self.on_disconnect is not None:
+            try:
+                self.on_disconnect(reason)
+            except Exception:
+                log.exception("on_disconnect callback failed")
+        if not self._stopping and self._loop is not None:
+            self._reconnect_task = self._loop.create_task(self._reconnect())
+
+    async def _reconnect(self) -> None:
+        delay = self.reconnect_initial_s
+        while not self._stopping:
+            await asyncio.sleep(delay)
+            try:
+                self._open()
+            except (serial.SerialException, OSError) as exc:
+                log.debug("%s: reconnect failed (%s); next try in %.3f s", self.port, exc, delay)
+                delay = min(delay * 2, self.reconnect_max_s)
+                continue
+            self.reconnects += 1
+            if self._metrics is not None:
+                self._m_reconnects.inc()
+            log.info("%s: sensor reconnected (reconnect #%d)", self.port, self.reconnects)
+            return
+
+    # ------------------------------------------------------------ reading
+    def _on_readable(self) -> None:
+        try:
+            n = os.readv(self._fd, [self._rbuf])
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            reason = "hangup (EIO)" if exc.errno == errno.EIO else f"read error: {exc}"
+            self._lost(reason)
+            return
+        if n == 0:
+            self._lost("EOF")
+            return
+        frames = self.decoder.feed(self._rview[:n])
+        if self._metrics is not None:
+            self._update_error_metrics()
+        if not frames:
+            return
+        self.last_frame_time = time.monotonic()
+        self._account(frames)
+        try:
+            self.on_frames(frames)
+        except Exception:
+            log.exception("on_frames callback failed")
+
+    def _account(self, frames: list[Frame]) -> None:
+        """Gap and discontinuity detection from the packet counter."""
+        last = self._last_counter
+        dropped = 0
+        breaks = 0
+        for f in frames:
+            c = f.counter
+            if last is None:
+                pass
+            elif self._after_reconnect:
+                f.discontinuity = True
+                breaks += 1
+            else:
+                diff = (c - last) & 0xFFFFFFFF
+                if diff != 1:
+                    if 1 < diff <= self.max_gap:
+                        f.dropped_before = diff - 1
+                        dropped += diff - 1
+                    else:
+                        f.discontinuity = True
+                        breaks += 1
+            self._after_reconnect = False
+            last = c
+        self._last_counter = last
+        self.frames += len(frames)
+        self.dropped_frames += dropped
+        self.discontinuities += breaks
+        m = self._metrics
+        if m is not None:
+            m.frames.inc(len(frames))
+            if dropped:
+                m.dropped_frames.inc(dropped)
+            if breaks:
+                self._m_errors["discontinuity"].inc(breaks)
+
+    def _update_error_metrics(self) -> None:
+        d = self.decoder
+        if d.garbage_bytes != self._seen_garbage:
+            assert self._metrics is not None
+            self._metrics.garbage_bytes.inc(d.garbage_bytes - self._seen_garbage)
+            self._seen_garbage = d.garbage_bytes
+        for kind, seen in self._seen_errors.items():
+            now = getattr(d, kind)
+            if now != seen:
+                self._m_errors[kind].inc(now - seen)
+                self._seen_errors[kind] = now
