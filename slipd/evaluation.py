@@ -1,0 +1,460 @@
+"""The method's evaluation metrics as pure functions over (scene truth, decisions).
+
+Definitions (``../shared/reference/method.md`` "Metrics", paper section IV):
+
+offline success
+    A *slip* sequence is a true positive when its **first** alarm falls in
+    ``[onset - 0.3 s, gross-slip time]``; an alarm before that window is ``early``, one after it
+    ``late``, none at all ``missed``. A *stop* (or hold) sequence is a true negative when it has no
+    alarm at all, else a false positive.
+confusion matrix
+    Rows: truth (slip / stop); columns: outcome (detected in time / not). ``tp`` + ``fn`` = slip
+    sequences (``fn`` = early + late + missed), ``fp`` + ``tn`` = stop sequences.
+detection latency
+    first alarm time - labelled onset, over the true positives (the paper's figure 4c); negative
+    means the alarm came before the labelled onset (allowed down to -0.3 s).
+online success (gripper / transfer scenes)
+    A slip trial succeeds when its first alarm falls between motion start ``T_m`` and gross slip
+    ``T_g``; gross slip is the first time the object's motion relative to the finger exceeds 2 mm
+    (translation) or 2 deg (rotation). A stop trial succeeds when it has no alarm.
+D_norm
+    Object displacement relative to the finger at the first alarm divided by 2 mm, or its rotation
+    divided by 2 deg; the mean of both for combined motions. (The paper normalises the *robot's*
+    displacement since ``T_m``; the simulator gives us the relative object motion, which is what the
+    threshold of gross slip is defined on, so D_norm <= 1 exactly when the alarm precedes T_g.)
+false alarms per hour
+    Rising edges of the alarm on no-slip recordings (stop and hold scenes) divided by their total
+    duration.
+
+Times are seconds from a recording's first sample, like the ``events`` in a recording's meta.
+Everything returned is a dataclass whose ``to_dict()`` is JSON-serialisable.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+EARLY_TOLERANCE_S = 0.3
+"""Alarms up to this long before the labelled onset count (the label's own uncertainty)."""
+GROSS_TRANSLATION_MM = 2.0
+GROSS_ROTATION_DEG = 2.0
+
+SLIP_KINDS = ("slip",)
+NO_SLIP_KINDS = ("stop", "hold")
+
+
+# --------------------------------------------------------------------------- truth
+@dataclass
+class SceneTruth:
+    """What the simulator (or a labelled recording) says happened in one scene.
+
+    ``object_motion`` [N, 3] (mm, mm, deg relative to the finger) and ``t_s`` [N] are kept for D_norm
+    and are left out of ``to_dict``.
+    """
+
+    name: str
+    kind: str
+    duration_s: float
+    motion: str = ""
+    onset_s: float | None = None
+    gross_slip_s: float | None = None
+    motion_start_s: float | None = None
+    motion_stop_s: float | None = None
+    online_gross_s: float | None = None
+    t_s: np.ndarray | None = field(default=None, repr=False)
+    object_motion: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def is_slip(self) -> bool:
+        """True for a slip sequence, False for stop / hold."""
+        return self.kind in SLIP_KINDS
+
+    def to_dict(self) -> dict:
+        """JSON form (without the arrays)."""
+        d = asdict(self)
+        d.pop("t_s")
+        d.pop("object_motion")
+        return d
+
+    @classmethod
+    def from_recording(cls, rec, name: str = "") -> SceneTruth:
+        """Truth of a ``slipd.recording.Recording``.
+
+        Onset: first sample labelled incipient slip (``label``), else ``events["onset"]``.
+        Gross slip (offline criterion): first sample after the onset where the incipient label ends
+        (all considered pillars slipped), else ``events["gross_slip"]``, else the end of the recording.
+        Online gross slip: first sample where ``object_motion`` (relative to its value at motion start)
+        exceeds 2 mm or 2 deg, else ``events["gross_slip"]``.
+        """
+        t_s = (np.asarray(rec.t_us, np.int64) - int(rec.t_us[0])) / 1e6 if len(rec) else np.zeros(0)
+        duration = float(t_s[-1] + (1.0 / rec.rate_hz)) if len(t_s) else 0.0
+        meta = rec.meta or {}
+        events = {k: float(v) for k, v in (meta.get("events") or {}).items() if v is not None}
+        label = rec.label
+        has_label = label is not None and bool(np.any(label))
+        kind = str(meta.get("kind") or ("slip" if has_label else "stop"))
+        if kind not in SLIP_KINDS + NO_SLIP_KINDS:
+            raise ValueError(f"{name or 'recording'}: meta kind {kind!r} is not one of {SLIP_KINDS + NO_SLIP_KINDS}")
+        onset = gross = None
+        if has_label:
+            on = int(np.argmax(label > 0))
+            onset = float(t_s[on])
+            after = np.flatnonzero(label[on:] == 0)
+            gross = float(t_s[on + after[0]]) if len(after) else None
+        onset = onset if onset is not None else events.get("onset")
+        if gross is None:
+            gross = events.get("gross_slip", duration if onset is not None else None)
+        motion_start = events.get("motion_start")
+        online_gross = None
+        if rec.object_motion is not None and len(t_s):
+            online_gross = gross_slip_time(t_s, rec.object_motion, motion_start)
+        if online_gross is None:
+            online_gross = events.get("gross_slip")
+        return cls(
+            name=name,
+            kind=kind,
+            duration_s=duration,
+            motion=str(meta.get("motion", "")),
+            onset_s=onset,
+            gross_slip_s=gross if kind in SLIP_KINDS else None,
+            motion_start_s=motion_start,
+            motion_stop_s=events.get("motion_stop"),
+            online_gross_s=online_gross if kind in SLIP_KINDS else None,
+            t_s=t_s,
+            object_motion=None if rec.object_motion is None else np.asarray(rec.object_motion, np.float64),
+        )
+
+
+def gross_slip_time(t_s: np.ndarray, object_motion: np.ndarray, motion_start_s: float | None = None) -> float | None:
+    """First time the relative object motion exceeds 2 mm or 2 deg (None if never).
+
+    Motion is measured from its value at ``motion_start_s`` (or the first sample), so a grasp that
+    settles before the robot moves does not count.
+    """
+    rel = _relative_motion(t_s, object_motion, motion_start_s)
+    over = (np.hypot(rel[:, 0], rel[:, 1]) > GROSS_TRANSLATION_MM) | (np.abs(rel[:, 2]) > GROSS_ROTATION_DEG)
+    if motion_start_s is not None:
+        over &= t_s >= motion_start_s
+    idx = np.flatnonzero(over)
+    return float(t_s[idx[0]]) if len(idx) else None
+
+
+def _relative_motion(t_s: np.ndarray, object_motion: np.ndarray, motion_start_s: float | None) -> np.ndarray:
+    om = np.asarray(object_motion, np.float64)
+    i0 = 0 if motion_start_s is None else int(min(np.searchsorted(t_s, motion_start_s), len(om) - 1))
+    return om - om[i0]
+
+
+def motion_components(motion: str) -> tuple[bool, bool]:
+    """(uses translation, uses rotation) of a motion type name.
+
+    ``rotation`` -> rotation only; names with both ``trans``/``lin`` and ``rot``, or ``both`` /
+    ``combined`` / ``+`` -> both; anything else is a translation (lifts, slides, pulls).
+    """
+    m = motion.lower()
+    rot = "rot" in m or "twist" in m or "torque" in m
+    both = "both" in m or "combined" in m or "+" in m or (rot and ("trans" in m or "lin" in m))
+    if both:
+        return True, True
+    if rot:
+        return False, True
+    return True, False
+
+
+def d_norm_at(truth: SceneTruth, t_alarm_s: float) -> float | None:
+    """D_norm of the relative object motion at ``t_alarm_s`` (None without object motion)."""
+    if truth.object_motion is None or truth.t_s is None or not len(truth.t_s):
+        return None
+    rel = _relative_motion(truth.t_s, truth.object_motion, truth.motion_start_s)
+    i = int(min(np.searchsorted(truth.t_s, t_alarm_s), len(rel) - 1))
+    trans = float(np.hypot(rel[i, 0], rel[i, 1])) / GROSS_TRANSLATION_MM
+    rot = abs(float(rel[i, 2])) / GROSS_ROTATION_DEG
+    use_t, use_r = motion_components(truth.motion)
+    if use_t and use_r:
+        return (trans + rot) / 2
+    return rot if use_r else trans
+
+
+# --------------------------------------------------------------------------- decisions
+@dataclass
+class Trace:
+    """The decisions of one scene: time (s from the first sample), probability, alarm state, edges."""
+
+    t_s: list[float]
+    p_slip: list[float]
+    alarm: list[bool]
+    rising_edge: list[bool]
+
+    @classmethod
+    def from_detections(cls, detections: Iterable, t_us: np.ndarray) -> Trace:
+        """Build from ``Detection`` objects; times come from each decision's sample ``index``.
+
+        (The index, not ``Detection.t_us``, is authoritative: decisions replayed from a tare buffer
+        carry the time of the sample that released them.)
+        """
+        t_us = np.asarray(t_us, np.int64)
+        t0 = int(t_us[0]) if len(t_us) else 0
+        ts, ps, al, re = [], [], [], []
+        for d in detections:
+            if not getattr(d, "valid", True):
+                continue
+            ts.append((int(t_us[min(d.index, len(t_us) - 1)]) - t0) / 1e6)
+            ps.append(float(d.p_slip))
+            al.append(bool(d.alarm))
+            re.append(bool(d.rising_edge))
+        return cls(ts, ps, al, re)
+
+    def first_alarm_s(self) -> float | None:
+        """Time of the first decision with the alarm raised, or None."""
+        for t, a in zip(self.t_s, self.alarm):
+            if a:
+                return t
+        return None
+
+    def n_rising_edges(self) -> int:
+        """Number of times the alarm switched on (an alarm already on at the first decision counts)."""
+        n = sum(self.rising_edge)
+        if self.alarm and self.alarm[0] and not self.rising_edge[0]:
+            n += 1
+        return n
+
+    def to_dict(self) -> dict:
+        """JSON form."""
+        return asdict(self)
+
+
+# --------------------------------------------------------------------------- per scene
+@dataclass
+class SceneResult:
+    """Every figure of one scene."""
+
+    name: str
+    kind: str
+    motion: str
+    duration_s: float
+    first_alarm_s: float | None
+    offline_outcome: str
+    """tp, early, late, missed (slip) or tn, fp (stop / hold)."""
+    latency_s: float | None
+    online_outcome: str | None
+    """success, early, late, missed (slip) or tn, fp (stop); None without motion-start truth."""
+    d_norm: float | None
+    rising_edges: int
+
+    @property
+    def offline_success(self) -> bool:
+        """TP or TN."""
+        return self.offline_outcome in ("tp", "tn")
+
+    def to_dict(self) -> dict:
+        """JSON form."""
+        return asdict(self)
+
+
+def offline_outcome(truth: SceneTruth, first_alarm_s: float | None) -> str:
+    """The offline criterion for one sequence: tp / early / late / missed, or tn / fp."""
+    if not truth.is_slip:
+        return "tn" if first_alarm_s is None else "fp"
+    if truth.onset_s is None:
+        raise ValueError(f"{truth.name}: slip sequence without an onset (no label and no events.onset)")
+    if first_alarm_s is None:
+        return "missed"
+    if first_alarm_s < truth.onset_s - EARLY_TOLERANCE_S:
+        return "early"
+    gross = truth.gross_slip_s if truth.gross_slip_s is not None else math.inf
+    return "late" if first_alarm_s > gross else "tp"
+
+
+def online_outcome(truth: SceneTruth, first_alarm_s: float | None) -> str | None:
+    """The online criterion: success when the first alarm is in [T_m, T_g] (None without T_m for slips)."""
+    if not truth.is_slip:
+        return "tn" if first_alarm_s is None else "fp"
+    if truth.motion_start_s is None:
+        return None
+    if first_alarm_s is None:
+        return "missed"
+    if first_alarm_s < truth.motion_start_s:
+        return "early"
+    gross = truth.online_gross_s if truth.online_gross_s is not None else math.inf
+    return "late" if first_alarm_s > gross else "success"
+
+
+def evaluate_scene(truth: SceneTruth, trace: Trace) -> SceneResult:
+    """All per-scene figures from the truth and the decisions."""
+    first = trace.first_alarm_s()
+    off = offline_outcome(truth, first)
+    latency = first - truth.onset_s if off == "tp" and truth.onset_s is not None else None
+    dn = d_norm_at(truth, first) if truth.is_slip and first is not None else None
+    return SceneResult(
+        name=truth.name,
+        kind=truth.kind,
+        motion=truth.motion,
+        duration_s=truth.duration_s,
+        first_alarm_s=first,
+        offline_outcome=off,
+        latency_s=latency,
+        online_outcome=online_outcome(truth, first),
+        d_norm=dn,
+        rising_edges=trace.n_rising_edges(),
+    )
+
+
+# --------------------------------------------------------------------------- summaries
+@dataclass
+class Confusion:
+    """Slip/stop confusion matrix. tp: slip detected in time; fn: slip not (early, late, missed);
+    fp: stop with an alarm; tn: stop without."""
+
+    tp: int = 0
+    fn: int = 0
+    fp: int = 0
+    tn: int = 0
+
+    @property
+    def n(self) -> int:
+        """Number of sequences."""
+        return self.tp + self.fn + self.fp + self.tn
+
+    @property
+    def success_rate(self) -> float | None:
+        """(TP + TN) / N: the paper's success rate."""
+        return (self.tp + self.tn) / self.n if self.n else None
+
+    @property
+    def balanced_success(self) -> float | None:
+        """Mean of the slip and stop success rates (robust to few stop sequences)."""
+        rates = [r for r in (_ratio(self.tp, self.tp + self.fn), _ratio(self.tn, self.tn + self.fp)) if r is not None]
+        return sum(rates) / len(rates) if rates else None
+
+    def to_dict(self) -> dict:
+        """JSON form, with the rates."""
+        d = asdict(self)
+        d.update(n=self.n, success_rate=self.success_rate, balanced_success=self.balanced_success)
+        return d
+
+
+def _ratio(a: int, b: int) -> float | None:
+    return a / b if b else None
+
+
+@dataclass
+class Distribution:
+    """Summary of a sample of values (all None when empty)."""
+
+    n: int
+    mean: float | None
+    median: float | None
+    p10: float | None
+    p90: float | None
+    min: float | None
+    max: float | None
+
+    @classmethod
+    def of(cls, values: Sequence[float]) -> Distribution:
+        """Summarise ``values`` (None entries ignored)."""
+        v = np.asarray([x for x in values if x is not None], np.float64)
+        if not len(v):
+            return cls(0, None, None, None, None, None, None)
+        return cls(
+            n=len(v),
+            mean=float(v.mean()),
+            median=float(np.median(v)),
+            p10=float(np.percentile(v, 10)),
+            p90=float(np.percentile(v, 90)),
+            min=float(v.min()),
+            max=float(v.max()),
+        )
+
+    def to_dict(self) -> dict:
+        """JSON form."""
+        return asdict(self)
+
+
+@dataclass
+class Summary:
+    """Figures over a set of scenes."""
+
+    n_scenes: int
+    offline: Confusion
+    offline_failures: dict[str, int]
+    latency_s: Distribution
+    online: Confusion | None
+    online_failures: dict[str, int]
+    d_norm: Distribution
+    """D_norm at the first alarm of online successes."""
+    false_alarms: int
+    no_slip_hours: float
+    false_alarms_per_hour: float | None
+
+    def to_dict(self) -> dict:
+        """JSON form."""
+        return {
+            "n_scenes": self.n_scenes,
+            "offline": self.offline.to_dict(),
+            "offline_failures": dict(self.offline_failures),
+            "latency_s": self.latency_s.to_dict(),
+            "online": None if self.online is None else self.online.to_dict(),
+            "online_failures": dict(self.online_failures),
+            "d_norm": self.d_norm.to_dict(),
+            "false_alarms": self.false_alarms,
+            "no_slip_hours": self.no_slip_hours,
+            "false_alarms_per_hour": self.false_alarms_per_hour,
+        }
+
+
+def confusion(results: Iterable[SceneResult], online: bool = False) -> Confusion:
+    """Confusion matrix of the offline (default) or online outcomes; scenes without an outcome are skipped."""
+    c = Confusion()
+    for r in results:
+        o = r.online_outcome if online else r.offline_outcome
+        if o is None:
+            continue
+        if o in ("tp", "success"):
+            c.tp += 1
+        elif o in ("early", "late", "missed"):
+            c.fn += 1
+        elif o == "fp":
+            c.fp += 1
+        elif o == "tn":
+            c.tn += 1
+    return c
+
+
+def false_alarms_per_hour(results: Iterable[SceneResult]) -> tuple[int, float, float | None]:
+    """(rising edges, hours, edges per hour) over the no-slip (stop / hold) scenes."""
+    edges, seconds = 0, 0.0
+    for r in results:
+        if r.kind in NO_SLIP_KINDS:
+            edges += r.rising_edges
+            seconds += r.duration_s
+    hours = seconds / 3600.0
+    return edges, hours, (edges / hours if hours > 0 else None)
+
+
+def summarize(results: Sequence[SceneResult]) -> Summary:
+    """Aggregate per-scene results into the method's figures."""
+    off_fail: dict[str, int] = {}
+    on_fail: dict[str, int] = {}
+    for r in results:
+        if r.offline_outcome in ("early", "late", "missed", "fp"):
+            off_fail[r.offline_outcome] = off_fail.get(r.offline_outcome, 0) + 1
+        if r.online_outcome in ("early", "late", "missed", "fp"):
+            on_fail[r.online_outcome] = on_fail.get(r.online_outcome, 0) + 1
+    on = confusion(results, online=True)
+    edges, hours, per_hour = false_alarms_per_hour(results)
+    return Summary(
+        n_scenes=len(results),
+        offline=confusion(results),
+        offline_failures=off_fail,
+        latency_s=Distribution.of([r.latency_s for r in results if r.offline_outcome == "tp"]),
+        online=on if any(r.online_outcome is not None and r.kind in SLIP_KINDS for r in results) else None,
+        online_failures=on_fail,
+        d_norm=Distribution.of([r.d_norm for r in results if r.online_outcome == "success"]),
+        false_alarms=edges,
+        no_slip_hours=hours,
+        false_alarms_per_hour=per_hour,
+    )

@@ -1,0 +1,216 @@
+"""Heuristic baselines: they detect a synthetic slip, stay quiet on holds and stops, stream == batch, tuning."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slipd.baselines import (
+    DecelerationDetector,
+    DecelerationParams,
+    FrontEndParams,
+    ReferencePillarDetector,
+    baseline_offset,
+    confirm_flags,
+    load_params,
+    make_baseline,
+    recent_max,
+)
+from slipd.evaluation import SceneTruth, offline_outcome
+from slipd.geometry import CENTRE, CORNERS, OUTER, PILLAR_XY_MM
+from slipd.recording import Recording
+
+K_T = 3.5  # N/mm
+FZ = np.array([1.0 if i in CORNERS else 3.0 if i == CENTRE else 2.0 for i in range(9)])
+
+
+def make_scene(
+    kind: str = "slip",
+    motion: str = "translation",
+    speed: float = 2.0,
+    duration_s: float = 1.5,
+    move_s: float = 0.6,
+    stop_s: float | None = None,
+    noise: float = 0.01,
+    seed: int = 0,
+    direction_deg: float = 30.0,
+) -> Recording:
+    """A kinematic stick-slip scene: press, then the surface moves; a tip sticks until its deflection reaches
+    mu F_z / k_t (mu = 1), then slides. Corners (lightest load) slip first, the centre last.
+
+    ``speed`` is mm/s for translations and deg/s for rotations about the centre pillar. ``stop_s``: the
+    surface halts at this time (a stop trial when it halts before any tip slips).
+    """
+    rng = np.random.default_rng(seed)
+    n = int(duration_s * 1000)
+    t = np.arange(n) / 1000.0
+    press = np.clip((t - 0.1) / 0.2, 0.0, 1.0)
+    fz = press[:, None] * FZ[None, :]
+    moving_t = np.clip(t - move_s, 0.0, None if stop_s is None else stop_s - move_s)
+    if motion == "rotation":
+        theta = np.deg2rad(speed * moving_t)
+        c, s = np.cos(theta), np.sin(theta)
+        xy = PILLAR_XY_MM
+        surf = np.stack([c[:, None] * xy[:, 0] - s[:, None] * xy[:, 1] - xy[:, 0],
+                         s[:, None] * xy[:, 0] + c[:, None] * xy[:, 1] - xy[:, 1]], axis=-1)
+        obj = np.stack([np.zeros(n), np.zeros(n), np.rad2deg(theta)], axis=1)
+    else:
+        d = np.deg2rad(direction_deg)
+        step = speed * moving_t
+        surf = np.repeat((step[:, None] * np.array([np.cos(d), np.sin(d)]))[:, None, :], 9, axis=1)
+        obj = np.stack([step * np.cos(d), step * np.sin(d), np.zeros(n)], axis=1)
+    limit = fz / K_T
+    mag = np.linalg.norm(surf, axis=-1)
+    slid = (mag >= limit) & (mag > 0)
+    scale = np.where(slid, limit / np.maximum(mag, 1e-12), 1.0)
+    u = surf * scale[..., None]
+    # Sliding = at the friction limit while the surface still moves.
+    still_moving = np.r_[np.diff(moving_t) > 0, False]
+    slip = slid & still_moving[:, None]
+    considered = list(OUTER) if motion == "rotation" else list(range(9))
+    ever = np.maximum.accumulate(slip[:, considered], axis=0)
+    label = (ever.any(axis=1) & ~ever.all(axis=1)).astype(np.uint8)
+    force = np.concatenate([K_T * u, fz[..., None]], axis=-1).astype(np.float32)
+    force += rng.normal(0, 1, force.shape).astype(np.float32) * np.array([noise, noise, 2 * noise], np.float32)
+    disp = np.concatenate([u, (fz / 9.0)[..., None]], axis=-1).astype(np.float32)
+    disp[..., :2] += rng.normal(0, noise / K_T, u.shape).astype(np.float32)
+    events = {"motion_start": move_s}
+    if stop_s is not None:
+        events["motion_stop"] = stop_s
+    if label.any():
+        on = int(np.argmax(label))
+        events["onset"] = float(t[on])
+        after = np.flatnonzero(label[on:] == 0)
+        if len(after):
+            events["gross_slip"] = float(t[on + after[0]])
+    return Recording(
+        t_us=np.arange(n, dtype=np.int64) * 1000, force=force, disp=disp, slip=slip, label=label,
+        object_motion=obj, meta={"kind": kind, "motion": motion, "events": events, "tare_samples": [0, 100]},
+    )
+
+
+def _stream(det, rec: Recording, use_disp: bool = True) -> list:
+    out = []
+    for i in range(len(rec)):
+        d = det.push(rec.force[i], int(rec.t_us[i]), rec.disp[i] if use_disp else None)
+        if d is not None:
+            out.append(d)
+    return out
+
+
+def _first_alarm_s(dets) -> float | None:
+    for d in dets:
+        if d.alarm:
+            return d.index / 1000.0
+    return None
+
+
+def _detectors(rec: Recording, use_disp: bool = True):
+    off = baseline_offset(rec.force, rec.disp if use_disp else None, (0, 100))
+    return [ReferencePillarDetector(offset=off), DecelerationDetector(offset=off)]
+
+
+@pytest.fixture(scope="module")
+def slip_scene() -> Recording:
+    return make_scene(seed=1)
+
+
+def test_synthetic_scene_truth_is_sane(slip_scene: Recording) -> None:
+    truth = SceneTruth.from_recording(slip_scene, "s")
+    # Corners (1 N, limit 0.286 mm at 2 mm/s) slip ~143 ms after motion start, the centre ~429 ms after.
+    assert truth.onset_s == pytest.approx(0.6 + 1 / K_T / 2, abs=0.003)
+    assert truth.gross_slip_s == pytest.approx(0.6 + 3 / K_T / 2, abs=0.003)
+
+
+@pytest.mark.parametrize("use_disp", [True, False])
+def test_both_baselines_detect_translational_slip(slip_scene: Recording, use_disp: bool) -> None:
+    truth = SceneTruth.from_recording(slip_scene, "s")
+    for det in _detectors(slip_scene, use_disp):
+        first = _first_alarm_s(_stream(det, slip_scene, use_disp))
+        assert offline_outcome(truth, first) == "tp", (det.name, first, truth.onset_s, truth.gross_slip_s)
+        # Not before the motion even started: the alarm is a reaction to the slip, not to the press.
+        assert first > truth.motion_start_s
+
+
+def test_both_baselines_quiet_on_a_steady_hold() -> None:
+    rec = make_scene(kind="stop", duration_s=3.0, move_s=10.0, seed=2)  # pressed and held, never moved
+    for det in _detectors(rec):
+        dets = _stream(det, rec)
+        assert dets and not any(d.alarm for d in dets), det.name
+
+
+def test_both_baselines_quiet_on_a_stop_before_slip() -> None:
+    rec = make_scene(kind="stop", stop_s=0.7, seed=3)  # 0.2 mm of travel: no tip reaches its limit
+    assert not rec.label.any()
+    for det in _detectors(rec):
+        assert not any(d.alarm for d in _stream(det, rec)), det.name
+
+
+def test_rotation_about_the_centre_only_the_deceleration_rule_sees_it() -> None:
+    # Wang et al.: the reference-pillar method cannot see rotations about the centre pillar (the reference).
+    rec = make_scene(motion="rotation", speed=20.0, seed=4)
+    truth = SceneTruth.from_recording(rec, "r")
+    ref, dec = _detectors(rec)
+    assert offline_outcome(truth, _first_alarm_s(_stream(dec, rec))) == "tp"
+    assert _first_alarm_s(_stream(ref, rec)) is None
+
+
+def test_streaming_equals_batch(slip_scene: Recording) -> None:
+    for det in _detectors(slip_scene):
+        dets = _stream(det, slip_scene)
+        batch_det = type(det)(offset=det.frontend.offset)
+        ends, alarm, score = batch_det.run(slip_scene.force, slip_scene.disp)
+        np.testing.assert_array_equal([d.index for d in dets], ends)
+        np.testing.assert_array_equal([d.alarm for d in dets], alarm)
+        np.testing.assert_allclose([d.p_slip for d in dets], score, rtol=1e-6)
+        edges = [d.rising_edge for d in dets]
+        assert sum(edges) >= 1 and edges.index(True) == int(np.argmax(alarm))
+
+
+def test_confirm_and_recent_max() -> None:
+    flag = np.array([1, 0, 1, 1, 1, 0, 1, 1], bool)
+    np.testing.assert_array_equal(confirm_flags(flag, 1), flag)
+    np.testing.assert_array_equal(confirm_flags(flag, 2), [0, 0, 0, 1, 1, 0, 0, 1])
+    np.testing.assert_array_equal(confirm_flags(flag, 3), [0, 0, 0, 0, 1, 0, 0, 0])
+    s = np.array([[1.0], [3.0], [2.0], [0.5], [0.2]])
+    np.testing.assert_array_equal(recent_max(s, 2)[:, 0], [1, 3, 3, 2, 0.5])
+
+
+def test_parameters_are_validated_and_loaded(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="unknown baseline 'nope'"):
+        make_baseline("nope")
+    with pytest.raises(ValueError, match=r"deceleration: unknown parameter\(s\) \['ratio'\]"):
+        make_baseline("deceleration", {"ratio": 0.5})
+    det = make_baseline("deceleration", {"drop": 0.3, "memory_s": 0.1}, {"stride": 10, "lag": 20})
+    assert det.params == DecelerationParams(drop=0.3, memory_s=0.1)
+    assert det.frontend.params == FrontEndParams(stride=10, lag=20)
+    path = tmp_path / "b.json"
+    path.write_text(json.dumps({"deceleration": {"params": {"drop": 0.3}, "frontend": {}}}))
+    assert load_params(path, "deceleration") == ({"drop": 0.3}, {})
+    with pytest.raises(ValueError, match="no entry 'reference_pillar'"):
+        load_params(path, "reference_pillar")
+    with pytest.raises(ValueError, match="cannot read"):
+        load_params(tmp_path / "missing.json", "deceleration")
+
+
+def test_tuner_uses_the_train_split_and_writes_json(tmp_path: Path) -> None:
+    from tools.evaluate import main
+
+    train = tmp_path / "data" / "offline_train"
+    for i, (kind, kw) in enumerate([("slip", {}), ("slip", {"direction_deg": 200.0, "speed": 3.0}),
+                                    ("stop", {"stop_s": 0.7}), ("stop", {"move_s": 10.0})]):
+        make_scene(kind=kind, seed=10 + i, duration_s=1.2, **kw).save(train / f"s{i}.npz")
+    out = tmp_path / "baselines.json"
+    small = {"--tune-baselines": None, "--data-root": str(tmp_path / "data"), "--baseline-params": str(out)}
+    argv = [x for k, v in small.items() for x in ([k] if v is None else [k, v])]
+    assert main([*argv, "--baseline", "reference_pillar"]) == 0
+    tuned = json.loads(out.read_text())
+    entry = tuned["reference_pillar"]
+    assert entry["tuned_on"]["folder"].endswith("offline_train")
+    assert entry["train_figures"]["balanced_success"] == 1.0
+    # The tuned parameters load back into a working detector.
+    params, frontend = load_params(out, "reference_pillar")
+    assert make_baseline("reference_pillar", params, frontend).params.ratio == params["ratio"]
