@@ -715,7 +715,8 @@ class EmulatedMX28:
             t.set("present_position", max(0, min(4095, round(j.position))))
             rpm = j.velocity * 60 / 4096 / 0.114
             t.set("present_speed", min(1023, round(abs(rpm))) | (1024 if rpm < 0 else 0))
-            t.set("present_load", min(1023, round(1023 * abs(load_frac))) | (1024 if load_frac < 0 else 0))
+            # 1.0 load: magnitude in about 0.1 % of max torque, bit 10 set for CW (decreasing ticks).
+            t.set("present_load", min(1023, round(1000 * abs(load_frac))) | (1024 if load_frac < 0 else 0))
             t.set("moving", int(moving))
             t.set("realtime_tick", tick)
 
