@@ -12,13 +12,17 @@ stream) and carries that stream's GRU state to the next call. Each stream owns p
 (input, two hidden-state buffers used in turn, outputs) bound once to the session with IOBinding, so a
 step allocates nothing but the small result it returns.
 
-Non-finite policy (the second line of defence; ``slipd.features`` already replaces non-finite samples):
-  * a window containing NaN or +-Inf is refused with ``NonFiniteInput`` before it reaches the model;
-    the stream's state is untouched, so the next good window continues the sequence;
-  * if an output or the next hidden state comes back non-finite, it is not stored: the stream is reset
-    to zeros (the model's initial state) and ``NonFiniteOutput`` is raised, so the caller counts it and
-    treats this window as "no decision".
-Both derive from ``StepError``. An ``Ensemble`` is not thread-safe: one owner calls ``step``.
+Non-finite policy (the second line of defence; ``slipd.features`` already replaces non-finite samples).
+``step`` does not raise for these; it returns an invalid ``StepResult`` (``valid`` False, ``p_slip`` NaN,
+``status`` saying why) so a 25 Hz loop needs no try/except, and a NaN used by mistake is refused by
+``Decision.update``:
+  * ``status == "nonfinite_input"``: the window contains NaN or +-Inf and never reaches the model; the
+    stream's state is untouched, so the next good window continues the sequence;
+  * ``status == "nonfinite_output"``: an output or the next hidden state came back non-finite; it is not
+    stored: the stream is reset to zeros (the model's initial state).
+Both are counted (``refused_inputs``, ``nonfinite_outputs``). ``step_batch`` (offline evaluation) raises
+``NonFiniteInput`` / ``NonFiniteOutput`` instead: there a silent gap would bias the figures.
+An ``Ensemble`` is not thread-safe: one owner calls ``step``.
 """
 
 from __future__ import annotations
@@ -47,13 +51,23 @@ class NonFiniteOutput(StepError, RuntimeError):
     """The model produced a non-finite output or state; the stream was reset to its initial state."""
 
 
+STATUS_OK, STATUS_NONFINITE_INPUT, STATUS_NONFINITE_OUTPUT = "ok", "nonfinite_input", "nonfinite_output"
+
+
 @dataclass(frozen=True)
 class StepResult:
     """One decision step. For a 1-D window ``p_slip`` is a float and ``p_members`` is [Z];
-    for a [B, T*C] window they are [B] and [Z, B]."""
+    for a [B, T*C] window they are [B] and [Z, B]. When ``valid`` is False they are NaN and
+    ``status`` says why (see the module docstring)."""
 
     p_slip: float | np.ndarray
     p_members: np.ndarray
+    status: str = STATUS_OK
+
+    @property
+    def valid(self) -> bool:
+        """True when the step produced a decision."""
+        return self.status == STATUS_OK
 
 
 @dataclass(frozen=True)
@@ -117,6 +131,10 @@ class Ensemble:
         self._spec = manifest.spec
         self._z, self._h, self._d = manifest.members, manifest.hidden, self._spec.input_size
         self._streams: dict[int, _Stream] = {}
+        self.refused_inputs = 0
+        """Windows refused because they held non-finite values (stream state untouched)."""
+        self.nonfinite_outputs = 0
+        """Steps whose output or state was non-finite (stream reset)."""
 
     @classmethod
     def load(
@@ -178,8 +196,8 @@ class Ensemble:
     def step(self, window: np.ndarray, stream: int = 0) -> StepResult:
         """Run one window through the ensemble, carrying ``stream``'s hidden state.
 
-        Raises ``NonFiniteInput`` (state untouched) or ``NonFiniteOutput`` (stream reset); a window of the
-        wrong size raises ``ValueError``.
+        A non-finite window or output gives an invalid result (see the module docstring); a window of the
+        wrong size, or a batch size other than the stream's, raises ``ValueError``.
         """
         w = np.asarray(window)
         single = w.ndim == 1
@@ -188,7 +206,8 @@ class Ensemble:
         if w.ndim != 2 or w.shape[1] != self._d:
             raise ValueError(f"window must be [{self._d}] or [B, {self._d}], got {np.shape(window)}")
         if not np.isfinite(w).all():
-            raise NonFiniteInput(f"stream {stream}: window has {int((~np.isfinite(w)).sum())} non-finite values")
+            self.refused_inputs += 1
+            return self._invalid(w.shape[0], single, STATUS_NONFINITE_INPUT)
         st = self._streams.get(stream)
         if st is None:
             st = self._streams[stream] = _Stream(self._session, w.shape[0], self._z, self._d, self._h)
@@ -198,13 +217,18 @@ class Ensemble:
         self._session.run_with_iobinding(st.bindings[st.cur])
         h_next = st.h[1 - st.cur]
         if not (np.isfinite(st.p_members).all() and np.isfinite(st.p_slip).all() and np.isfinite(h_next).all()):
-            st.cur = 0
             st.reset()
-            raise NonFiniteOutput(f"stream {stream}: model output or state is non-finite; stream reset")
+            self.nonfinite_outputs += 1
+            return self._invalid(w.shape[0], single, STATUS_NONFINITE_OUTPUT)
         st.cur = 1 - st.cur
         if single:
             return StepResult(float(st.p_slip[0]), st.p_members[:, 0].copy())
         return StepResult(st.p_slip.copy(), st.p_members.copy())
+
+    def _invalid(self, batch: int, single: bool, status: str) -> StepResult:
+        if single:
+            return StepResult(float("nan"), np.full(self._z, np.nan, np.float32), status)
+        return StepResult(np.full(batch, np.nan, np.float32), np.full((self._z, batch), np.nan, np.float32), status)
 
     def step_batch(self, sequences: Sequence[np.ndarray] | np.ndarray) -> list[SequenceResult]:
         """Run many independent sequences (each [K_i, T*C], from zero state) in batched calls.

@@ -72,7 +72,7 @@ def test_step_matches_torch_and_keeps_state_per_stream(model) -> None:
     assert np.abs(np.array(got_b) - ref_b).max() <= 1e-5
     assert ens.streams == [0, 7]
     r = ens.step(a[0], stream=7)
-    assert isinstance(r.p_slip, float) and r.p_members.shape == (Z,)
+    assert r.valid and isinstance(r.p_slip, float) and r.p_members.shape == (Z,)
     assert r.p_slip == pytest.approx(float(r.p_members.mean()), abs=1e-6)
 
     ens.reset(7)  # only stream 7 restarts
@@ -118,9 +118,12 @@ def test_nonfinite_window_is_refused_and_state_untouched(model) -> None:
             for poison in (np.nan, np.inf, -np.inf):
                 bad = w.copy()
                 bad[k] = poison
-                with pytest.raises(NonFiniteInput):
-                    ens.step(bad, stream=1)
+                r = ens.step(bad, stream=1)
+                assert not r.valid and r.status == "nonfinite_input" and np.isnan(r.p_slip)
                 assert np.array_equal(ens.hidden_state(1), before)
+            r = ens.step(np.stack([w, bad]), stream=9)  # one bad row refuses the whole batch
+            assert not r.valid and r.p_slip.shape == (2,) and r.p_members.shape == (Z, 2)
+            assert ens.refused_inputs == 4 and 9 not in ens.streams
         assert ens.step(w, stream=1).p_slip == pytest.approx(clean[k], abs=1e-7)
 
 
@@ -132,9 +135,13 @@ def test_nonfinite_output_resets_the_stream(tmp_path: Path, model) -> None:
     good = Ensemble.load(_export(tmp_path, "good", [_net(0), _net(1)]))
     good.step(_seq(1, 8)[0], stream=0)
     assert np.abs(good.hidden_state(0)).max() > 0  # a real step does move the state
-    with pytest.raises(NonFiniteOutput, match="stream 4"):
-        ens.step(_seq(1, 8)[0], stream=4)
-    assert np.array_equal(ens.hidden_state(4), np.zeros((2, 1, 16), np.float32))
+    s = _seq(3, 8)
+    ens.step(s[0], stream=4)  # NaN in the predictor only: the state stays finite but the output is NaN
+    r = ens.step(s[1], stream=4)
+    assert not r.valid and r.status == "nonfinite_output" and ens.nonfinite_outputs == 2
+    assert np.array_equal(ens.hidden_state(4), np.zeros((2, 1, 16), np.float32))  # reset, not the NaN step's h
+    with pytest.raises(NonFiniteOutput, match="window 0"):
+        ens.step_batch([s])
 
 
 # ---------------------------------------------------------------- the manifest gate
