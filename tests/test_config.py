@@ -1,0 +1,316 @@
+"""Configuration: errors name file, line, key path and reason; check-config exit codes; shipped configs."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import textwrap
+from pathlib import Path
+
+import pytest
+import yaml
+
+from slipd.config import ConfigError, config_from_dict, load_config, override, parse_config
+
+ROOT = Path(__file__).resolve().parents[1]
+SLIPD = ROOT / ".venv" / "bin" / "slipd"
+
+VALID = textwrap.dedent(
+    """\
+    sensor:
+      port: /dev/ttyACM0
+    model:
+      manifest: models/m.json
+    gripper:
+      port: /dev/ttyUSB0
+      hold_position: 2048
+      secure_position: 2600
+      hold_pwm: 300
+      secure_pwm: 700
+    arm:
+      host: 192.168.1.10
+    """
+)
+
+
+def write(tmp_path: Path, text: str, name: str = "slipd.yaml") -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def errors_of(tmp_path: Path, text: str) -> list[str]:
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError) as exc:
+        load_config(p)
+    assert all(line.startswith(str(p)) for line in exc.value.problems), exc.value.problems
+    return exc.value.problems
+
+
+def with_(base: str, **sections: dict) -> str:
+    """VALID with some keys replaced (section -> {key: value}; value None deletes the key)."""
+    data = yaml.safe_load(base)
+    for section, keys in sections.items():
+        data.setdefault(section, {})
+        for k, v in keys.items():
+            if v is None:
+                data[section].pop(k, None)
+            else:
+                data[section][k] = v
+    return yaml.safe_dump(data, sort_keys=False)
+
+
+def test_minimal_valid_config_and_defaults(tmp_path, monkeypatch):
+    monkeypatch.delenv("STATE_DIRECTORY", raising=False)
+    cfg = load_config(write(tmp_path, VALID))
+    assert cfg.sensor.rate_hz == 1000 and cfg.sensor.tare == "bias_command"
+    assert cfg.model.manifest == tmp_path / "models" / "m.json"  # relative to the config's folder
+    assert cfg.decision.threshold is None and cfg.decision.effective_threshold(0.42) == 0.42
+    assert cfg.reaction.actions == ["stop_arm", "tighten_gripper"]
+    assert cfg.gripper.protocol == 2.0 and cfg.gripper.hold_effort == 300 and cfg.gripper.secure_effort == 700
+    assert cfg.metrics.host == "127.0.0.1" and cfg.metrics.port == 9477
+    assert cfg.recorder.directory == Path("/var/lib/slipd/recordings")
+
+
+def test_state_directory_and_env_vars(tmp_path, monkeypatch):
+    monkeypatch.setenv("STATE_DIRECTORY", "/var/lib/slipd:/var/lib/other")
+    assert load_config(write(tmp_path, VALID)).recorder.directory == Path("/var/lib/slipd/recordings")
+    monkeypatch.setenv("SLIPD_TEST_DIR", "/srv/x")
+    cfg = load_config(write(tmp_path, with_(VALID, recorder={"directory": "${SLIPD_TEST_DIR}/rec"})))
+    assert cfg.recorder.directory == Path("/srv/x/rec")
+    problems = errors_of(tmp_path, with_(VALID, recorder={"directory": "$SLIPD_UNSET_XYZ/rec"}))
+    assert "recorder.directory" in problems[0] and "unset environment variable" in problems[0]
+
+
+def test_broken_yaml_names_line_and_column(tmp_path):
+    (line,) = errors_of(tmp_path, "sensor:\n  port: /dev/ttyACM0\n  rate_hz: [1000\nmodel: {}\n")
+    assert "YAML syntax error" in line
+    assert "slipd.yaml:4:6: YAML syntax error: while parsing a flow sequence" in line
+
+
+def test_tab_indentation_and_duplicate_keys(tmp_path):
+    (line,) = errors_of(tmp_path, "sensor:\n\tport: x\n")
+    assert "slipd.yaml:2:1: YAML syntax error" in line
+    (line,) = errors_of(tmp_path, VALID + "sensor:\n  port: /dev/ttyACM1\n")
+    assert "duplicate key 'sensor'" in line and "slipd.yaml:13:1:" in line
+
+
+def test_empty_and_non_mapping(tmp_path):
+    assert "empty" in errors_of(tmp_path, "# nothing\n")[0]
+    assert "top level must be a mapping" in errors_of(tmp_path, "- a\n- b\n")[0]
+
+
+def test_unknown_keys_rejected_with_suggestion(tmp_path):
+    problems = errors_of(tmp_path, VALID.replace("  hold_pwm: 300", "  hold_pmw: 300") + "extra: 1\n")
+    joined = "\n".join(problems)
+    assert "slipd.yaml:9: gripper.hold_pmw: unknown key (did you mean 'hold_pwm'?)" in joined
+    assert "slipd.yaml:13: extra: unknown key" in joined
+
+
+def test_wrong_types(tmp_path):
+    problems = errors_of(tmp_path, with_(VALID, sensor={"rate_hz": "fast", "low_latency": "maybe"},
+                                         gripper={"id": 1.5}, arm={"host": 10}))
+    joined = "\n".join(problems)
+    assert "sensor.rate_hz: Input should be 100, 250, 500 or 1000 (got 'fast')" in joined
+    assert "sensor.low_latency: Input should be a valid boolean" in joined
+    assert "gripper.id:" in joined and "(got 1.5)" in joined
+    assert "arm.host: Input should be a valid string (got 10)" in joined
+
+
+def test_out_of_range_values(tmp_path):
+    problems = errors_of(tmp_path, with_(VALID, gripper={"secure_pwm": 900}, metrics={"port": 70000},
+                                         decision={"threshold": 1.0}, sensor={"stall_timeout_ms": float("nan")}))
+    joined = "\n".join(problems)
+    assert ": gripper.secure_pwm: Input should be less than or equal to 885 (got 900)" in joined
+    assert "metrics.port: Input should be less than or equal to 65535 (got 70000)" in joined
+    assert "decision.threshold: Input should be less than 1 (got 1.0)" in joined
+    assert "sensor.stall_timeout_ms: Input should be a finite number" in joined
+
+
+def test_missing_required_device_fields(tmp_path):
+    problems = errors_of(tmp_path, "model:\n  manifest: m.json\ngripper: {}\narm: {}\n")
+    joined = "\n".join(problems)
+    assert "sensor: required key is missing" in joined
+    assert "slipd.yaml:3: gripper.port: required when the gripper is enabled" in joined
+    assert "slipd.yaml:4: arm.host: required when the arm is enabled" in joined
+    (line,) = errors_of(tmp_path, with_(VALID, sensor={"port": None}))
+    assert "sensor.port: required key is missing" in line
+
+
+def test_protocol_specific_effort_keys(tmp_path):
+    (line,) = errors_of(tmp_path, with_(VALID, gripper={"protocol": 1.0}))
+    assert "gripper.hold_pwm: does not apply to protocol 1.0" in line
+    cfg = load_config(write(tmp_path, with_(VALID, gripper={
+        "protocol": 1, "hold_pwm": None, "secure_pwm": None, "hold_torque_limit": 200, "secure_torque_limit": 900})))
+    assert cfg.gripper.protocol == 1.0 and cfg.gripper.secure_effort == 900
+    (line,) = errors_of(tmp_path, with_(VALID, gripper={"secure_pwm": 100}))
+    assert "gripper.secure_pwm: must be >= hold_pwm (300)" in line
+
+
+def test_cross_field_checks(tmp_path):
+    (line,) = errors_of(tmp_path, with_(VALID, arm={"enabled": False}))
+    assert "reaction.actions: stop_arm needs arm.enabled: true" in line
+    (line,) = errors_of(tmp_path, with_(VALID, sensor={"reconnect_initial_s": 10, "reconnect_max_s": 1}))
+    assert "sensor.reconnect_max_s: must be >= reconnect_initial_s" in line
+    (line,) = errors_of(tmp_path, with_(VALID, sensor={"rate_hz": 100, "stall_timeout_ms": 10}))
+    assert "sensor.stall_timeout_ms: must be at least two frame periods at 100 Hz (20 ms)" in line
+    (line,) = errors_of(tmp_path, with_(VALID, reaction={"actions": ["stop_arm", "stop_arm"]}))
+    assert "reaction.actions: an action is listed twice" in line
+    (line,) = errors_of(tmp_path, with_(VALID, reaction={"actions": ["stop_arm", "open_gripper"]}))
+    assert "reaction.actions[1]: Input should be 'stop_arm' or 'tighten_gripper'" in line
+    # Both devices off: detect-and-record only is a valid setup when nothing is asked of them.
+    cfg = load_config(write(tmp_path, with_(VALID, arm={"enabled": False}, gripper={"enabled": False},
+                                            reaction={"actions": [], "on_failsafe": "log_only"})))
+    assert cfg.reaction.actions == [] and not cfg.arm.enabled
+
+
+def test_unreadable_and_not_utf8(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "absent.yaml")
+    p = tmp_path / "latin1.yaml"
+    p.write_bytes(b"sensor:\n  port: /dev/tty\xe9\n")
+    with pytest.raises(ConfigError, match="not UTF-8"):
+        load_config(p)
+
+
+def test_override_revalidates_and_model_copy(tmp_path):
+    cfg = load_config(write(tmp_path, VALID))
+    rig = override(cfg, {"sensor.port": "/dev/pts/7", "gripper.port": "/dev/pts/8", "arm.host": "127.0.0.2"})
+    assert rig.sensor.port == "/dev/pts/7" and rig.arm.host == "127.0.0.2"
+    assert rig.model.manifest == cfg.model.manifest
+    with pytest.raises(ConfigError, match=r"gripper\.secure_pwm"):
+        override(cfg, {"gripper.secure_pwm": 10_000})
+    with pytest.raises(ConfigError, match="no such section"):
+        override(cfg, {"nosuch.key": 1})
+    copy = cfg.model_copy(update={"sensor": cfg.sensor.model_copy(update={"port": "/dev/pts/9"})})
+    assert copy.sensor.port == "/dev/pts/9" and cfg.sensor.port == "/dev/ttyACM0"
+    with pytest.raises(Exception, match="frozen"):
+        cfg.sensor.port = "x"  # type: ignore[misc]
+
+
+def test_parse_config_text_without_base_dir():
+    cfg = parse_config(VALID, source="<text>")
+    assert cfg.model.manifest == Path("models/m.json")  # no folder to anchor it: left relative
+    with pytest.raises(ConfigError, match=r"^<text>:2: sensor\.port: Input should be a valid string"):
+        parse_config(VALID.replace("/dev/ttyACM0", "[a, b]"), source="<text>")
+
+
+def test_config_from_dict_names_source():
+    with pytest.raises(ConfigError, match=r"^<rig>: sensor: required key is missing"):
+        config_from_dict({"model": {"manifest": "/m.json"}, "gripper": {"enabled": False},
+                          "arm": {"enabled": False}, "reaction": {"actions": [], "on_failsafe": "log_only"}},
+                         source="<rig>")
+
+
+def test_shipped_configs_are_valid():
+    real = load_config(ROOT / "config" / "slipd.yaml")
+    assert real.sensor.port == "/dev/ttyACM0" and real.gripper.enabled and real.arm.enabled
+    sim = load_config(ROOT / "config" / "sim.yaml")
+    assert sim.model.manifest == ROOT / "models" / "slip_ensemble.json"
+    assert sim.recorder.directory == ROOT / "out" / "sim-recordings"
+
+
+def test_every_key_of_the_real_config_is_documented():
+    """Each key line in config/slipd.yaml carries a comment; every field of every section is present."""
+    from slipd.config import SlipdConfig
+
+    text = (ROOT / "config" / "slipd.yaml").read_text()
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped and not stripped.startswith("#") and not stripped.endswith(":"):
+            assert "#" in line, f"undocumented key line: {line!r}"
+    for name, field in SlipdConfig.model_fields.items():
+        assert f"\n{name}:" in "\n" + text, name
+        for key in field.annotation.model_fields:
+            assert f" {key}:" in text, f"{name}.{key} not in config/slipd.yaml"
+
+
+def test_fuzz_short():
+    from tools.fuzz_config import run
+
+    counts = run(300, seed=1)
+    assert counts["total"] >= 270  # hypothesis may discard a few over-sized draws
+    assert counts["escaped"] == 0
+    assert counts["valid"] > 0 and counts["config_error"] > 0
+
+
+# ------------------------------------------------------------------------------------------ check-config
+def tiny_model(folder: Path) -> Path:
+    """A minimal ensemble-shaped ONNX graph with a manifest that slipd.manifest accepts."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper
+
+    from slipd.features import FeatureSpec
+    from slipd.manifest import Manifest, io_infos, sha256_file, write_manifest
+
+    spec = FeatureSpec()
+    z, h = 2, 4
+    graph = helper.make_graph(
+        [
+            helper.make_node("Identity", ["h"], ["h_next"]),
+            helper.make_node("ReduceMean", ["h"], ["hm"], axes=[2], keepdims=0),
+            helper.make_node("Sigmoid", ["hm"], ["p_members"]),
+            helper.make_node("ReduceMean", ["p_members"], ["p_slip"], axes=[0], keepdims=0),
+        ],
+        "tiny",
+        [helper.make_tensor_value_info("window", TensorProto.FLOAT, ["B", spec.input_size]),
+         helper.make_tensor_value_info("h", TensorProto.FLOAT, [z, "B", h])],
+        [helper.make_tensor_value_info("p_slip", TensorProto.FLOAT, ["B"]),
+         helper.make_tensor_value_info("p_members", TensorProto.FLOAT, [z, "B"]),
+         helper.make_tensor_value_info("h_next", TensorProto.FLOAT, [z, "B", h])],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    folder.mkdir(parents=True, exist_ok=True)
+    onnx.save(model, folder / "tiny.onnx")
+    inputs, outputs = io_infos(spec.input_size, z, h)
+    manifest = Manifest(
+        onnx_file="tiny.onnx", sha256=sha256_file(folder / "tiny.onnx"), opset=17, ir_version=8,
+        inputs=inputs, outputs=outputs, sample_rate_hz=spec.rate_hz, window=spec.window, median=spec.median,
+        stride=spec.step, pillars=list(spec.pillars), channels=list(spec.channels), members=z, hidden=h,
+        threshold=0.5, input_clip=100.0, feature_spec=spec.to_dict(), source="trained", pillar_mapping="sdk-raster",
+    )
+    write_manifest(manifest, folder / "tiny.json")
+    return folder / "tiny.json"
+
+
+def check_config(path: Path) -> subprocess.CompletedProcess:
+    exe = [str(SLIPD)] if SLIPD.exists() else [str(ROOT / ".venv" / "bin" / "python"), "-m", "slipd"]
+    env = {k: v for k, v in os.environ.items() if k != "STATE_DIRECTORY"}
+    return subprocess.run([*exe, "check-config", str(path)], capture_output=True, text=True, timeout=120,
+                          cwd=ROOT, env=env)
+
+
+def test_check_config_exit_codes(tmp_path):
+    tiny_model(tmp_path / "models")
+    good = write(tmp_path, VALID.replace("models/m.json", "models/tiny.json"))
+    good.chmod(0o640)
+    r = check_config(good)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith(f"OK {good}: sensor /dev/ttyACM0 @ 1000 Hz") and "threshold 0.5" in r.stdout
+    assert "world-writable" not in r.stderr
+
+    good.chmod(0o666)
+    r = check_config(good)
+    assert r.returncode == 0 and "world-writable" in r.stderr
+
+    bad = write(tmp_path, VALID.replace("hold_pwm: 300", "hold_pwm: -1"), "bad.yaml")
+    r = check_config(bad)
+    assert r.returncode == 3 and "bad.yaml:9: gripper.hold_pwm" in r.stderr and r.stdout == ""
+
+    missing_model = write(tmp_path, VALID, "nomodel.yaml")  # models/m.json does not exist
+    r = check_config(missing_model)
+    assert r.returncode == 4 and "model.manifest" in r.stderr
+
+    (tmp_path / "models" / "tiny.onnx").write_bytes(b"not onnx")
+    r = check_config(good)
+    assert r.returncode == 4 and "sha256" in r.stderr
+
+
+def test_check_config_against_manifest(tmp_path):
+    tiny_model(tmp_path / "models")
+    text = VALID.replace("models/m.json", "models/tiny.json")
+    r = check_config(write(tmp_path, with_(text, sensor={"rate_hz": 500}, model={"stride": 15}), "x.yaml"))
+    assert r.returncode == 3
+    assert "sensor.rate_hz: 500 Hz, but the model was trained at 1000 Hz" in r.stderr
+    assert "model.stride: must divide the model's window (40), got 15" in r.stderr
