@@ -201,6 +201,18 @@ def read_manifest(path: str | os.PathLike) -> Manifest:
     return manifest
 
 
+def update_metrics(path: str | os.PathLike, metrics: dict[str, Any]) -> Manifest:
+    """Merge evaluation/benchmark figures into a manifest's ``metrics`` and rewrite it atomically.
+
+    The ONNX file is not touched, so its hash stays valid. Values must be JSON-serialisable.
+    """
+    manifest = read_manifest(path)
+    manifest.metrics.update(metrics)
+    json.dumps(manifest.metrics)  # fail here, before writing, on a non-serialisable value
+    write_manifest(manifest, path)
+    return manifest
+
+
 def onnx_path_of(manifest: Manifest, manifest_path: str | os.PathLike) -> Path:
     """Where the manifest's ONNX file lives (relative names resolve against the manifest's folder)."""
     return Path(manifest_path).parent / manifest.onnx_file

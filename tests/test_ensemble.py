@@ -220,3 +220,15 @@ def test_manifest_for_another_model_or_feature_layout(model_copy: Path, tmp_path
     _raises(model_copy, "inputs.window", model_copy.with_suffix(".onnx"))
     with pytest.raises(ModelError):
         Ensemble.load(model_copy)
+
+
+def test_update_metrics_keeps_the_model_valid(model_copy: Path) -> None:
+    from slipd.manifest import update_metrics
+
+    update_metrics(model_copy, {"offline_success": 0.95})
+    update_metrics(model_copy, {"step_median_us": 830.0})
+    m = load_manifest(model_copy)
+    assert m.metrics == {"offline_success": 0.95, "step_median_us": 830.0}
+    with pytest.raises(TypeError):
+        update_metrics(model_copy, {"bad": object()})
+    assert load_manifest(model_copy).metrics == m.metrics
