@@ -567,10 +567,8 @@ class _Controller:
             self._start_stop("dashboard_pause", self.cfg.dashboard_stop_decel, time.monotonic())
             return "Pausing program"
         if cmd == "stop":
-            was_running = self.control_script or self.user_program or self.motion.active
-            self._end_programs()
-            if was_running:
-                self._start_stop("dashboard_stop", self.cfg.dashboard_stop_decel, time.monotonic())
+            self._end_programs()  # a real controller answers "Stopped" whether or not a program ran
+            self._start_stop("dashboard_stop", self.cfg.dashboard_stop_decel, time.monotonic())
             return "Stopped"
         if cmd == "unlock protective stop":
             self.protective = False
@@ -726,7 +724,10 @@ class _Controller:
             self.blocked_on_motion = True
 
     def _protective_stop(self) -> None:
+        # The running program pauses; after the unlock it stays paused until "play", as on a real controller.
         self.protective = True
+        if self.control_script or self.user_program:
+            self.paused = True
         self.motion.stop(self.cfg.protective_stop_decel)
 
     # -- parent commands -------------------------------------------------------------------------------------
@@ -910,7 +911,7 @@ class URControllerProcess:
         self._proc, self._conn = None, None
 
     def __enter__(self) -> URControllerProcess:
-        return self.start()
+        return self if self._proc is not None else self.start()
 
     def __exit__(self, *exc: object) -> None:
         self.stop()

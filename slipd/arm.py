@@ -1,0 +1,373 @@
+"""The robot arm: a small :class:`Arm` interface and :class:`URArm` for Universal Robots through ur_rtde.
+
+slipd's only business with the arm is to *halt it fast* when the grasp starts to slip, and to know
+whether it can: connected, program running, not protective-stopped. Every call here blocks (socket
+round-trips inside ur_rtde), so the control loop runs them on the arm's own
+:class:`slipd.worker.DeviceWorker` thread; an ``Arm`` is not thread-safe and expects that one thread.
+
+How to stop a motion the *user's* program commands -- the trade-off
+-------------------------------------------------------------------
+``rtde_control.RTDEControlInterface`` works by uploading ur_rtde's own URScript control program to the
+controller. A UR controller runs one program at a time, so connecting it **replaces** whatever program
+the user was running. Two deployments follow:
+
+* ``stop_method="stopl"`` (default, needs ``use_control=True``): the arm's motion is commanded through
+  ur_rtde (e.g. ``moveL(..., asynchronous=True)`` from the application, or the rig). ``stopL(a)`` is the
+  call that halts such a move: the control script first kills its asynchronous move thread and then
+  decelerates linearly in tool space at ``a`` m/s^2. (``speedStop`` only ends speed mode -- it does not
+  kill an asynchronous ``moveL`` thread on a real controller -- so it is offered as ``"speed_stop"`` for
+  speedL/speedJ applications only.) Fastest path: one RTDE input package and the 2 ms script cycle.
+* ``stop_method="dashboard_pause"`` / ``"dashboard_stop"`` (works with ``use_control=False``): the user's
+  own PolyScope program keeps running untouched and slipd sends ``pause`` (program can be resumed) or
+  ``stop`` to the dashboard server (port 29999). No script is replaced and no protective stop is
+  provoked, but the dashboard is a slower text round-trip and the deceleration is the controller's
+  program-stop ramp, not ours.
+
+Neither path triggers a protective stop (``triggerProtectiveStop`` would, and needs a manual unlock).
+``fallback_to_dashboard`` makes a failed RTDE stop fall back to the dashboard ``stop``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import math
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from slipd.metrics import Metrics
+
+STOP_METHODS = ("stopl", "speed_stop", "dashboard_pause", "dashboard_stop")
+_NAN6 = (math.nan,) * 6
+
+# RTDE robot_status_bits / safety_status_bits (UR RTDE guide).
+_STATUS_PROGRAM_RUNNING = 1 << 1
+
+
+class ArmError(RuntimeError):
+    """A failure talking to the arm (connection, refused command); the message names the host and call."""
+
+
+@dataclass(frozen=True)
+class ArmState:
+    """The arm as last read. With ``connected`` False the other values are not trusted (NaN / False)."""
+
+    connected: bool
+    pose: tuple[float, ...]  # TCP x, y, z (m), rx, ry, rz (rad, rotation vector), base frame
+    speed: tuple[float, ...]  # TCP velocity (m/s, rad/s)
+    protective_stop: bool
+    emergency_stop: bool
+    program_running: bool
+    safety_mode: int
+    robot_mode: int
+    runtime_state: int
+    t_read: float  # time.monotonic() when read
+
+    @property
+    def linear_speed(self) -> float:
+        """Norm of the translational TCP speed (m/s)."""
+        return math.sqrt(sum(v * v for v in self.speed[:3]))
+
+
+@dataclass(frozen=True)
+class StopResult:
+    """What one :meth:`Arm.stop` did. ``ok`` means a stop command was accepted by the controller."""
+
+    ok: bool
+    method: str
+    reason: str
+    t_issued: float  # time.monotonic() just before the vendor call
+    t_returned: float  # time.monotonic() when it returned
+    protective_stop: bool = False  # the controller had already halted the arm with a protective stop
+    error: str = ""  # why the configured method failed (also set when a fallback then succeeded)
+
+    @property
+    def duration(self) -> float:
+        """Seconds the stop call blocked."""
+        return self.t_returned - self.t_issued
+
+
+class Arm(ABC):
+    """A robot arm slipd can halt."""
+
+    last_stop: StopResult | None = None
+
+    @abstractmethod
+    def connect(self) -> None:
+        """Open the connections; raises :class:`ArmError` when the arm cannot be reached."""
+
+    @abstractmethod
+    def is_connected(self) -> bool:
+        """True while the state stream (and the control channel, where used) is up."""
+
+    @abstractmethod
+    def read_state(self) -> ArmState:
+        """The arm's current state; ``connected`` False instead of raising when the link is down."""
+
+    @abstractmethod
+    def stop(self, reason: str) -> StopResult:
+        """Decelerate and halt any motion now; never raises for a refused stop (see ``StopResult.ok``)."""
+
+    @abstractmethod
+    def reconnect(self) -> bool:
+        """Re-open lost connections; True on success."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Close every connection (idempotent)."""
+
+
+@dataclass(frozen=True)
+class URSettings:
+    """How to reach and stop a UR arm.
+
+    ``frequency`` -1 lets ur_rtde pick (500 Hz on e-Series, 125 Hz on CB3). ``stop_deceleration`` is the
+    tool deceleration of ``stopl`` / ``speed_stop`` in m/s^2 (UR's own default is 10).
+    """
+
+    host: str
+    frequency: float = -1.0
+    stop_method: str = "stopl"
+    stop_deceleration: float = 10.0
+    use_control: bool = True
+    fallback_to_dashboard: bool = True
+    dashboard_port: int = 29999
+    script_start_timeout: float = 2.0  # seconds to wait for the control script after a re-upload
+
+    def __post_init__(self) -> None:
+        if not self.host:
+            raise ValueError("URSettings.host: empty")
+        if self.stop_method not in STOP_METHODS:
+            raise ValueError(f"URSettings.stop_method={self.stop_method!r}: expected one of {STOP_METHODS}")
+        if self.stop_method in ("stopl", "speed_stop") and not self.use_control:
+            raise ValueError(f"URSettings.stop_method={self.stop_method!r} needs use_control=True "
+                             "(use 'dashboard_pause' or 'dashboard_stop' to leave the user's program in place)")
+        if not (0.0 < self.stop_deceleration <= 40.0):
+            raise ValueError(f"URSettings.stop_deceleration={self.stop_deceleration}: expected 0 < a <= 40 m/s^2")
+        if self.frequency != -1.0 and not (0 < self.frequency <= 500):
+            raise ValueError(f"URSettings.frequency={self.frequency}: expected -1 (automatic) or 0 < f <= 500 Hz")
+
+
+def _default_factory(module: str, cls: str) -> Callable[..., Any]:
+    def make(*args: Any) -> Any:
+        return getattr(importlib.import_module(module), cls)(*args)  # imported late: `slipd check-config` stays light
+    return make
+
+
+class URArm(Arm):
+    """A Universal Robots arm through ur_rtde: state from RTDEReceiveInterface, stops through
+    RTDEControlInterface (``stopL``/``speedStop``) or the dashboard server (``pause``/``stop``).
+
+    The ``*_factory`` arguments build the ur_rtde objects (``factory(host, ...)``); they exist so unit
+    tests can substitute our own fakes at this boundary. ``metrics`` counts failures in
+    ``slipd_device_errors{device="arm", kind=...}`` with kinds ``connect``, ``disconnected``,
+    ``reconnect``, ``stop_failed``, ``protective_stop`` and ``read``.
+    """
+
+    def __init__(self, settings: URSettings, metrics: Metrics | None = None, *,
+                 receive_factory: Callable[..., Any] | None = None,
+                 control_factory: Callable[..., Any] | None = None,
+                 dashboard_factory: Callable[..., Any] | None = None) -> None:
+        self.settings = settings
+        self.metrics = metrics
+        self._receive_factory = receive_factory or _default_factory("rtde_receive", "RTDEReceiveInterface")
+        self._control_factory = control_factory or _default_factory("rtde_control", "RTDEControlInterface")
+        self._dashboard_factory = dashboard_factory or _default_factory("dashboard_client", "DashboardClient")
+        self._receive: Any = None
+        self._control: Any = None
+        self._dashboard: Any = None
+        self._was_protective = False
+        self.last_stop = None
+
+    # -- helpers ---------------------------------------------------------------------------------------------
+    def _count(self, kind: str) -> None:
+        if self.metrics is not None:
+            self.metrics.device_errors.labels(device="arm", kind=kind).inc()
+
+    @property
+    def _uses_dashboard(self) -> bool:
+        return self.settings.stop_method.startswith("dashboard") or self.settings.fallback_to_dashboard
+
+    def _dashboard_connected(self) -> Any:
+        if self._dashboard is None:
+            self._dashboard = self._dashboard_factory(self.settings.host, self.settings.dashboard_port)
+        if not self._dashboard.isConnected():
+            self._dashboard.connect()
+        return self._dashboard
+
+    # -- Arm -------------------------------------------------------------------------------------------------
+    def connect(self) -> None:
+        """Connect the receive interface, then the control interface (uploads ur_rtde's control script,
+        replacing the running program) when ``use_control``, then the dashboard where a stop path needs it."""
+        s = self.settings
+        try:
+            self._receive = self._receive_factory(s.host, s.frequency)
+            if s.use_control:
+                self._control = self._control_factory(s.host, s.frequency)
+            if self._uses_dashboard:
+                self._dashboard_connected()
+        except RuntimeError as e:
+            self._count("connect")
+            self.close()
+            raise ArmError(f"UR arm at {s.host}: cannot connect: {e}") from e
+        if not self.is_connected():
+            self._count("connect")
+            self.close()
+            raise ArmError(f"UR arm at {s.host}: connected but the RTDE link reports it is down")
+
+    def is_connected(self) -> bool:
+        """True when the RTDE state stream, and the control interface where used, are connected."""
+        if self._receive is None or not self._receive.isConnected():
+            return False
+        return self._control is None or bool(self._control.isConnected())
+
+    def read_state(self) -> ArmState:
+        """Read pose, speed and safety state; a link that is down yields ``connected=False`` and NaNs."""
+        now = time.monotonic()
+        if self._receive is None or not self._receive.isConnected():
+            self._count("disconnected")
+            return ArmState(False, _NAN6, _NAN6, False, False, False, 0, 0, 0, now)
+        r = self._receive
+        try:
+            protective = bool(r.isProtectiveStopped())
+            state = ArmState(
+                connected=True,
+                pose=tuple(r.getActualTCPPose()),
+                speed=tuple(r.getActualTCPSpeed()),
+                protective_stop=protective,
+                emergency_stop=bool(r.isEmergencyStopped()),
+                program_running=bool(int(r.getRobotStatus()) & _STATUS_PROGRAM_RUNNING),
+                safety_mode=int(r.getSafetyMode()),
+                robot_mode=int(r.getRobotMode()),
+                runtime_state=int(r.getRuntimeState()),
+                t_read=now,
+            )
+        except RuntimeError:
+            self._count("read")
+            return ArmState(False, _NAN6, _NAN6, False, False, False, 0, 0, 0, now)
+        if protective and not self._was_protective:
+            self._count("protective_stop")  # counted once per occurrence, not per read
+        self._was_protective = protective
+        return state
+
+    def stop(self, reason: str) -> StopResult:
+        """Halt the arm with the configured method; falls back to the dashboard ``stop`` when that fails
+        and ``fallback_to_dashboard`` is set. Records the issue/return times in ``last_stop``."""
+        s = self.settings
+        t_issued = time.monotonic()
+        ok, error = self._stop_with(s.stop_method)
+        method = s.stop_method
+        if not ok and s.fallback_to_dashboard and not s.stop_method.startswith("dashboard"):
+            ok2, error2 = self._stop_with("dashboard_stop")
+            if ok2:
+                ok, method = True, f"{s.stop_method}->dashboard_stop"
+            error = f"{error}; fallback dashboard stop: {error2 or 'ok'}"
+        t_returned = time.monotonic()
+        protective = self._protective_now()
+        if not ok:
+            self._count("stop_failed")
+        # ``error`` also survives a successful fallback: it says why the configured method was not enough.
+        result = StopResult(ok, method, reason, t_issued, t_returned, protective, error)
+        self.last_stop = result
+        return result
+
+    def _protective_now(self) -> bool:
+        try:
+            r = self._receive
+            return r is not None and r.isConnected() and bool(r.isProtectiveStopped())
+        except RuntimeError:
+            return False
+
+    def _stop_with(self, method: str) -> tuple[bool, str]:
+        """Issue one stop; returns (accepted, error text)."""
+        a = self.settings.stop_deceleration
+        try:
+            if method in ("stopl", "speed_stop"):
+                c = self._control
+                if c is None or not c.isConnected():
+                    return False, "RTDE control interface not connected"
+                if not c.isProgramRunning():
+                    return False, "ur_rtde control script not running (protective stop, or stopped from the pendant)"
+                if method == "stopl":
+                    c.stopL(a, False)  # returns nothing; the script's "done" handshake is what it waited for
+                    # A refused stop leaves the script dead: check it survived the command.
+                    if not c.isProgramRunning():
+                        return False, "stopL: control script stopped while executing it"
+                    return True, ""
+                return (True, "") if c.speedStop(a) else (False, "speedStop refused by the controller")
+            return self._dashboard_command("pause" if method == "dashboard_pause" else "stop"), ""
+        except RuntimeError as e:  # ur_rtde raises RuntimeError for socket and dashboard failures
+            return False, f"{method}: {e}"
+
+    def _dashboard_command(self, name: str) -> bool:
+        """Send ``pause``/``stop`` to the dashboard; one reconnect-and-retry, because a dropped dashboard
+        socket is only noticed when written to. Raises RuntimeError when the retry fails too."""
+        try:
+            getattr(self._dashboard_connected(), name)()
+        except RuntimeError as first:
+            if "Failed to execute" in str(first):
+                raise  # the controller refused (e.g. nothing to pause): a reconnect would not change that
+            if self._dashboard is not None:
+                with contextlib.suppress(RuntimeError):
+                    self._dashboard.disconnect()
+            self._dashboard = None
+            getattr(self._dashboard_connected(), name)()
+        return True
+
+    def reconnect(self) -> bool:
+        """Reconnect whatever is down; re-upload the control script when it is no longer running."""
+        s = self.settings
+        try:
+            if self._receive is None:
+                self._receive = self._receive_factory(s.host, s.frequency)
+            elif not self._receive.isConnected():
+                self._receive.reconnect()
+            if s.use_control:
+                if self._control is None:
+                    self._control = self._control_factory(s.host, s.frequency)
+                elif not self._control.isConnected():
+                    self._control.reconnect()
+                if not self._control.isProgramRunning() and not self._protective_now():
+                    self._control.reuploadScript()
+                    deadline = time.monotonic() + s.script_start_timeout
+                    while not self._control.isProgramRunning() and time.monotonic() < deadline:
+                        time.sleep(0.01)
+            if self._uses_dashboard:
+                self._dashboard_connected()
+        except RuntimeError:
+            self._count("reconnect")
+            return False
+        ok = self.is_connected()
+        if not ok:
+            self._count("reconnect")
+        return ok
+
+    def unlock_protective_stop(self) -> bool:
+        """Release a protective stop from the dashboard and resume the paused program (``play``).
+
+        Only for supervised set-ups: the cause of a protective stop should be inspected first.
+        """
+        try:
+            d = self._dashboard_connected()
+            d.unlockProtectiveStop()
+            d.play()
+            return True
+        except RuntimeError:
+            self._count("reconnect")
+            return False
+
+    def close(self) -> None:
+        """Disconnect every interface (the control script is told to end first)."""
+        if self._control is not None:
+            with contextlib.suppress(RuntimeError):
+                if self._control.isConnected() and self._control.isProgramRunning():
+                    self._control.stopScript()
+                self._control.disconnect()
+        for obj in (self._receive, self._dashboard):
+            if obj is not None:
+                with contextlib.suppress(RuntimeError):
+                    obj.disconnect()
+        self._receive = self._control = self._dashboard = None
