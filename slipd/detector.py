@@ -20,10 +20,12 @@ contact, the GRU states are reset, so a new grasp starts from the trained initia
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from slipd.ensemble import StepError
 from slipd.features import FeatureSpec, FeatureStream, tare_offset
 from slipd.geometry import CONTACT_THRESHOLD_N
 
@@ -66,6 +68,8 @@ class Detector:
         self.index = -1
         self.windows = 0
         self.resets = 0
+        self.step_errors = 0
+        self.last_step_s: float | None = None
         self._tared = self.tare_samples == 0
         self._n_tare = 0
         self._in_contact = False
@@ -120,10 +124,15 @@ class Detector:
             return None
         stream = self.windows % self.n_streams
         self.windows += 1
-        result = self.ensemble.step(window, stream=stream)
-        if result is None or not np.isfinite(result.p_slip):
-            # The ensemble refused the window (non-finite) and kept its state: no decision from it.
+        t0 = time.perf_counter()
+        try:
+            result = self.ensemble.step(window, stream=stream)
+        except StepError:
+            # Refused (non-finite window: state kept) or non-finite output (stream reset): no decision.
+            self.step_errors += 1
             return Detection(index, t_us, float("nan"), 0.0, bool(self.decision.alarm), False, valid=False)
+        finally:
+            self.last_step_s = time.perf_counter() - t0
         d = self.decision.update(result.p_slip, result.p_members)
         return Detection(index, t_us, float(result.p_slip), float(d.risk), bool(d.alarm), bool(d.rising_edge))
 

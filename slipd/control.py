@@ -1,0 +1,334 @@
+"""The daemon: one asyncio loop from sensor frames to arm and gripper commands.
+
+Start-up order is fail-safe: the configuration and the model (manifest, hash, shapes, feature
+layout) are checked, the session warmed up, and only then are devices opened. A broken config or
+model therefore never touches hardware (exit codes in ``slipd.__main__``).
+
+The hot path is event-driven: the sensor reader (``slipd.sensor``) calls ``_on_frames`` on the loop
+thread as soon as bytes arrive; each frame goes through the shared ``Detector`` (features ->
+ensemble -> decision) and, on a rising alarm edge, ``Reaction`` hands the arm stop and the gripper
+tighten to their device threads at once. Nothing on this path blocks.
+
+A supervision task runs on absolute deadlines (``next = start + k * period``; a late tick is counted
+as an overrun and the schedule is not shifted): it detects a stalled sensor (no frame for
+``sensor.stall_timeout_ms``) and fails safe (stop the arm, keep the grip), and pings the systemd
+watchdog only while frames keep arriving, so a wedged loop or a dead sensor lets systemd act.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from slipd.decision import Decision
+from slipd.detector import Detector
+from slipd.metrics import Metrics
+from slipd.reaction import Reaction
+from slipd.worker import DeviceWorker
+
+log = logging.getLogger("slipd.control")
+
+SUPERVISION_PERIOD_S = 0.005
+
+
+@dataclass
+class LoopStats:
+    """Counters of one daemon run (also exported as metrics)."""
+
+    frames: int = 0
+    decisions: int = 0
+    alarms: list[tuple[int, int, float]] = field(default_factory=list)
+    """(sample index since start, sensor t_us, monotonic time of the decision) per rising edge."""
+    overruns: int = 0
+    failsafes: int = 0
+    restarts: int = 0
+    step_errors: int = 0
+
+
+class Daemon:
+    """Owns the detector, the devices and the loop. Build with ``Daemon.build(cfg)``; run with ``await run()``."""
+
+    def __init__(
+        self,
+        cfg: Any,
+        ensemble: Any,
+        *,
+        metrics: Metrics | None = None,
+        arm: Any = None,
+        gripper: Any = None,
+        notifier: Any = None,
+    ) -> None:
+        self.cfg = cfg
+        self.metrics = metrics or Metrics()
+        self.ensemble = ensemble
+        spec = ensemble.feature_spec
+        if cfg.model.stride:
+            spec = spec.with_(stride=cfg.model.stride)
+        threshold = cfg.decision.effective_threshold(ensemble.threshold)
+        self.decision = Decision(threshold=threshold, hysteresis=cfg.decision.hysteresis)
+        tare_n = cfg.sensor.tare_samples if cfg.sensor.tare == "startup" else 0
+        self.detector = Detector(ensemble, self.decision, spec, offset=None if tare_n else np.zeros((9, 3)),
+                                 tare_samples=tare_n)
+        self.arm, self.gripper = arm, gripper
+        self.arm_worker = DeviceWorker("arm") if arm is not None else None
+        self.gripper_worker = DeviceWorker("gripper") if gripper is not None else None
+        self.reaction = Reaction(
+            actions=list(cfg.reaction.actions),
+            arm=arm,
+            gripper=gripper,
+            arm_worker=self.arm_worker,
+            gripper_worker=self.gripper_worker,
+            metrics=self.metrics,
+            graded=cfg.reaction.graded,
+            rearm_after_s=cfg.reaction.rearm_after_s,
+        )
+        self.notifier = notifier
+        self.recorder = None
+        self.stats = LoopStats()
+        self.sensor = None
+        self._stop = asyncio.Event()
+        self._stalled = False
+        self._progress = 0
+        self._pinged_progress = -1
+        self.ready = asyncio.Event()
+        m = self.metrics
+        m.model.info({"name": str(cfg.model.manifest.name), "sha256": ensemble.manifest.sha256})
+
+    # ----------------------------------------------------------------- hot path
+    def _on_frames(self, frames: list) -> None:
+        t0 = time.perf_counter()
+        m = self.metrics
+        rec = self.recorder
+        for f in frames:
+            if getattr(f, "discontinuity", False):
+                # Counter went backwards or the sensor reconnected: the history is not continuous.
+                self.detector.restart()
+                self.stats.restarts += 1
+            if rec is not None:
+                rec.push_frame(f.t_us, f.force, f.disp)
+            self.stats.frames += 1
+            before = self.detector.windows
+            det = self.detector.push(f.force, f.t_us)
+            if det is None:
+                continue
+            if self.detector.windows != before and self.detector.last_step_s is not None:
+                m.inference_seconds.observe(self.detector.last_step_s)
+            if not det.valid:
+                self.stats.step_errors += 1
+                continue
+            self.stats.decisions += 1
+            m.decisions.inc()
+            m.p_slip.set(det.p_slip)
+            m.risk.set(det.risk)
+            if rec is not None:
+                rec.push_decision(f.t_us, det.p_slip, det.alarm)
+            if det.rising_edge:
+                t_dec = time.monotonic()
+                self.reaction.on_alarm(det.risk, t_dec)
+                m.alarms.inc()
+                self.stats.alarms.append((det.index, det.t_us, t_dec))
+                log.warning("ALARM: incipient slip (p=%.3f risk=%.2f) at t=%.3f s", det.p_slip, det.risk,
+                            det.t_us / 1e6)
+                if rec is not None:
+                    rec.trigger(f.t_us, "alarm", p_slip=det.p_slip)
+        self._progress += len(frames)
+        m.loop_seconds.observe(time.perf_counter() - t0)
+
+    def _on_disconnect(self, reason: str) -> None:
+        log.error("sensor lost: %s", reason)
+        self.detector.restart()
+        self.stats.restarts += 1
+        self._fail_safe("sensor_lost")
+
+    def _fail_safe(self, reason: str) -> None:
+        self.stats.failsafes += 1
+        self.reaction.failsafe(reason)
+
+    # -------------------------------------------------------------- supervision
+    async def _supervise(self) -> None:
+        period = SUPERVISION_PERIOD_S
+        stall_s = self.cfg.sensor.stall_timeout_ms / 1e3
+        max_late = self.cfg.control.max_overrun_ms / 1e3
+        start = time.monotonic()
+        k = 0
+        last_ping = 0.0
+        ping_every = None
+        if self.notifier is not None and self.cfg.control.watchdog:
+            from slipd.sdnotify import watchdog_interval
+
+            wd = watchdog_interval()
+            ping_every = wd / 2 if wd else None
+        while not self._stop.is_set():
+            k += 1
+            deadline = start + k * period
+            delay = deadline - time.monotonic()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            now = time.monotonic()
+            if now - deadline > max_late:
+                self.stats.overruns += 1
+                self.metrics.overruns.inc()
+                # Absolute schedule: skip the ticks that are already past instead of bunching them.
+                k = int((now - start) / period)
+            last = self.sensor.last_frame_time if self.sensor is not None else None
+            if last is not None and now - last > stall_s:
+                if not self._stalled:
+                    self._stalled = True
+                    log.error("sensor stalled: no frame for %.0f ms", (now - last) * 1e3)
+                    self._fail_safe("sensor_stall")
+            elif last is not None:
+                self._stalled = False
+            if ping_every and now - last_ping >= ping_every and self._progress != self._pinged_progress:
+                self.notifier.watchdog()
+                self._pinged_progress = self._progress
+                last_ping = now
+
+    # ---------------------------------------------------------------- lifecycle
+    async def run(self, sensor_port: str | None = None, duration_s: float | None = None) -> LoopStats:
+        """Open the sensor, run until ``stop()`` (or ``duration_s``), then close everything."""
+        from slipd.pts import CMD_BIAS
+        from slipd.sensor import SerialSensor
+
+        cfg = self.cfg.sensor
+        self.sensor = SerialSensor(
+            sensor_port or cfg.port,
+            self._on_frames,
+            baudrate=cfg.baudrate,
+            on_disconnect=self._on_disconnect,
+            reconnect_initial_s=cfg.reconnect_initial_s,
+            reconnect_max_s=cfg.reconnect_max_s,
+            metrics=self.metrics,
+        )
+        await self.sensor.start()
+        if cfg.tare == "bias_command":
+            self.sensor.send_command(CMD_BIAS)
+            await asyncio.sleep(cfg.bias_timeout_s)
+            self.detector.restart()
+        supervisor = asyncio.create_task(self._supervise())
+        self.metrics.ready.set(1)
+        self.ready.set()
+        if self.notifier is not None:
+            self.notifier.ready(f"running: model {self.cfg.model.manifest.name}")
+        try:
+            if duration_s is None:
+                await self._stop.wait()
+            else:
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(self._stop.wait(), duration_s)
+        finally:
+            self._stop.set()
+            supervisor.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await supervisor
+            await self.sensor.stop()
+            self.metrics.ready.set(0)
+            if self.notifier is not None:
+                self.notifier.stopping()
+        return self.stats
+
+    def stop(self) -> None:
+        """Ask ``run`` to finish (safe from signal handlers on the loop)."""
+        self._stop.set()
+
+    def close(self) -> None:
+        """Release device threads and the recorder (the devices keep their last state: grip held)."""
+        for w in (self.arm_worker, self.gripper_worker):
+            if w is not None:
+                w.close()
+        for dev in (self.gripper, self.arm):
+            if dev is not None:
+                with contextlib.suppress(Exception):
+                    dev.close()
+        if self.recorder is not None:
+            self.recorder.close()
+
+
+# -------------------------------------------------------------------- building
+def build_devices(cfg: Any, metrics: Metrics) -> tuple[Any, Any]:
+    """Open and connect the configured arm and gripper (blocking; before the loop starts)."""
+    arm = gripper = None
+    if cfg.gripper.enabled:
+        from slipd.gripper import DynamixelGripper, DynamixelSettings
+
+        g = cfg.gripper
+        gripper = DynamixelGripper(
+            DynamixelSettings(
+                port=g.port, baudrate=g.baudrate, dxl_id=g.id, protocol=float(g.protocol),
+                hold_position=g.hold_position, secure_position=g.secure_position,
+                hold_pwm=g.hold_effort, secure_pwm=g.secure_effort,
+                retries=g.retries, packet_timeout_ms=g.packet_timeout_ms,
+            ),
+            metrics=metrics,
+        )
+        gripper.connect()
+    if cfg.arm.enabled:
+        from slipd.arm import URArm, URSettings
+
+        a = cfg.arm
+        arm = URArm(
+            URSettings(host=a.host, frequency=a.rtde_frequency, stop_deceleration=a.stop_deceleration,
+                       stop_method=a.stop_method),
+            metrics=metrics,
+        )
+        arm.connect()
+    return arm, gripper
+
+
+def main_run(args: Any) -> int:
+    """``slipd run --config FILE``."""
+    from slipd.__main__ import EXIT_CONFIG, EXIT_DEVICE, EXIT_MODEL, EXIT_OK, EXIT_RUNTIME
+    from slipd.config import ConfigError, load_config
+    from slipd.ensemble import Ensemble
+    from slipd.manifest import ModelError
+
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as exc:
+        print(exc, file=sys.stderr)
+        return EXIT_CONFIG
+    logging.basicConfig(level=cfg.control.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        ensemble = Ensemble.load(cfg.model.manifest, threads=cfg.model.threads)
+    except ModelError as exc:
+        print(f"{args.config}: model.manifest: {exc}", file=sys.stderr)
+        return EXIT_MODEL
+    metrics = Metrics()
+    try:
+        arm, gripper = build_devices(cfg, metrics)
+    except Exception as exc:  # any driver failure at start-up: refuse to run, say which device
+        print(f"slipd: device start-up failed: {exc}", file=sys.stderr)
+        return EXIT_DEVICE
+    from slipd.sdnotify import Notifier
+
+    daemon = Daemon(cfg, ensemble, metrics=metrics, arm=arm, gripper=gripper, notifier=Notifier())
+    if cfg.recorder.enabled:
+        from slipd.recorder import Recorder
+
+        daemon.recorder = Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz,
+                                               meta={"model_sha256": ensemble.manifest.sha256})
+    server = metrics.serve(cfg.metrics.host, cfg.metrics.port) if cfg.metrics.enabled else None
+
+    async def _main() -> None:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, daemon.stop)
+        await daemon.run()
+
+    try:
+        asyncio.run(_main())
+    except Exception:
+        log.exception("daemon failed")
+        return EXIT_RUNTIME
+    finally:
+        daemon.close()
+        if server is not None:
+            server.shutdown()
+    return EXIT_OK

@@ -1,0 +1,81 @@
+"""The Detector (the daemon's decision path) against the batch pipeline, and `slipd replay`."""
+
+import numpy as np
+import pytest
+
+from slipd.__main__ import main
+from slipd.decision import Decision
+from slipd.detector import Detector, run_recording
+from slipd.ensemble import Ensemble
+from slipd.features import batch_windows, tare_offset
+from slipd.recording import Recording
+
+
+def _force(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    f = np.cumsum(rng.normal(0, 0.01, (n, 9, 3)), axis=0).astype(np.float32)
+    f[:, :, 2] += 3.0  # in contact throughout
+    f += np.float32(0.7)  # an unzeroed sensor
+    return f
+
+
+@pytest.fixture(scope="module")
+def ens(tiny_model_json) -> Ensemble:
+    return Ensemble.load(tiny_model_json)
+
+
+def test_startup_tare_gives_exactly_the_batch_windows(ens: Ensemble) -> None:
+    force = _force(1000)
+    ens.reset()
+    dets = run_recording(Detector(ens, Decision(), tare_samples=100), force)
+    windows, ends = batch_windows(force, ens.feature_spec, tare_offset(force, 0, 100))
+    ref = ens.step_batch([windows])[0].p_slip
+    got = np.array([d.p_slip for d in dets])
+    # The tare stretch is held back, then replayed: the first two windows end inside it and only the
+    # last of them is reported (when the tare completes, with the index of the sample that ended it).
+    assert [d.index for d in dets] == ends[1:].tolist()
+    np.testing.assert_allclose(got, ref[1:], atol=1e-6)
+
+
+def test_phase_shifted_streams_make_a_decision_every_stride(ens: Ensemble) -> None:
+    force = _force(800, seed=1)
+    spec = ens.feature_spec.with_(stride=10)
+    ens.reset()
+    dets = run_recording(Detector(ens, Decision(), spec, offset=np.zeros((9, 3))), force)
+    assert np.all(np.diff([d.index for d in dets]) == 10)
+    # Stream j sees every fourth window: the same sequence the single-stream model sees, shifted.
+    windows, _ = batch_windows(force, spec)
+    for j in range(4):
+        ref = ens.step_batch([windows[j::4]])[0].p_slip
+        np.testing.assert_allclose([d.p_slip for d in dets[j::4]], ref, atol=1e-6)
+
+
+def test_contact_loss_resets_the_state(ens: Ensemble) -> None:
+    force = _force(600, seed=2)
+    force[300:, :, 2] = 0.0  # the object is released at sample 300
+    det = Detector(ens, Decision(), offset=np.zeros((9, 3)))
+    ens.reset()
+    run_recording(det, force)
+    assert det.resets == 1
+
+
+def test_nonfinite_input_never_reaches_the_state(ens: Ensemble) -> None:
+    force = _force(400, seed=3)
+    force[100:140, 2, :] = np.nan
+    force[200, :, :] = np.inf
+    ens.reset()
+    dets = run_recording(Detector(ens, Decision(), offset=np.zeros((9, 3))), force)
+    assert all(d.valid and np.isfinite(d.p_slip) for d in dets)
+    assert np.isfinite(ens.hidden_state(0)).all()
+
+
+def test_replay_cli_prints_alarms(tiny_model_json, tmp_path, capsys) -> None:
+    n = 2000
+    rec = Recording(t_us=np.arange(n) * 1000, force=_force(n, 4), disp=np.zeros((n, 9, 3)),
+                    meta={"tare_samples": [0, 100]})
+    path = rec.save(tmp_path / "r.npz")
+    assert main(["replay", str(path), "--model", str(tiny_model_json), "--json", str(tmp_path / "o.json")]) == 0
+    out = capsys.readouterr().out
+    assert "2000 samples, 49 decisions" in out
+    assert (tmp_path / "o.json").exists()
+    assert main(["replay", str(tmp_path / "missing.npz"), "--model", str(tiny_model_json)]) == 1
