@@ -1,0 +1,249 @@
+"""The method's metrics on hand-made truth/decision cases, and tools/evaluate.py end to end."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slipd.evaluation import (
+    SceneResult,
+    SceneTruth,
+    Trace,
+    d_norm_at,
+    evaluate_scene,
+    false_alarms_per_hour,
+    gross_slip_time,
+    motion_components,
+    offline_outcome,
+    online_outcome,
+    summarize,
+)
+from slipd.recording import Recording
+
+
+def slip_truth(onset: float = 1.0, gross: float = 1.5, **kw) -> SceneTruth:
+    return SceneTruth(name="s", kind="slip", duration_s=4.0, onset_s=onset, gross_slip_s=gross, **kw)
+
+
+def stop_truth(duration: float = 3.0) -> SceneTruth:
+    return SceneTruth(name="h", kind="stop", duration_s=duration)
+
+
+def trace(alarm_times: list[float], until: float = 4.0, dt: float = 0.04) -> Trace:
+    """Decisions every ``dt``; the alarm is on during [t, t + dt) for each t in ``alarm_times``."""
+    ts = list(np.round(np.arange(0.0, until, dt), 6))
+    on = [any(abs(t - a) < dt / 2 for a in alarm_times) for t in ts]
+    edges = [a and (i == 0 or not on[i - 1]) for i, a in enumerate(on)]
+    return Trace(ts, [0.9 if a else 0.1 for a in on], on, edges)
+
+
+# --------------------------------------------------------------------------- offline criterion
+@pytest.mark.parametrize(
+    ("alarm", "outcome"),
+    [
+        (1.2, "tp"),  # inside [onset, gross]
+        (0.72, "tp"),  # within the 0.3 s tolerance before the onset
+        (0.68, "early"),  # more than 0.3 s before the onset
+        (1.52, "late"),  # after gross slip
+        (None, "missed"),
+    ],
+)
+def test_offline_outcome_of_a_slip_sequence(alarm, outcome) -> None:
+    assert offline_outcome(slip_truth(), alarm) == outcome
+
+
+def test_only_the_first_alarm_counts_and_latency_has_a_sign() -> None:
+    # An early alarm followed by a well-timed one is still a failure: the first alarm would have reacted.
+    r = evaluate_scene(slip_truth(), trace([0.4, 1.2]))
+    assert r.offline_outcome == "early" and r.latency_s is None
+    before = evaluate_scene(slip_truth(), trace([0.8]))
+    after = evaluate_scene(slip_truth(), trace([1.12]))
+    assert before.offline_outcome == after.offline_outcome == "tp"
+    assert before.latency_s == pytest.approx(-0.2)
+    assert after.latency_s == pytest.approx(0.12)
+
+
+def test_stop_sequences() -> None:
+    assert offline_outcome(stop_truth(), None) == "tn"
+    assert offline_outcome(stop_truth(), 2.0) == "fp"
+    r = evaluate_scene(stop_truth(), trace([1.0, 1.04, 2.0]))  # one alarm lasting two decisions, then another
+    assert r.offline_outcome == "fp" and r.rising_edges == 2
+
+
+def test_slip_without_onset_is_an_error_naming_the_scene() -> None:
+    with pytest.raises(ValueError, match="s: slip sequence without an onset"):
+        offline_outcome(slip_truth(onset=None), 1.0)
+
+
+# --------------------------------------------------------------------------- online criterion and D_norm
+def _gripper_truth(motion: str, rate_mm_s: float = 4.0, rate_deg_s: float = 0.0) -> SceneTruth:
+    t = np.arange(0, 2.0, 0.001)
+    moving = np.clip(t - 0.5, 0, None)  # the object starts to move relative to the finger at 0.5 s
+    om = np.stack([rate_mm_s * moving * 0.6, rate_mm_s * moving * 0.8, rate_deg_s * moving], axis=1)
+    om += np.array([0.3, -0.2, 0.1])  # a settling offset before motion start is not slip
+    return SceneTruth(
+        name="g", kind="slip", duration_s=2.0, motion=motion, onset_s=0.55, gross_slip_s=None,
+        motion_start_s=0.5, online_gross_s=gross_slip_time(t, om, 0.5), t_s=t, object_motion=om,
+    )
+
+
+def test_gross_slip_time_from_object_motion() -> None:
+    tr = _gripper_truth("translation", rate_mm_s=4.0)
+    assert tr.online_gross_s == pytest.approx(1.0, abs=0.002)  # 2 mm at 4 mm/s after 0.5 s
+    rot = _gripper_truth("rotation", rate_mm_s=0.0, rate_deg_s=8.0)
+    assert rot.online_gross_s == pytest.approx(0.75, abs=0.002)  # 2 deg at 8 deg/s
+    t = np.arange(0, 1.0, 0.001)
+    assert gross_slip_time(t, np.zeros((len(t), 3))) is None
+
+
+def test_online_outcome() -> None:
+    tr = _gripper_truth("translation")
+    assert online_outcome(tr, 0.7) == "success"
+    assert online_outcome(tr, 0.4) == "early"  # before the robot moved
+    assert online_outcome(tr, 1.1) == "late"  # after 2 mm of relative motion
+    assert online_outcome(tr, None) == "missed"
+    assert online_outcome(stop_truth(), None) == "tn"
+    assert online_outcome(slip_truth(), 1.0) is None  # no motion-start truth: not an online scene
+
+
+def test_d_norm_translation_rotation_and_combined() -> None:
+    tr = _gripper_truth("translation", rate_mm_s=4.0)
+    assert d_norm_at(tr, 0.75) == pytest.approx(0.5, abs=0.01)  # 1 mm of 2 mm
+    rot = _gripper_truth("rotation", rate_mm_s=0.0, rate_deg_s=4.0)
+    assert d_norm_at(rot, 0.6) == pytest.approx(0.2, abs=0.01)  # 0.4 deg of 2 deg
+    both = _gripper_truth("translation+rotation", rate_mm_s=4.0, rate_deg_s=2.0)
+    assert d_norm_at(both, 1.0) == pytest.approx((1.0 + 0.5) / 2, abs=0.01)
+    assert motion_components("rotation") == (False, True)
+    assert motion_components("translation_rotation") == (True, True)
+    assert motion_components("lift") == (True, False)
+    assert d_norm_at(slip_truth(), 1.0) is None  # no object motion recorded
+
+
+# --------------------------------------------------------------------------- aggregates
+def test_false_alarms_per_hour_counts_edges_over_no_slip_time() -> None:
+    rs = [evaluate_scene(stop_truth(1800.0), trace([1.0, 2.0], until=3.0)),
+          evaluate_scene(stop_truth(1800.0), trace([0.52], until=3.0)),
+          evaluate_scene(slip_truth(), trace([0.2, 1.0, 2.0]))]  # slip scenes do not count
+    edges, hours, per_hour = false_alarms_per_hour(rs)
+    assert (edges, hours, per_hour) == (3, 1.0, 3.0)
+
+
+def test_summary_confusion_latency_and_json() -> None:
+    rs = [evaluate_scene(slip_truth(), trace([a])) for a in (1.0, 1.04, 1.2, 0.2)]
+    rs.append(evaluate_scene(slip_truth(), trace([])))
+    rs += [evaluate_scene(stop_truth(), trace([])), evaluate_scene(stop_truth(), trace([2.0]))]
+    s = summarize(rs)
+    assert (s.offline.tp, s.offline.fn, s.offline.fp, s.offline.tn) == (3, 2, 1, 1)
+    assert s.offline.success_rate == pytest.approx(4 / 7)
+    assert s.offline.balanced_success == pytest.approx((3 / 5 + 1 / 2) / 2)
+    assert s.offline_failures == {"early": 1, "missed": 1, "fp": 1}
+    assert s.latency_s.n == 3 and s.latency_s.median == pytest.approx(0.04)
+    assert s.latency_s.p90 == pytest.approx(np.percentile([0.0, 0.04, 0.2], 90))
+    assert s.online is None and s.d_norm.n == 0
+    back = json.loads(json.dumps({"summary": s.to_dict(), "scenes": [r.to_dict() for r in rs]}))
+    assert back["summary"]["offline"]["tp"] == 3 and back["scenes"][0]["offline_outcome"] == "tp"
+
+
+@dataclass
+class _Det:
+    index: int
+    t_us: int
+    p_slip: float
+    risk: float
+    alarm: bool
+    rising_edge: bool
+    valid: bool = True
+
+
+def test_trace_uses_the_sample_index_and_skips_invalid_decisions() -> None:
+    t_us = 5_000_000 + np.arange(200, dtype=np.int64) * 1000
+    dets = [_Det(39, 999, 0.1, 0.2, False, False), _Det(79, 999, float("nan"), 0.0, False, False, valid=False),
+            _Det(119, 999, 0.8, 1.0, True, True)]
+    tr = Trace.from_detections(dets, t_us)
+    assert tr.t_s == [pytest.approx(0.039), pytest.approx(0.119)]
+    assert tr.first_alarm_s() == pytest.approx(0.119) and tr.n_rising_edges() == 1
+
+
+def test_truth_from_a_recording() -> None:
+    n = 1000
+    label = np.zeros(n, np.uint8)
+    label[300:450] = 1
+    rec = Recording(t_us=np.arange(n) * 1000, force=np.zeros((n, 9, 3)), disp=np.zeros((n, 9, 3)), label=label,
+                    meta={"motion": "rotation", "events": {"motion_start": 0.2, "onset": 0.31}})
+    tr = SceneTruth.from_recording(rec, "r")
+    # The label is the truth; kind inferred from it when meta has none.
+    assert (tr.kind, tr.onset_s, tr.gross_slip_s, tr.motion_start_s) == ("slip", 0.3, 0.45, 0.2)
+    assert tr.duration_s == pytest.approx(1.0)
+    rec.meta["kind"] = "wobble"
+    with pytest.raises(ValueError, match="r: meta kind 'wobble'"):
+        SceneTruth.from_recording(rec, "r")
+
+
+# --------------------------------------------------------------------------- tools/evaluate.py end to end
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory) -> Path:
+    from test_baselines import make_scene
+
+    folder = tmp_path_factory.mktemp("scenes")
+    make_scene(seed=1, duration_s=1.2).save(folder / "a_slip.npz")
+    make_scene(motion="rotation", speed=20.0, seed=4, duration_s=1.2).save(folder / "b_rot.npz")
+    make_scene(kind="stop", stop_s=0.7, seed=3, duration_s=1.2).save(folder / "c_stop.npz")
+    return folder
+
+
+def test_evaluate_baseline_end_to_end(scenes: Path, tmp_path: Path) -> None:
+    from tools.evaluate import main
+
+    out = tmp_path / "eval.json"
+    assert main(["--baseline", "deceleration", "--baseline-params", str(_defaults(tmp_path)), "--recordings",
+                 str(scenes), "--online", "--json", str(out), "--plots", str(tmp_path / "plots")]) == 0
+    data = json.loads(out.read_text())
+    s = data["summary"]
+    assert s["n_scenes"] == 3
+    assert (s["offline"]["tp"], s["offline"]["tn"]) == (2, 1) and s["offline"]["success_rate"] == 1.0
+    # Online: the translation (2 mm/s) is caught well before 2 mm of motion; the 20 deg/s rotation passes
+    # 2 deg at 0.70 s, only 17 ms after its first pillar slips, so its alarm is late by the online rule.
+    assert (s["online"]["tp"], s["online"]["tn"], s["online_failures"]) == (1, 1, {"late": 1})
+    assert s["d_norm"]["n"] == 1 and 0 < s["d_norm"]["median"] < 1
+    assert s["latency_s"]["n"] == 2 and 0 <= s["latency_s"]["median"] < 0.1
+    assert s["false_alarms"] == 0 and s["no_slip_hours"] == pytest.approx(1.2 / 3600)
+    pngs = sorted(p.name for p in (tmp_path / "plots").glob("*.png"))
+    assert {"confusion_offline.png", "confusion_online.png", "latency.png", "d_norm.png"} <= set(pngs)
+    assert sum(p.startswith("trace_") for p in pngs) == 3
+
+
+def _defaults(tmp_path: Path) -> Path:
+    """Untuned defaults, so the test does not depend on a models/baselines.json in the working tree."""
+    path = tmp_path / "defaults.json"
+    path.write_text(json.dumps({"deceleration": {"params": {}, "frontend": {}},
+                                "reference_pillar": {"params": {}, "frontend": {}}}))
+    return path
+
+
+def test_evaluate_model_end_to_end(scenes: Path, tmp_path: Path) -> None:
+    """A tiny real ONNX ensemble (random weights) through the daemon's Detector: the figures are consistent."""
+    torch = pytest.importorskip("torch")
+    from slipd.features import FeatureSpec
+    from tools.evaluate import main
+    from tools.export_onnx import export, fold_member
+    from tools.slipnet import SlipNet
+
+    spec = FeatureSpec(pillars=(0, 1, 2), window=8)
+    nets = []
+    for seed in range(2):
+        torch.manual_seed(seed)
+        nets.append(SlipNet(input_size=spec.input_size, hidden=8, enc=16, pred=(8, 8)).eval())
+    export([fold_member(n.state_dict()) for n in nets], spec, tmp_path / "tiny.onnx", "trained", {}, threshold=0.5)
+    out = tmp_path / "eval.json"
+    assert main(["--model", str(tmp_path / "tiny.json"), "--recordings", str(scenes), "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    results = [SceneResult(**r) for r in data["scenes"]]
+    again = summarize(results).to_dict()
+    assert again == data["summary"]
+    assert data["summary"]["n_scenes"] == 3
+    for r, tr in zip(results, data["truth"]):
+        assert r.offline_outcome == offline_outcome(SceneTruth(**tr), r.first_alarm_s)
