@@ -125,13 +125,16 @@ class URSettings:
     """How to reach and stop a UR arm.
 
     ``frequency`` -1 lets ur_rtde pick (500 Hz on e-Series, 125 Hz on CB3). ``stop_deceleration`` is the
-    tool deceleration of ``stopl`` / ``speed_stop`` in m/s^2 (UR's own default is 10).
+    tool deceleration of ``stopl`` / ``speed_stop`` in m/s^2 (UR's own default is 10). A synchronous
+    ``stopl`` blocks the arm's worker thread for the whole deceleration (v/a: 25 ms for 0.25 m/s at 10
+    m/s^2); ``stop_asynchronous`` returns once the controller has taken the stop.
     """
 
     host: str
     frequency: float = -1.0
     stop_method: str = "stopl"
     stop_deceleration: float = 10.0
+    stop_asynchronous: bool = False  # stopl only: return once the controller took the stop, not at standstill
     use_control: bool = True
     fallback_to_dashboard: bool = True
     dashboard_port: int = 29999
@@ -292,7 +295,9 @@ class URArm(Arm):
                 if not c.isProgramRunning():
                     return False, "ur_rtde control script not running (protective stop, or stopped from the pendant)"
                 if method == "stopl":
-                    c.stopL(a, False)  # returns nothing; the script's "done" handshake is what it waited for
+                    # Returns nothing. Synchronous: returns when the arm is at rest (the script's "done"
+                    # handshake); asynchronous: as soon as the script has started its stop thread.
+                    c.stopL(a, self.settings.stop_asynchronous)
                     # A refused stop leaves the script dead: check it survived the command.
                     if not c.isProgramRunning():
                         return False, "stopL: control script stopped while executing it"

@@ -274,3 +274,17 @@ def test_dashboard_pause_stops_the_user_program_without_the_control_script() -> 
             assert not again.ok and "Failed to execute" in again.error
         finally:
             arm.close()
+
+
+def test_asynchronous_stopl_returns_before_standstill(controller: URControllerProcess, arm: URArm) -> None:
+    slow = URArm(URSettings(host=controller.host, stop_deceleration=0.2, stop_asynchronous=True,
+                            fallback_to_dashboard=False))
+    slow._receive, slow._control = arm._receive, arm._control  # share the module's ur_rtde interfaces
+    _lift_and_wait_moving(controller)
+    result = slow.stop("async")
+    # At 0.2 m/s^2 the arm needs >= 0.5 s to halt; a synchronous stopL would only return at standstill.
+    assert result.ok and controller.state().moving
+    s = controller.wait_for(lambda s: not s.moving, timeout=5.0, what="async stop completes")
+    assert s.last_stop_kind == "stopl" and s.last_stop_decel == pytest.approx(0.2)
+    _wait(lambda: arm._control.getAsyncOperationProgress() < 0, what="async stop reported finished")
+    _back_to_start(controller)

@@ -14,6 +14,7 @@ import re
 import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 # Packet types (ASCII letters on the wire).
 REQUEST_PROTOCOL_VERSION = ord("V")
@@ -154,7 +155,7 @@ class Recipe:
         """False when any variable was unknown (the controller then refuses to start the recipe)."""
         return NOT_FOUND not in self.types
 
-    @property
+    @cached_property
     def struct(self) -> struct.Struct:
         """Big-endian struct of the values (without the leading recipe id byte)."""
         return struct.Struct(">" + "".join(TYPE_FORMATS[t] for t in self.types))

@@ -84,7 +84,7 @@ class URControllerConfig:
 
     host: str = "127.0.0.2"
     ports: URPorts = field(default_factory=URPorts)
-    rate_hz: float = 250.0  # control tick: motion, script emulation and the highest data-package rate
+    rate_hz: float = 500.0  # control tick: motion, script emulation and the highest data-package rate
     controller_version: tuple[int, int, int, int] = (5, 11, 1, 108318)
     initial_pose: tuple[float, ...] = (0.30, -0.20, 0.40, 0.0, 3.1416, 0.0)
     protective_stop_decel: float = 10.0  # m/s^2 for the stop a protective stop makes
@@ -235,6 +235,7 @@ class _Client:
     reader: rp.PacketReader = field(default_factory=rp.PacketReader)
     text: bytearray = field(default_factory=bytearray)
     outputs: rp.Recipe | None = None
+    getters: list[Callable[[], object]] = field(default_factory=list)
     inputs: dict[int, rp.Recipe] = field(default_factory=dict)
     started: bool = False
     next_send: float = 0.0
@@ -254,7 +255,7 @@ class _Controller:
         self.listeners: dict[socket.socket, str] = {}
         self.clients: dict[socket.socket, _Client] = {}
         self.dt = 1.0 / cfg.rate_hz
-        self.t0 = time.monotonic()
+        self.t0 = self.now = time.monotonic()
         self.motion = LinearMotion(cfg.initial_pose)
         self.in_int = [0] * 48
         self.in_double = [0.0] * 48
@@ -412,6 +413,7 @@ class _Controller:
             names = payload[8:].decode().split(",")
             recipe = rp.make_recipe(1, names, frequency)
             client.outputs = recipe
+            client.getters = [self._getter(n) for n in recipe.names]
             self._send(client, rp.encode(ptype, bytes([recipe.recipe_id if recipe.valid else 0])
                                          + ",".join(recipe.types).encode()))
         elif ptype == rp.CONTROL_PACKAGE_SETUP_INPUTS:
@@ -471,22 +473,18 @@ class _Controller:
             return RUNTIME_PAUSED
         return RUNTIME_STOPPED
 
-    def _value(self, name: str, now: float) -> object:
-        m = re.match(r"output_(int|double|bit)_register_(\d+)$", name)
+    def _getter(self, name: str) -> Callable[[], object]:
+        """A callable producing the current value of output variable ``name`` (built once per recipe)."""
+        m = re.match(r"(output|input)_(int|double|bit)_register_(\d+)$", name)
         if m:
-            idx = int(m.group(2))
-            if m.group(1) == "int":
-                return self.out_int[idx]
-            if m.group(1) == "double":
-                return self.out_double[idx]
-            return bool(self.out_bits >> idx & 1)
-        m = re.match(r"input_(int|double|bit)_register_(\d+)$", name)
-        if m:
-            idx = int(m.group(2))
-            return {"int": self.in_int, "double": self.in_double}[m.group(1)][idx] if m.group(1) != "bit" \
-                else bool(self.in_bits >> idx & 1)
+            idx, kind, out = int(m.group(3)), m.group(2), m.group(1) == "output"
+            if kind == "bit":
+                return (lambda: bool(self.out_bits >> idx & 1)) if out else (lambda: bool(self.in_bits >> idx & 1))
+            if kind == "int":
+                return (lambda: self.out_int[idx]) if out else (lambda: self.in_int[idx])
+            return (lambda: self.out_double[idx]) if out else (lambda: self.in_double[idx])
         simple: dict[str, Callable[[], object]] = {
-            "timestamp": lambda: now - self.t0,
+            "timestamp": lambda: self.now - self.t0,
             "actual_TCP_pose": lambda: self.motion.pose,
             "target_TCP_pose": lambda: self.motion.pose,
             "actual_TCP_speed": lambda: self.motion.velocity,
@@ -513,17 +511,18 @@ class _Controller:
             "output_bit_registers32_to_63": lambda: (self.out_bits >> 32) & 0xFFFFFFFF,
             "actual_tool_accelerometer": lambda: (0.0, 0.0, -9.81),
         }
-        fn = simple.get(name)
-        if fn is not None:
-            return fn()
+        if name in simple:
+            return simple[name]
+        # Everything else (currents, analog I/O, payload, ...) is not modelled and reads as zero.
         t = rp.variable_type(name)
-        zero: object = 0.0 if t == "DOUBLE" else False if t == "BOOL" else 0
         if t.startswith("VECTOR"):
-            n = 3 if t == "VECTOR3D" else 6
-            return (0.0,) * n if t.endswith("D") else (0,) * n
-        return zero
+            zero_vec = (0.0,) * (3 if t == "VECTOR3D" else 6) if t.endswith("D") else (0,) * 6
+            return lambda: zero_vec
+        zero: object = 0.0 if t == "DOUBLE" else False if t == "BOOL" else 0
+        return lambda: zero
 
     def _send_data(self, now: float) -> None:
+        self.now = now
         for client in list(self.clients.values()):
             if client.kind != "rtde" or not client.started or client.outputs is None:
                 continue
@@ -531,8 +530,7 @@ class _Controller:
                 continue
             rate = min(client.outputs.frequency or self.cfg.rate_hz, self.cfg.rate_hz)
             client.next_send = max(client.next_send + 1.0 / rate, now - 1.0 / rate)
-            values = [self._value(n, now) for n in client.outputs.names]
-            self._send(client, client.outputs.pack(values))
+            self._send(client, client.outputs.pack([g() for g in client.getters]))
 
     # -- dashboard -------------------------------------------------------------------------------------------
     def _program_name(self) -> str:
