@@ -127,12 +127,14 @@ class Detector:
         t0 = time.perf_counter()
         try:
             result = self.ensemble.step(window, stream=stream)
+            valid = result.valid
         except StepError:
+            valid = False
+        self.last_step_s = time.perf_counter() - t0
+        if not valid:
             # Refused (non-finite window: state kept) or non-finite output (stream reset): no decision.
             self.step_errors += 1
             return Detection(index, t_us, float("nan"), 0.0, bool(self.decision.alarm), False, valid=False)
-        finally:
-            self.last_step_s = time.perf_counter() - t0
         d = self.decision.update(result.p_slip, result.p_members)
         return Detection(index, t_us, float(result.p_slip), float(d.risk), bool(d.alarm), bool(d.rising_edge))
 
