@@ -76,6 +76,8 @@ class EmulatedPapillArray:
         if rate_hz not in RATES_HZ:
             raise ValueError(f"rate_hz {rate_hz} not supported by the PapillArray; choose one of {RATES_HZ}")
         self._source = source
+        # Recording.rate_hz takes a median over the whole recording: compute it once, not per frame.
+        self._source_rate = source.rate_hz if isinstance(source, Recording) else 0.0
         self.loop = loop
         self.rate_hz = rate_hz
         self.max_pending_bytes = max_pending_bytes
@@ -263,7 +265,7 @@ class EmulatedPapillArray:
             n = len(src)
             if n == 0:
                 return None
-            k = round(t_s * src.rate_hz)
+            k = round(t_s * self._source_rate)
             if k >= n:
                 if not self.loop:
                     return None

@@ -1,0 +1,371 @@
+"""The real pyserial reader on a real pty, fed by the emulated PapillArray with real encoded frames."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import time
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import pytest
+
+from slipd.metrics import Metrics
+from slipd.pts import CMD_BIAS, CMD_SLIP_ON, Frame, encode_frame, rate_command
+from slipd.recording import Recording
+from slipd.sensor import SensorError, SerialSensor, check_latency_timer, set_low_latency
+from slipd.sim.devices.papillarray import EmulatedPapillArray
+
+BIG_QUEUE = 64 * 2**20  # tests judge the reader, not the scheduler: the emulator never discards
+
+
+def synthetic_recording(n: int, seed: int = 0) -> Recording:
+    """A small simulated-like press: fz ramps up on all pillars, shear grows, with a little noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / 1000.0
+    force = np.zeros((n, 9, 3), np.float32)
+    force[:, :, 2] = np.clip(t * 8.0, 0, 3.0)[:, None] + rng.normal(0, 0.02, (n, 9))
+    force[:, :, 0] = 0.2 * np.sin(2 * np.pi * 2 * t)[:, None] + rng.normal(0, 0.01, (n, 9))
+    force[:, :, 1] = rng.normal(0, 0.01, (n, 9))
+    disp = (force / np.float32(3.5)).astype(np.float32)
+    return Recording(t_us=(t * 1e6).astype(np.int64), force=force, disp=disp, meta={"scene": "test"})
+
+
+@pytest.fixture
+def emulator_factory() -> Iterator[Callable[..., EmulatedPapillArray]]:
+    made: list[EmulatedPapillArray] = []
+
+    def make(*args, **kwargs) -> EmulatedPapillArray:
+        kwargs.setdefault("max_pending_bytes", BIG_QUEUE)
+        emu = EmulatedPapillArray(*args, **kwargs)
+        made.append(emu)
+        return emu
+
+    yield make
+    for emu in made:
+        emu.close()
+
+
+class Collector:
+    """Collects frames and disconnect reasons from a SerialSensor."""
+
+    def __init__(self) -> None:
+        self.frames: list[Frame] = []
+        self.disconnects: list[str] = []
+
+    def on_frames(self, frames: list[Frame]) -> None:
+        self.frames.extend(frames)
+
+    def on_disconnect(self, reason: str) -> None:
+        self.disconnects.append(reason)
+
+    def sensor(self, port: str, **kwargs) -> SerialSensor:
+        return SerialSensor(port, self.on_frames, on_disconnect=self.on_disconnect, **kwargs)
+
+
+async def until(pred: Callable[[], bool], timeout: float = 20.0) -> None:
+    """Wait for a condition (generous timeout: the machine is shared; nothing here measures speed)."""
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not reached in time")
+        await asyncio.sleep(0.005)
+
+
+def metric(m: Metrics, name: str, **labels: str) -> float:
+    value = m.registry.get_sample_value(name, labels)
+    return 0.0 if value is None else value
+
+
+# ---------------------------------------------------------------------- streaming
+def test_streams_a_recording_at_1khz_in_order_without_loss(emulator_factory) -> None:
+    rec = synthetic_recording(600)
+    emu = emulator_factory(rec)
+    col = Collector()
+    m = Metrics()
+
+    async def main() -> SerialSensor:
+        s = col.sensor(emu.port, metrics=m)
+        await s.start()
+        emu.start()
+        await until(lambda: emu.finished.is_set() and len(col.frames) >= emu.frames_written)
+        await s.stop()
+        return s
+
+    s = asyncio.run(main())
+    assert emu.frames_written == 600 and emu.frames_discarded == 0
+    assert [f.counter for f in col.frames] == list(range(600))
+    assert s.dropped_frames == 0 and s.discontinuities == 0
+    assert s.decoder.errors() == {"bad_checksum": 0, "bad_length": 0, "bad_structure": 0}
+    assert s.decoder.garbage_bytes == 0
+    assert np.array_equal(np.stack([f.force for f in col.frames]), rec.force)
+    assert np.array_equal(np.stack([f.disp for f in col.frames]), rec.disp)
+    assert np.all(np.diff([f.t_us for f in col.frames]) == 1000)  # device clock: one period per frame
+    assert col.frames[100].wrench is not None and col.frames[100].wrench[2] == pytest.approx(
+        float(rec.force[100, :, 2].sum()), rel=1e-5
+    )
+    assert metric(m, "slipd_frames_received_total") == 600
+    assert metric(m, "slipd_dropped_frames_total") == 0
+    assert s.last_frame_time is not None and s.last_frame_time <= time.monotonic()
+    assert s.low_latency is False  # a pty has no TIOCSSERIAL: logged at debug, reading goes on
+
+
+def test_counter_jump_and_backwards_counter(emulator_factory) -> None:
+    emu = emulator_factory(synthetic_recording(2000), loop=True)
+    col = Collector()
+
+    async def main() -> SerialSensor:
+        s = col.sensor(emu.port)
+        await s.start()
+        emu.start()
+        await until(lambda: len(col.frames) >= 50)
+        emu.jump_counter(5)  # five frames "lost"
+        await until(lambda: s.dropped_frames > 0)
+        n = len(col.frames)
+        await until(lambda: len(col.frames) >= n + 20)
+        emu.jump_counter(-30)  # the controller's counter goes back
+        await until(lambda: s.discontinuities > 0)
+        n = len(col.frames)
+        await until(lambda: len(col.frames) >= n + 20)
+        await s.stop()
+        return s
+
+    s = asyncio.run(main())
+    assert s.dropped_frames == 5 and s.discontinuities == 1
+    gaps = [f for f in col.frames if f.dropped_before]
+    assert len(gaps) == 1 and gaps[0].dropped_before == 5
+    breaks = [i for i, f in enumerate(col.frames) if f.discontinuity]
+    assert len(breaks) == 1
+    i = breaks[0]
+    assert col.frames[i].counter == col.frames[i - 1].counter - 29
+    counters = np.array([f.counter for f in col.frames[i:]])
+    assert np.all(np.diff(counters) == 1)  # and it flows on from there
+
+
+def test_corrupt_input_is_counted_and_the_stream_goes_on(emulator_factory) -> None:
+    emu = emulator_factory(synthetic_recording(3000), loop=True)
+    col = Collector()
+    m = Metrics()
+
+    async def main() -> SerialSensor:
+        s = col.sensor(emu.port, metrics=m)
+        await s.start()
+        emu.start()
+        await until(lambda: len(col.frames) >= 20)
+        emu.inject_garbage(333)
+        emu.inject_bad_checksum()
+        emu.inject_wrong_length()
+        emu.inject_truncated_frame()
+        await until(lambda: s.dropped_frames >= 3)
+        n = len(col.frames)
+        await until(lambda: len(col.frames) >= n + 30)
+        await s.stop()
+        return s
+
+    s = asyncio.run(main())
+    errors = s.decoder.errors()
+    assert errors["bad_checksum"] == 1 and errors["bad_length"] >= 1
+    assert s.dropped_frames == 3  # the three corrupted frames, seen as a counter gap each
+    assert s.decoder.garbage_bytes >= 333
+    assert metric(m, "slipd_frame_errors_total", kind="bad_checksum") == 1
+    assert metric(m, "slipd_garbage_bytes_total") == s.decoder.garbage_bytes
+    assert metric(m, "slipd_dropped_frames_total") == 3
+    assert metric(m, "slipd_frames_received_total") == len(col.frames)
+
+
+def test_unplug_disconnects_and_replug_reconnects(emulator_factory) -> None:
+    emu = emulator_factory(synthetic_recording(3000), loop=True)
+    col = Collector()
+    m = Metrics()
+
+    async def main() -> SerialSensor:
+        s = col.sensor(emu.port, metrics=m, reconnect_initial_s=0.01, reconnect_max_s=0.05)
+        await s.start()
+        emu.start()
+        await until(lambda: len(col.frames) >= 30)
+        emu.unplug()
+        await until(lambda: len(col.disconnects) == 1)
+        assert not s.connected
+        await asyncio.sleep(0.1)  # several failed reopen attempts while the port is gone
+        assert s.reconnects == 0
+        with pytest.raises(SensorError, match="not connected"):
+            s.send_command(CMD_BIAS)
+        before = len(col.frames)
+        emu.replug()
+        assert await s.wait_connected(timeout=20)
+        await until(lambda: len(col.frames) >= before + 30)
+        await s.stop()
+        return s
+
+    s = asyncio.run(main())
+    assert s.reconnects == 1 and s.disconnects == 1
+    assert metric(m, "slipd_reconnects_total", device="sensor") == 1
+    after = [f for f in col.frames if f.discontinuity]
+    assert len(after) == 1  # the first frame after the reconnect tells the consumer to reset
+    assert s.dropped_frames == 0
+
+
+def test_burst_of_10000_frames_without_loss(emulator_factory) -> None:
+    emu = emulator_factory()
+    col = Collector()
+    rng = np.random.default_rng(3)
+    force = rng.normal(size=(9, 3)).astype(np.float32)
+    frames = [Frame(i, i * 1000, force + np.float32(i), force) for i in range(10_000)]
+
+    async def main() -> SerialSensor:
+        s = col.sensor(emu.port)
+        await s.start()
+        n = await asyncio.to_thread(emu.write_frames, frames)
+        assert n == 10_000
+        await until(lambda: len(col.frames) >= 10_000)
+        await s.stop()
+        return s
+
+    s = asyncio.run(main())
+    assert [f.counter for f in col.frames] == list(range(10_000))
+    assert s.dropped_frames == 0 and s.decoder.garbage_bytes == 0
+    assert col.frames[9_999].force[0, 0] == force[0, 0] + np.float32(9_999)
+
+
+def test_commands_bias_rate_and_slip_detection(emulator_factory) -> None:
+    n = 4000
+    rec = synthetic_recording(n)
+    rec.force[:] = rec.force[n // 2]  # a constant load so a bias zeroes it exactly
+    emu = emulator_factory(rec, loop=True)
+    col = Collector()
+
+    async def main() -> None:
+        s = col.sensor(emu.port)
+        await s.start()
+        emu.start()
+        await until(lambda: len(col.frames) >= 20)
+        s.send_command(CMD_BIAS)
+        # Frames already on their way carry the old state: wait for the first one made after the command.
+        await until(lambda: np.all(col.frames[-1].force == 0))
+        s.send_command(CMD_SLIP_ON)
+        s.send_command(rate_command(500))
+        await until(lambda: col.frames[-1].sensor_state == 1 and col.frames[-1].t_us - col.frames[-2].t_us == 2000)
+        k = len(col.frames)
+        await until(lambda: len(col.frames) >= k + 10)
+        await s.stop()
+
+    asyncio.run(main())
+    assert emu.commands == [("bias", None), ("slip", True), ("rate", 500)]
+    assert np.abs(col.frames[0].force).max() > 0.5
+    assert np.all(col.frames[-1].force == 0)  # the bias subtracted the constant load
+    assert col.frames[-1].sensor_state == 1
+    assert np.diff([f.t_us for f in col.frames[-10:]]).tolist() == [2000] * 9  # 500 Hz device clock
+
+
+def test_stall_then_resume_without_gap(emulator_factory) -> None:
+    emu = emulator_factory(synthetic_recording(3000), loop=True)
+    col = Collector()
+
+    async def main() -> SerialSensor:
+        s = col.sensor(emu.port)
+        await s.start()
+        emu.start()
+        await until(lambda: len(col.frames) >= 20)
+        emu.stall(150)
+        await asyncio.sleep(0.05)
+        k = len(col.frames)
+        await until(lambda: len(col.frames) >= k + 20)
+        await s.stop()
+        return s
+
+    s = asyncio.run(main())
+    counters = np.array([f.counter for f in col.frames])
+    assert np.all(np.diff(counters) == 1) and s.dropped_frames == 0
+
+
+def test_callable_source_and_end_of_stream(emulator_factory) -> None:
+    calls: list[int] = []
+
+    def source(i: int):
+        calls.append(i)
+        if i >= 50:
+            return None
+        return np.full((9, 3), i, np.float32), np.zeros((9, 3), np.float32)
+
+    emu = emulator_factory(source)
+    col = Collector()
+
+    async def main() -> None:
+        s = col.sensor(emu.port)
+        await s.start()
+        emu.start()
+        await until(lambda: emu.finished.is_set() and len(col.frames) == 50)
+        await s.stop()
+
+    asyncio.run(main())
+    assert [float(f.force[0, 0]) for f in col.frames] == [float(i) for i in range(50)]
+    assert calls[:51] == list(range(51))
+
+
+# ---------------------------------------------------------------------- opening
+def test_open_failures_name_the_port(tmp_path, emulator_factory) -> None:
+    missing = str(tmp_path / "ttyNOPE")
+
+    async def main() -> None:
+        with pytest.raises(SensorError, match="ttyNOPE"):
+            await Collector().sensor(missing).start()
+        emu = emulator_factory()
+        first = Collector().sensor(emu.port)
+        await first.start()
+        # exclusive=True: a second reader on the same port is refused instead of stealing bytes.
+        with pytest.raises(SensorError, match="ttyPAPILLARRAY"):
+            await Collector().sensor(emu.port).start()
+        await first.stop()
+
+    asyncio.run(main())
+
+
+def test_low_latency_on_a_pty_is_reported_unsupported(emulator_factory) -> None:
+    emu = emulator_factory()
+    fd = os.open(emu.port, os.O_RDWR | os.O_NOCTTY)
+    try:
+        assert set_low_latency(fd, emu.port) is False
+    finally:
+        os.close(fd)
+
+
+def test_latency_timer_warning(tmp_path, caplog) -> None:
+    dev = tmp_path / "dev"
+    dev.mkdir()
+    port = dev / "ttyUSB7"
+    port.touch()
+    sysfs = tmp_path / "sys"
+    (sysfs / "ttyUSB7").mkdir(parents=True)
+    (sysfs / "ttyUSB7" / "latency_timer").write_text("16\n")
+    link = tmp_path / "by-id"
+    link.symlink_to(port)  # /dev/serial/by-id style: resolved to the tty name
+    with caplog.at_level(logging.WARNING, logger="slipd.sensor"):
+        assert check_latency_timer(str(link), sysfs) == 16
+    assert "latency timer is 16 ms" in caplog.text
+    caplog.clear()
+    (sysfs / "ttyUSB7" / "latency_timer").write_text("1\n")
+    with caplog.at_level(logging.WARNING, logger="slipd.sensor"):
+        assert check_latency_timer(str(port), sysfs) == 1
+    assert caplog.text == ""
+    assert check_latency_timer("/dev/ttyACM0", sysfs) is None  # CDC ACM: no timer
+
+
+def test_encoded_frames_are_what_the_emulator_sends(emulator_factory) -> None:
+    """write_frames passes raw bytes through: hand-made faults reach the reader unchanged."""
+    emu = emulator_factory()
+    col = Collector()
+    f = Frame(7, 1, np.ones((9, 3), np.float32), np.zeros((9, 3), np.float32))
+
+    async def main() -> SerialSensor:
+        s = col.sensor(emu.port)
+        await s.start()
+        await asyncio.to_thread(emu.write_frames, [b"\x00" * 17, f, encode_frame(f)[:100], f])
+        await until(lambda: len(col.frames) >= 2)
+        await s.stop()
+        return s
+
+    s = asyncio.run(main())
+    assert [x.counter for x in col.frames] == [7, 7]
+    assert s.decoder.garbage_bytes == 117
+    assert s.discontinuities == 1  # the same counter twice is not "the next frame"
