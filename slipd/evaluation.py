@@ -60,6 +60,9 @@ class SceneTruth:
     kind: str
     duration_s: float
     motion: str = ""
+    family: str = ""
+    """Scene family from the simulator ("hexapod", "gripper"); online metrics are skipped for hexapod scenes,
+    whose ``object_motion`` is the surface pose rather than the object's motion relative to the finger."""
     onset_s: float | None = None
     gross_slip_s: float | None = None
     motion_start_s: float | None = None
@@ -88,7 +91,7 @@ class SceneTruth:
         Gross slip (offline criterion): first sample after the onset where the incipient label ends
         (all considered pillars slipped), else ``events["gross_slip"]``, else the end of the recording.
         Online gross slip: first sample where ``object_motion`` (relative to its value at motion start)
-        exceeds 2 mm or 2 deg, else ``events["gross_slip"]``.
+        exceeds 2 mm or 2 deg, else ``events["gross_motion"]``; not for hexapod scenes (no online trial).
         """
         t_s = (np.asarray(rec.t_us, np.int64) - int(rec.t_us[0])) / 1e6 if len(rec) else np.zeros(0)
         duration = float(t_s[-1] + (1.0 / rec.rate_hz)) if len(t_s) else 0.0
@@ -109,23 +112,27 @@ class SceneTruth:
         if gross is None:
             gross = events.get("gross_slip", duration if onset is not None else None)
         motion_start = events.get("motion_start")
+        family = str(meta.get("family", ""))
         online_gross = None
-        if rec.object_motion is not None and len(t_s):
-            online_gross = gross_slip_time(t_s, rec.object_motion, motion_start)
-        if online_gross is None:
-            online_gross = events.get("gross_slip")
+        if family != "hexapod":
+            if rec.object_motion is not None and len(t_s):
+                online_gross = gross_slip_time(t_s, rec.object_motion, motion_start)
+            if online_gross is None:
+                online_gross = events.get("gross_motion")
         return cls(
             name=name,
             kind=kind,
             duration_s=duration,
             motion=str(meta.get("motion", "")),
+            family=family,
             onset_s=onset,
             gross_slip_s=gross if kind in SLIP_KINDS else None,
             motion_start_s=motion_start,
             motion_stop_s=events.get("motion_stop"),
             online_gross_s=online_gross if kind in SLIP_KINDS else None,
             t_s=t_s,
-            object_motion=None if rec.object_motion is None else np.asarray(rec.object_motion, np.float64),
+            object_motion=None if rec.object_motion is None or family == "hexapod"
+            else np.asarray(rec.object_motion, np.float64),
         )
 
 
@@ -153,11 +160,13 @@ def motion_components(motion: str) -> tuple[bool, bool]:
     """(uses translation, uses rotation) of a motion type name.
 
     ``rotation`` -> rotation only; names with both ``trans``/``lin`` and ``rot``, or ``both`` /
-    ``combined`` / ``+`` -> both; anything else is a translation (lifts, slides, pulls).
+    ``combined`` / ``+``, or an off-centre grasp (``lift_offcentre``: the object sinks and turns) -> both;
+    anything else is a translation (lifts, pushes, slides).
     """
     m = motion.lower()
     rot = "rot" in m or "twist" in m or "torque" in m
-    both = "both" in m or "combined" in m or "+" in m or (rot and ("trans" in m or "lin" in m))
+    both = ("both" in m or "combined" in m or "+" in m or "offcent" in m
+            or (rot and ("trans" in m or "lin" in m)))
     if both:
         return True, True
     if rot:
@@ -270,7 +279,12 @@ def offline_outcome(truth: SceneTruth, first_alarm_s: float | None) -> str:
 
 
 def online_outcome(truth: SceneTruth, first_alarm_s: float | None) -> str | None:
-    """The online criterion: success when the first alarm is in [T_m, T_g] (None without T_m for slips)."""
+    """The online criterion: success when the first alarm is in [T_m, T_g].
+
+    None for hexapod scenes and for slip scenes without a motion start.
+    """
+    if truth.family == "hexapod":
+        return None
     if not truth.is_slip:
         return "tn" if first_alarm_s is None else "fp"
     if truth.motion_start_s is None:

@@ -69,13 +69,13 @@ def dataset_dir(root: Path, set_name: str, split: str) -> Path:
     if folder.is_dir() and list_recordings(folder):
         return folder
     try:
-        from slipd.sim import datasets  # the simulator is optional for evaluation
+        from slipd.sim.datasets import write_dataset  # the simulator is optional for evaluation
     except ImportError:
-        datasets = None
-    make = getattr(datasets, "make_dataset", None) if datasets is not None else None
-    if make is not None:
-        print(f"{folder} is missing: generating it with slipd.sim.datasets.make_dataset ...", file=sys.stderr)
-        make(set_name, split, folder)
+        write_dataset = None
+    if write_dataset is not None:
+        print(f"{folder} is missing: generating it (slipd.sim.datasets.write_dataset) ...", file=sys.stderr)
+        index = write_dataset(set_name, split, folder)
+        print(f"  {index['count']} recordings written", file=sys.stderr)
         if list_recordings(folder):
             return folder
     raise SystemExit(
@@ -445,10 +445,12 @@ def main(argv: list[str] | None = None) -> int:
         kind, rargs = "baseline", (args.baseline, params, frontend)
         label = f"baseline {args.baseline} {json.dumps(params, sort_keys=True)}"
         threshold = 0.5
-    online = args.online or (args.set == "transfer" and not args.recordings)
     t0 = time.perf_counter()
     results = evaluate_paths(paths, kind, rargs, workers=max(1, args.workers))
     elapsed = time.perf_counter() - t0
+    # Online figures for gripper trials (or when asked); hexapod scenes have no online criterion.
+    online = args.online or (args.set == "transfer" and not args.recordings)
+    online = online or any(r[2].family == "gripper" for r in results)
     summary = summarize([r[0] for r in results])
     print_table(f"{label} on {folder} ({len(paths)} recordings, {elapsed:.1f} s)", report_rows(summary, online))
     if args.json:
