@@ -44,6 +44,10 @@ from pydantic import (
 )
 
 DEFAULT_STATE_DIR = Path("/var/lib/slipd")
+DYNAMIXEL_BAUDRATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600, 1000000, 1152000,
+                       2000000, 2500000, 3000000, 3500000, 4000000)
+"""Baud rates dynamixel-sdk's PortHandler accepts (the same list as ``slipd.gripper.BAUDRATES``, which is not
+imported here so that ``check-config`` does not load the vendor SDK; a test keeps the two equal)."""
 MAX_CONFIG_BYTES = 1 << 20
 """A config larger than this is refused before parsing."""
 
@@ -140,7 +144,6 @@ class SensorConfig(_Section):
         50.0, ge=2.0, le=10_000.0, description="no frame for this long -> fail-safe (reaction.on_failsafe)"
     )
     low_latency: bool = Field(True, description="set the serial port's ASYNC_LOW_LATENCY flag (ftdi/cdc latency)")
-    exclusive: bool = Field(True, description="open the port exclusively (TIOCEXCL) so no other process reads it")
 
     @model_validator(mode="after")
     def _consistent(self) -> SensorConfig:
@@ -170,7 +173,6 @@ class ModelConfig(_Section):
         0, ge=0, le=10_000, description="decision every N samples; 0 = the model's window (non-overlapping windows); "
         "otherwise it must divide the window"
     )
-    warmup_runs: int = Field(20, ge=0, le=10_000, description="inference runs before the loop starts (warm caches)")
 
     @field_validator("manifest", mode="before")
     @classmethod
@@ -242,7 +244,7 @@ class GripperConfig(_Section):
 
     enabled: bool = Field(True, description="false: no gripper (reaction.actions must not tighten)")
     port: str | None = Field(None, min_length=1, description="servo bus serial device, e.g. /dev/ttyUSB0")
-    baudrate: int = Field(57600, ge=9600, le=4_500_000, description="servo bus baud rate (MX-28 factory: 57600)")
+    baudrate: int = Field(57600, description="servo bus baud rate (MX-28 factory: 57600); one dynamixel-sdk accepts")
     id: int = Field(1, ge=0, le=252, description="servo ID on the bus")
     protocol: Literal[1.0, 2.0] = Field(2.0, description="Dynamixel protocol of the servo firmware")
     hold_position: int | None = Field(
@@ -261,6 +263,13 @@ class GripperConfig(_Section):
     )
     retries: int = Field(3, ge=0, le=20, description="retries of a failed packet before a device error")
     packet_timeout_ms: float = Field(20.0, ge=1.0, le=1000.0, description="timeout of one status packet")
+
+    @field_validator("baudrate")
+    @classmethod
+    def _known_baudrate(cls, v: int) -> int:
+        if v not in DYNAMIXEL_BAUDRATES:
+            raise ValueError(f"must be one of {', '.join(map(str, DYNAMIXEL_BAUDRATES))}")
+        return v
 
     @model_validator(mode="after")
     def _consistent(self) -> GripperConfig:
@@ -302,14 +311,23 @@ class ArmConfig(_Section):
     enabled: bool = Field(True, description="false: no arm (reaction.actions must not stop it)")
     host: str | None = Field(None, min_length=1, description="controller IP address or host name")
     rtde_frequency: float = Field(
-        500.0, ge=1.0, le=500.0, description="RTDE frequency (Hz): 500 on e-Series, 125 on CB3"
+        -1.0, description="RTDE frequency (Hz), 0 < f <= 500; -1: automatic (500 on e-Series, 125 on CB3)"
     )
     stop_deceleration: float = Field(
-        2.0, gt=0.0, le=40.0, description="deceleration of the stop (m/s^2 for stopl, rad/s^2 for stopj)"
+        10.0, gt=0.0, le=40.0, description="tool deceleration of stopl / speed_stop (m/s^2; UR's default 10)"
     )
-    stop_method: Literal["stopl", "stopj", "protective_stop"] = Field(
-        "stopl", description="stopl/stopj: controlled stop; protective_stop: needs an operator to resume"
+    stop_method: Literal["stopl", "speed_stop", "dashboard_pause", "dashboard_stop"] = Field(
+        "stopl",
+        description="stopl / speed_stop: decelerate over RTDE control (replaces the running program); "
+        "dashboard_pause / dashboard_stop: pause or stop the user's program through the dashboard server",
     )
+
+    @field_validator("rtde_frequency")
+    @classmethod
+    def _frequency(cls, v: float) -> float:
+        if v != -1.0 and not 0.0 < v <= 500.0:
+            raise ValueError("must be -1 (automatic) or 0 < f <= 500 Hz")
+        return v
 
     @field_validator("host")
     @classmethod
