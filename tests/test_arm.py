@@ -288,3 +288,22 @@ def test_asynchronous_stopl_returns_before_standstill(controller: URControllerPr
     assert s.last_stop_kind == "stopl" and s.last_stop_decel == pytest.approx(0.2)
     _wait(lambda: arm._control.getAsyncOperationProgress() < 0, what="async stop reported finished")
     _back_to_start(controller)
+
+
+def test_upper_range_registers_and_watchdog() -> None:
+    import rtde_control
+
+    with _start_controller() as ctl:
+        flags = rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT | \
+            rtde_control.RTDEControlInterface.FLAG_UPPER_RANGE_REGISTERS
+        c = rtde_control.RTDEControlInterface(ctl.host, -1.0, flags)
+        try:
+            target = (0.30, -0.20, 0.45, 0.0, 3.1416, 0.0)
+            assert c.moveL(list(target), 0.2, 1.0, False)  # synchronous: returns at the target
+            assert ctl.state().tcp_pose == pytest.approx(target)
+            # A watchdog nobody kicks stops the control script (rtde_set_watchdog(..., "stop")).
+            assert c.setWatchdog(50.0)
+            s = ctl.wait_for(lambda s: not s.control_script_running, timeout=3.0, what="watchdog expiry")
+            assert s.last_stop_kind == "watchdog"
+        finally:
+            c.disconnect()

@@ -28,7 +28,14 @@ a stop decelerates at the commanded rate. No joint kinematics: ``actual_q`` is a
 Parent side: :class:`URControllerProcess` starts the child, reads its state from shared memory without
 RTDE (:meth:`URControllerProcess.state`) and sends commands over a pipe: a scripted moveL "as if the user's
 program moved the arm", protective stop injection and release, dropping every connection, making the
-control script fail on its next command.
+control script fail on its next command. The ``spawn`` start method re-imports the parent's main module
+in the child, so a script that starts a controller needs the usual ``if __name__ == "__main__":`` guard.
+
+Simplifications, on purpose: a scripted (user) move and ur_rtde's control script share one motion, so
+slipd's ``stopL`` halts the user's lift (on a real controller uploading the control script would first
+have ended the user's program; see ``slipd/arm.py``); ``speed_stop`` halts any motion; the primary and
+secondary ports take programs but send no robot-state stream; input registers are never reported
+``IN_USE``; speedL/speedJ/servo/force modes and joint moves (movej) are acknowledged, not executed.
 """
 
 from __future__ import annotations
@@ -243,7 +250,8 @@ class _Client:
 
 
 _DEF_RE = re.compile(rb"^\s*def\s+(\w+)\s*\(\s*\)\s*:", re.MULTILINE)
-_OFFSET_RE = re.compile(rb"global\s+reg_offset_int\s*=\s*(\d+)")
+# ur_rtde 1.6 injects the register offset (0 or 24) right after the comment that ends this line.
+_OFFSET_RE = re.compile(rb"global\s+reg_offset_int\s*=\s*(?:#[^\n]*\n)?\s*(\d+)")
 
 
 class _Controller:
