@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from slipd.arm import ArmState, URArm, URSettings
+from slipd.arm import ArmError, ArmState, URArm, URSettings
 from slipd.metrics import Metrics
 from slipd.sim.devices import rtde_protocol as rp
 from slipd.sim.devices.ur_controller import LinearMotion, URControllerConfig, URControllerProcess
@@ -117,6 +117,16 @@ def test_settings_validation_names_the_field() -> None:
 # ---------------------------------------------------------------------------------------------------------------
 # Real ur_rtde against the emulated controller
 # ---------------------------------------------------------------------------------------------------------------
+def test_connect_to_absent_controller_raises_arm_error_and_counts() -> None:
+    ctl = _start_controller()
+    host = ctl.host
+    ctl.stop()  # nothing listens there any more: connection refused
+    m = Metrics()
+    with pytest.raises(ArmError, match=f"UR arm at {host}: cannot connect"):
+        URArm(URSettings(host=host), m).connect()
+    assert _count(m, "connect") == 1
+
+
 @pytest.fixture(scope="module")
 def controller():
     ctl = _start_controller()
