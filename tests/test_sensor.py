@@ -369,3 +369,10 @@ def test_encoded_frames_are_what_the_emulator_sends(emulator_factory) -> None:
     assert [x.counter for x in col.frames] == [7, 7]
     assert s.decoder.garbage_bytes == 117
     assert s.discontinuities == 1  # the same counter twice is not "the next frame"
+
+
+def test_a_failing_source_is_reported_not_silent(emulator_factory) -> None:
+    emu = emulator_factory(lambda i: (np.zeros((8, 3)), np.zeros((9, 3))))
+    emu.start()
+    assert emu.finished.wait(10)
+    assert isinstance(emu.error, ValueError) and "[9, 3]" in str(emu.error)

@@ -104,7 +104,9 @@ class EmulatedPapillArray:
         self._last_raw: tuple[np.ndarray, np.ndarray] | None = None
         self.slip_detection = False
         self.finished = threading.Event()
-        """Set when the source has no more samples (never with loop=True)."""
+        """Set when the source has no more samples (never with loop=True) or failed (see ``error``)."""
+        self.error: Exception | None = None
+        """What stopped the streaming thread, if it was not the end of the source."""
         self.frames_written = 0
         """Frames queued to the pty (streamed and via write_frames); discarded ones are not included."""
         self.frames_discarded = 0
@@ -324,6 +326,15 @@ class EmulatedPapillArray:
         return prefix + data
 
     def _run(self) -> None:
+        try:
+            self._stream()
+        except Exception as exc:
+            # A broken source must not die silently in a thread: keep the error for the caller.
+            log.exception("emulated PapillArray: streaming stopped")
+            self.error = exc
+            self.finished.set()
+
+    def _stream(self) -> None:
         period = 1.0 / self.rate_hz
         t0 = time.monotonic()
         next_t = t0
