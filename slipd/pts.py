@@ -62,7 +62,6 @@ END = b"\xaa\xbb\xcc\xdd"
 MAX_FRAME_BYTES = 2048
 """Largest whole frame (markers and checksum included) the protocol allows."""
 MAX_PAYLOAD_BYTES = MAX_FRAME_BYTES - len(START) - 2 - len(END)
-MIN_PAYLOAD_BYTES = 1 + 2 * (2 + 1) + 12 + 2  # index size, two table entries, hub, a pillar block header
 
 TYPE_HUB = 1
 TYPE_PILLARS = 3
