@@ -48,3 +48,20 @@ def tiny_model_json(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("tiny_model") / "tiny.onnx"
     export([fold_member(n.state_dict()) for n in nets], spec, out, "trained", {"note": "test fixture"})
     return out.with_suffix(".json")
+
+
+@pytest.fixture(scope="session")
+def detect_model_json(tmp_path_factory) -> Path:
+    """A model that really detects slip: the shipped one, else the authors' checkpoints converted (or skip)."""
+    shipped = ROOT / "models" / "slip_ensemble.json"
+    if shipped.exists():
+        return shipped
+    if not (REFERENCE_CKPT / "ckpt_final_model_0.pth").exists():
+        pytest.skip("no shipped model and no reference checkpoints")
+    pytest.importorskip("torch")
+    from tools.export_onnx import export, load_reference
+
+    members, spec, prov = load_reference(REFERENCE_CKPT)
+    out = tmp_path_factory.mktemp("reference") / "reference.onnx"
+    export(members, spec, out, "reference-hexapod", prov)
+    return out.with_suffix(".json")
