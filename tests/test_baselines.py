@@ -201,6 +201,7 @@ def test_tuner_uses_the_train_split_and_writes_json(tmp_path: Path) -> None:
 
     train = tmp_path / "data" / "offline_train"
     for i, (kind, kw) in enumerate([("slip", {}), ("slip", {"direction_deg": 200.0, "speed": 3.0}),
+                                    ("slip", {"motion": "rotation", "speed": 20.0}),
                                     ("stop", {"stop_s": 0.7}), ("stop", {"move_s": 10.0})]):
         make_scene(kind=kind, seed=10 + i, duration_s=1.2, **kw).save(train / f"s{i}.npz")
     out = tmp_path / "baselines.json"
@@ -210,7 +211,15 @@ def test_tuner_uses_the_train_split_and_writes_json(tmp_path: Path) -> None:
     tuned = json.loads(out.read_text())
     entry = tuned["reference_pillar"]
     assert entry["tuned_on"]["folder"].endswith("offline_train")
-    assert entry["train_figures"]["balanced_success"] == 1.0
-    # The tuned parameters load back into a working detector.
+    # Two translations caught, the rotation about the centre is invisible to this rule, both stops quiet.
+    assert entry["train_figures"]["balanced_success"] == pytest.approx((2 / 3 + 1) / 2)
+    # The tuned parameters load back into a working detector, and streaming that detector over the same
+    # recordings gives the figure the (vectorised, concatenated) tuner computed.
     params, frontend = load_params(out, "reference_pillar")
     assert make_baseline("reference_pillar", params, frontend).params.ratio == params["ratio"]
+    report = tmp_path / "train_eval.json"
+    assert main(["--baseline", "reference_pillar", "--baseline-params", str(out), "--recordings", str(train),
+                 "--json", str(report)]) == 0
+    summary = json.loads(report.read_text())["summary"]
+    assert summary["offline"]["balanced_success"] == pytest.approx(entry["train_figures"]["balanced_success"])
+    assert summary["latency_s"]["median"] == pytest.approx(entry["train_figures"]["median_abs_latency_s"])

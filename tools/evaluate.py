@@ -308,34 +308,48 @@ def write_plots(folder: Path, results, threshold: float, online: bool, n_traces:
 
 # --------------------------------------------------------------------------- baseline tuning
 REFERENCE_GRID = {
-    "ratio": [0.2, 0.3, 0.4, 0.5, 0.6, 0.7],
-    "min_ref_speed": [0.25, 0.5, 1.0, 2.0, 4.0],
-    "min_pillars": [1, 2],
-    "confirm": [1, 2, 4],
+    "ratio": [0.1, 0.2, 0.3, 0.4, 0.5, 0.6],
+    "min_ref_speed": [0.1, 0.25, 0.5, 1.0, 2.0],
+    "min_pillars": [1, 2, 3],
+    "confirm": [1, 2, 4, 6],
 }
 DECELERATION_GRID = {
-    "drop": [0.2, 0.3, 0.4, 0.5, 0.6],
-    "min_peak_speed": [0.5, 1.0, 2.0, 4.0],
-    "moving_speed": [0.25, 0.5, 1.0, 2.0, 4.0],
-    "memory_s": [0.1, 0.2, 0.4],
-    "confirm": [1, 2, 4],
+    "drop": [0.1, 0.15, 0.2, 0.3, 0.4, 0.5],
+    "min_peak_speed": [0.25, 0.5, 1.0, 2.0],
+    "moving_speed": [0.25, 0.5, 1.0, 2.0],
+    "memory_s": [0.05, 0.1, 0.2, 0.4],
+    "confirm": [2, 4, 6, 8],
 }
 
 
-def _tuning_features(paths: list[Path], frontend: FrontEndParams) -> list[dict]:
-    """Per recording: speeds, normal forces, decision times and truth (computed once for the whole grid)."""
-    feats = []
+def _tuning_features(paths: list[Path], frontend: FrontEndParams, pad: int) -> dict:
+    """Speeds, normal forces and decision times of every recording, computed once for the whole grid.
+
+    The recordings are concatenated with ``pad`` rows of no contact between them: a row out of contact
+    flags nothing and resets ``confirm``, and zero speeds keep a recording's ``recent_max`` from seeing
+    the previous one, so one vectorised pass over the concatenation equals one pass per recording.
+    """
+    speeds, fzs, times, starts, truths = [], [], [], [], []
+    at = 0
     for p in paths:
         rec = Recording.load(p)
-        truth = SceneTruth.from_recording(rec, p.stem)
+        truths.append(SceneTruth.from_recording(rec, p.stem))
         fe = SpeedFrontEnd(frontend, baseline_offset(rec.force, rec.disp, tare_stretch(rec)))
         speed, fz, ends = fe.batch(baseline_samples(rec.force, rec.disp))
-        t_s = (rec.t_us[ends] - rec.t_us[0]) / 1e6
-        feats.append({"speed": speed, "fz": fz, "t_s": t_s, "truth": truth})
-    return feats
+        speeds += [np.zeros((pad, speed.shape[1]), np.float32), speed]
+        fzs += [np.zeros((pad, fz.shape[1]), np.float32), fz]
+        times += [np.full(pad, np.nan), (rec.t_us[ends] - rec.t_us[0]) / 1e6]
+        starts.append(at + pad)
+        at += pad + len(speed)
+    return {"speed": np.concatenate(speeds), "fz": np.concatenate(fzs), "t_s": np.concatenate(times),
+            "start": np.array([*starts, at]), "truth": truths}
 
 
-def tune_baseline(name: str, feats: list[dict], frontend: FrontEndParams, grid: dict | None = None) -> dict:
+def _grid_memory(grid: dict, frontend: FrontEndParams) -> int:
+    return max(max(1, round(m * frontend.rate_hz / frontend.stride)) for m in grid.get("memory_s", [0.0]))
+
+
+def tune_baseline(name: str, feats: dict, frontend: FrontEndParams, grid: dict | None = None) -> dict:
     """Grid search of one baseline's thresholds; objective: balanced offline success, then median |latency|.
 
     Uses the same vectorised rule functions as the detectors' batch path (proved equal to streaming).
@@ -343,37 +357,40 @@ def tune_baseline(name: str, feats: list[dict], frontend: FrontEndParams, grid: 
     grid = grid or (REFERENCE_GRID if name == "reference_pillar" else DECELERATION_GRID)
     pcls = ReferencePillarParams if name == "reference_pillar" else DecelerationParams
     keys = sorted(grid)
+    truths = feats["truth"]
+    starts, ends = feats["start"][:-1], feats["start"][1:]
+    n_slip = sum(t.is_slip for t in truths)
+    n_stop = len(truths) - n_slip
     best = None
-    peaks_cache: dict[int, list[np.ndarray]] = {}
+    peaks_cache: dict[int, np.ndarray] = {}
     for values in itertools.product(*(grid[k] for k in keys)):
         params = pcls(**dict(zip(keys, values)))
-        outcomes, latencies = [], []
-        for i, f in enumerate(feats):
-            if name == "reference_pillar":
-                flag, _ = reference_pillar_flags(f["speed"], f["fz"], params, frontend.contact_n)
-            else:
-                mem = max(1, round(params.memory_s * frontend.rate_hz / frontend.stride))
-                peaks = peaks_cache.setdefault(mem, [None] * len(feats))
-                if peaks[i] is None:
-                    peaks[i] = recent_max(f["speed"], mem)
-                flag, _ = deceleration_flags(f["speed"], peaks[i], f["fz"], params, frontend.contact_n)
-            alarm = confirm_flags(flag, params.confirm)
-            idx = np.flatnonzero(alarm)
-            first = float(f["t_s"][idx[0]]) if len(idx) else None
-            o = offline_outcome(f["truth"], first)
-            outcomes.append(o)
+        if name == "reference_pillar":
+            flag, _ = reference_pillar_flags(feats["speed"], feats["fz"], params, frontend.contact_n)
+        else:
+            mem = max(1, round(params.memory_s * frontend.rate_hz / frontend.stride))
+            if mem not in peaks_cache:
+                peaks_cache[mem] = recent_max(feats["speed"], mem)
+            flag, _ = deceleration_flags(feats["speed"], peaks_cache[mem], feats["fz"], params, frontend.contact_n)
+        idx = np.flatnonzero(confirm_flags(flag, params.confirm))
+        pos = np.searchsorted(idx, starts)
+        tp = tn = 0
+        latencies = []
+        for k, truth in enumerate(truths):
+            first = None
+            if pos[k] < len(idx) and idx[pos[k]] < ends[k]:
+                first = float(feats["t_s"][idx[pos[k]]])
+            o = offline_outcome(truth, first)
+            tp += o == "tp"
+            tn += o == "tn"
             if o == "tp":
-                latencies.append(abs(first - f["truth"].onset_s))
-        tp = outcomes.count("tp")
-        tn = outcomes.count("tn")
-        n_slip = sum(f["truth"].is_slip for f in feats)
-        n_stop = len(feats) - n_slip
+                latencies.append(abs(first - truth.onset_s))
         rates = [r for r in (tp / n_slip if n_slip else None, tn / n_stop if n_stop else None) if r is not None]
         score = sum(rates) / len(rates)
         lat = float(np.median(latencies)) if latencies else float("inf")
         key = (score, -lat)
         if best is None or key > best[0]:
-            best = (key, params, {"balanced_success": score, "success_rate": (tp + tn) / len(feats),
+            best = (key, params, {"balanced_success": score, "success_rate": (tp + tn) / len(truths),
                                   "median_abs_latency_s": lat if latencies else None})
     _, params, figures = best
     return {"params": asdict(params), "frontend": asdict(frontend), "train_figures": figures}
@@ -385,13 +402,18 @@ def run_tuning(args) -> int:
     paths = list_recordings(folder)
     frontend = FrontEndParams()
     t0 = time.perf_counter()
-    feats = _tuning_features(paths, frontend)
+    feats = _tuning_features(paths, frontend, pad=_grid_memory(DECELERATION_GRID, frontend) + 1)
     names = [args.baseline] if args.baseline else sorted(BASELINES)
     out_path = Path(args.baseline_params or DEFAULT_BASELINES_JSON)
     tuned = json.loads(out_path.read_text()) if out_path.exists() else {}
     for name in names:
         entry = tune_baseline(name, feats, frontend)
-        entry["tuned_on"] = {"folder": str(folder), "recordings": len(paths), "objective": "balanced offline success"}
+        entry["tuned_on"] = {"folder": str(folder), "recordings": len(paths), "objective": "balanced offline success",
+                             "grid": REFERENCE_GRID if name == "reference_pillar" else DECELERATION_GRID}
+        index = folder / "index.json"
+        if index.exists():
+            meta = json.loads(index.read_text())
+            entry["tuned_on"].update({k: meta.get(k) for k in ("set", "split", "seed", "generator")})
         tuned[name] = entry
         print(f"{name}: {entry['params']}  train {entry['train_figures']}")
     save_params(out_path, tuned)
