@@ -16,7 +16,9 @@ detection latency
 online success (gripper / transfer scenes)
     A slip trial succeeds when its first alarm falls between motion start ``T_m`` and gross slip
     ``T_g``; gross slip is the first time the object's motion relative to the finger exceeds 2 mm
-    (translation) or 2 deg (rotation). A stop trial succeeds when it has no alarm.
+    (translation) or 2 deg (rotation). A stop trial succeeds when it has no alarm. Trials keep their
+    design label (slip / stop) as in the paper; a slip trial whose object never passes 2 mm / 2 deg
+    has ``T_g`` = the end of the recording.
 D_norm
     Object displacement relative to the finger at the first alarm divided by 2 mm, or its rotation
     divided by 2 deg; the mean of both for combined motions. (The paper normalises the *robot's*
@@ -246,8 +248,8 @@ class SceneResult:
     motion: str
     duration_s: float
     first_alarm_s: float | None
-    offline_outcome: str
-    """tp, early, late, missed (slip) or tn, fp (stop / hold)."""
+    offline_outcome: str | None
+    """tp, early, late, missed (slip) or tn, fp (stop / hold); None for a slip without a labelled onset."""
     latency_s: float | None
     online_outcome: str | None
     """success, early, late, missed (slip) or tn, fp (stop); None without motion-start truth."""
@@ -264,12 +266,17 @@ class SceneResult:
         return asdict(self)
 
 
-def offline_outcome(truth: SceneTruth, first_alarm_s: float | None) -> str:
-    """The offline criterion for one sequence: tp / early / late / missed, or tn / fp."""
+def offline_outcome(truth: SceneTruth, first_alarm_s: float | None) -> str | None:
+    """The offline criterion for one sequence: tp / early / late / missed, or tn / fp.
+
+    None for a slip sequence without a labelled onset (no pillar was labelled slipping, e.g. a gripper trial
+    whose object moved without a labelled incipient stretch): the criterion is undefined there, so such
+    sequences are left out of the offline figures and counted as ``offline_unlabelled``.
+    """
     if not truth.is_slip:
         return "tn" if first_alarm_s is None else "fp"
     if truth.onset_s is None:
-        raise ValueError(f"{truth.name}: slip sequence without an onset (no label and no events.onset)")
+        return None
     if first_alarm_s is None:
         return "missed"
     if first_alarm_s < truth.onset_s - EARLY_TOLERANCE_S:
@@ -395,6 +402,8 @@ class Summary:
     n_scenes: int
     offline: Confusion
     offline_failures: dict[str, int]
+    offline_unlabelled: int
+    """Slip sequences without a labelled onset, left out of ``offline``."""
     latency_s: Distribution
     online: Confusion | None
     online_failures: dict[str, int]
@@ -410,6 +419,7 @@ class Summary:
             "n_scenes": self.n_scenes,
             "offline": self.offline.to_dict(),
             "offline_failures": dict(self.offline_failures),
+            "offline_unlabelled": self.offline_unlabelled,
             "latency_s": self.latency_s.to_dict(),
             "online": None if self.online is None else self.online.to_dict(),
             "online_failures": dict(self.online_failures),
@@ -464,6 +474,7 @@ def summarize(results: Sequence[SceneResult]) -> Summary:
         n_scenes=len(results),
         offline=confusion(results),
         offline_failures=off_fail,
+        offline_unlabelled=sum(r.offline_outcome is None for r in results),
         latency_s=Distribution.of([r.latency_s for r in results if r.offline_outcome == "tp"]),
         online=on if any(r.online_outcome is not None and r.kind in SLIP_KINDS for r in results) else None,
         online_failures=on_fail,

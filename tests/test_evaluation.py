@@ -74,9 +74,11 @@ def test_stop_sequences() -> None:
     assert r.offline_outcome == "fp" and r.rising_edges == 2
 
 
-def test_slip_without_onset_is_an_error_naming_the_scene() -> None:
-    with pytest.raises(ValueError, match="s: slip sequence without an onset"):
-        offline_outcome(slip_truth(onset=None), 1.0)
+def test_slip_without_onset_is_not_scored_offline() -> None:
+    assert offline_outcome(slip_truth(onset=None), 1.0) is None
+    rs = [evaluate_scene(slip_truth(onset=None), trace([1.0])), evaluate_scene(slip_truth(), trace([1.0]))]
+    s = summarize(rs)
+    assert (s.offline.n, s.offline.tp, s.offline_unlabelled) == (1, 1, 1)
 
 
 # --------------------------------------------------------------------------- online criterion and D_norm

@@ -192,6 +192,7 @@ def report_rows(summary: Summary, online: bool) -> list[tuple[str, str]]:
         ("confusion slip: TP / FN", f"{off.tp} / {off.fn}"),
         ("confusion stop: FP / TN", f"{off.fp} / {off.tn}"),
         ("failures", ", ".join(f"{k} {v}" for k, v in sorted(summary.offline_failures.items())) or "-"),
+        ("slip scenes without onset (not scored)", str(summary.offline_unlabelled)),
         ("latency median (TP)", _fmt(summary.latency_s.median, " ms", 1000)),
         ("latency p90 (TP)", _fmt(summary.latency_s.p90, " ms", 1000)),
         ("latency mean (TP)", _fmt(summary.latency_s.mean, " ms", 1000)),
@@ -359,8 +360,8 @@ def tune_baseline(name: str, feats: dict, frontend: FrontEndParams, grid: dict |
     keys = sorted(grid)
     truths = feats["truth"]
     starts, ends = feats["start"][:-1], feats["start"][1:]
-    n_slip = sum(t.is_slip for t in truths)
-    n_stop = len(truths) - n_slip
+    n_slip = sum(t.is_slip and t.onset_s is not None for t in truths)  # slips without an onset are not scored
+    n_stop = sum(not t.is_slip for t in truths)
     best = None
     peaks_cache: dict[int, np.ndarray] = {}
     for values in itertools.product(*(grid[k] for k in keys)):
@@ -390,7 +391,7 @@ def tune_baseline(name: str, feats: dict, frontend: FrontEndParams, grid: dict |
         lat = float(np.median(latencies)) if latencies else float("inf")
         key = (score, -lat)
         if best is None or key > best[0]:
-            best = (key, params, {"balanced_success": score, "success_rate": (tp + tn) / len(truths),
+            best = (key, params, {"balanced_success": score, "success_rate": (tp + tn) / (n_slip + n_stop),
                                   "median_abs_latency_s": lat if latencies else None})
     _, params, figures = best
     return {"params": asdict(params), "frontend": asdict(frontend), "train_figures": figures}
