@@ -241,8 +241,14 @@ def test_evaluate_model_end_to_end(scenes: Path, tmp_path: Path) -> None:
         nets.append(SlipNet(input_size=spec.input_size, hidden=8, enc=16, pred=(8, 8)).eval())
     export([fold_member(n.state_dict()) for n in nets], spec, tmp_path / "tiny.onnx", "trained", {}, threshold=0.5)
     out = tmp_path / "eval.json"
-    assert main(["--model", str(tmp_path / "tiny.json"), "--recordings", str(scenes), "--json", str(out)]) == 0
+    assert main(["--model", str(tmp_path / "tiny.json"), "--recordings", str(scenes), "--json", str(out),
+                 "--record-manifest"]) == 0
     data = json.loads(out.read_text())
+    # The figures went into the manifest, which still loads (hash of the ONNX file unchanged).
+    from slipd.manifest import load_manifest
+
+    recorded = load_manifest(tmp_path / "tiny.json").metrics[f"eval_{scenes.name}"]
+    assert recorded["offline"] == data["summary"]["offline"]
     results = [SceneResult(**r) for r in data["scenes"]]
     again = summarize(results).to_dict()
     assert again == data["summary"]

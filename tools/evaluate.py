@@ -440,6 +440,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="write every figure and per-scene result here")
     p.add_argument("--plots", help="write PNG plots into this folder")
     p.add_argument("--tune-baselines", action="store_true", help="grid-search the baselines on the train split")
+    p.add_argument("--record-manifest", action="store_true",
+                   help="with --model: merge the summary into the manifest's metrics (key eval_<data folder>)")
     return p
 
 
@@ -493,6 +495,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.plots:
         for path in write_plots(Path(args.plots), results, threshold, online):
             print(f"wrote {path}")
+    if args.record_manifest:
+        if not args.model:
+            _parser().error("--record-manifest needs --model")
+        from slipd.manifest import update_metrics
+
+        key = f"eval_{folder.name}"
+        update_metrics(args.model, {key: {"data": str(folder), "threshold": threshold, **summary.to_dict()}})
+        print(f"recorded {key} in {args.model}")
     return 0
 
 
