@@ -77,9 +77,9 @@ class SensorParams:
 
 SENSORS: dict[str, SensorParams] = {
     # v2: published tangential ~3.5 N/mm, normal secant 9.1 N/mm at 0.2 mm and 5.0 N/mm at 2 mm.
-    "v2": SensorParams("v2", kt_n_mm=3.5, kn_a=10.0, kn_b=0.5, splay=0.06),
+    "v2": SensorParams("v2", kt_n_mm=3.5, kn_a=10.0, kn_b=0.5, splay=0.12),
     # v1 (Dev Kit v1, the hexapod data): larger, harder pillars.
-    "v1": SensorParams("v1", kt_n_mm=5.0, kn_a=13.0, kn_b=0.5, splay=0.06),
+    "v1": SensorParams("v1", kt_n_mm=5.0, kn_a=13.0, kn_b=0.5, splay=0.12),
 }
 
 

@@ -82,7 +82,8 @@ class HexMotion(_Model):
     speed_mm_s: float = Field(5.0, ge=0.0, le=100.0)
     accel_mm_s2: float = Field(50.0, gt=0.0)
     direction_deg: float = 0.0
-    rot_speed_deg_s: float = Field(10.0, ge=0.0, le=360.0)
+    rot_speed_deg_s: float = Field(10.0, ge=-360.0, le=360.0)
+    """Signed: positive turns counter-clockwise."""
     centre_mm: tuple[float, float] = (0.0, 0.0)
     stop_fraction: float | None = Field(None, gt=0.0, lt=1.0)
     """Stop scene: halt at this fraction of the travel at which the first pillar would slip."""
@@ -258,7 +259,7 @@ def _hex_layout(sc: HexapodScene) -> tuple[int, int, int]:
 def _hex_ramp_s(m: HexMotion) -> float:
     # Rotations ramp so that a tip 7 mm from the centre sees the scene's acceleration.
     if m.kind == "rotation":
-        return float(np.deg2rad(m.rot_speed_deg_s)) * 7.0 / m.accel_mm_s2
+        return float(np.deg2rad(abs(m.rot_speed_deg_s))) * 7.0 / m.accel_mm_s2
     return m.speed_mm_s / m.accel_mm_s2
 
 
@@ -369,17 +370,17 @@ def _generate_hexapod(scenes: list[HexapodScene], seeds: list[int]) -> list[Reco
     sensor_name = scenes[0].sensor
     effects = [sc.build_effects() for sc in scenes]
 
-    def contexts(stops: list[int | None], lengths: list[int]) -> list[fx.SimContext]:
+    def contexts(ids: list[int], stops: list[int | None], lengths: list[int]) -> list[fx.SimContext]:
         ctxs = []
-        for sc, eff, seed, stop, n in zip(scenes, effects, seeds, stops, lengths):
-            ctx = _hex_context(sc, n, stop)
-            fx.run_stage("contact", eff, ctx, seed)
-            fx.run_stage("motion", eff, ctx, seed)
+        for i in ids:
+            ctx = _hex_context(scenes[i], lengths[i], stops[i])
+            fx.run_stage("contact", effects[i], ctx, seeds[i])
+            fx.run_stage("motion", effects[i], ctx, seeds[i])
             ctxs.append(ctx)
         return ctxs
 
     full = [round(sc.duration_s / DT_S) for sc in scenes]
-    ctxs = contexts([None] * len(scenes), full)
+    ctxs = contexts(list(range(len(scenes))), [None] * len(scenes), full)
     phys = _run_hex_contexts(sensor_name, scenes, ctxs)
     # Stop scenes: find where the first considered pillar would slip, then re-run halting before it.
     stop_ids = [i for i, sc in enumerate(scenes) if sc.kind == "stop"]
@@ -397,9 +398,7 @@ def _generate_hexapod(scenes: list[HexapodScene], seeds: list[int]) -> list[Reco
             settle = round(ramp / DT_S) + 1
             lengths[i] = min(full[i], stops[i] + settle + round(sc.motion.hold_s / DT_S))
         sub = [scenes[i] for i in stop_ids]
-        sub_ctx = contexts([stops[i] for i in stop_ids], [lengths[i] for i in stop_ids])
-        # contexts() built all scenes; keep only the stop ones.
-        sub_ctx = [sub_ctx[i] for i in stop_ids]
+        sub_ctx = contexts(stop_ids, stops, lengths)
         for i, ctx, res in zip(stop_ids, sub_ctx, _run_hex_contexts(sensor_name, sub, sub_ctx)):
             ctxs[i], phys[i] = ctx, res
             ctx.meta["motion_stop_index"] = stops[i]
