@@ -210,10 +210,13 @@ class _HeuristicDetector:
     def __init__(self, frontend: FrontEndParams | None, offset: np.ndarray | None, history: int) -> None:
         self.frontend = SpeedFrontEnd(frontend, offset)
         self.index = -1
+        # Ring of the last ``history`` speed rows. Speeds are >= 0 and the ring starts at 0, so the maximum
+        # over the whole ring is the maximum over the rows seen so far (order does not matter for a max).
         self._speeds = np.zeros((history, N_PILLARS), np.float32)
         self._n = 0
         self._run = 0
         self._alarm = False
+        self._confirm = 1
 
     def restart(self, retare: bool = False) -> None:
         """Forget all history (``retare`` is accepted for interface parity; the offset is kept)."""
@@ -231,10 +234,9 @@ class _HeuristicDetector:
         if out is None:
             return None
         speed, fz = out
-        self._speeds = np.roll(self._speeds, -1, axis=0)
-        self._speeds[-1] = speed
+        self._speeds[self._n % len(self._speeds)] = speed
         self._n += 1
-        flag, score = self._rule(speed[None], fz[None], self._speeds[-min(self._n, len(self._speeds)):])
+        flag, score = self._rule(speed[None], fz[None], self._speeds)
         self._run = self._run + 1 if flag else 0
         alarm = self._run >= max(1, self._confirm)
         rising = alarm and not self._alarm
@@ -247,9 +249,7 @@ class _HeuristicDetector:
         flag, score = self._batch_rule(speed, fz)
         return ends, confirm_flags(flag, self._confirm), score
 
-    # subclass hooks
-    _confirm = 1
-
+    # Subclass hooks: the rule on one decision (with the ring of recent speeds) and on a whole recording.
     def _rule(self, speed: np.ndarray, fz: np.ndarray, history: np.ndarray) -> tuple[bool, float]:
         raise NotImplementedError
 
