@@ -29,16 +29,16 @@ _SET_ID = {"offline": 1, "transfer": 2}
 MEASUREMENT = [{"name": "lowpass"}, {"name": "noise"}, {"name": "quantisation"}]
 
 OBJECTS: dict[str, dict[str, Any]] = {
-    # mass, friction against silicone/pad, size and curvature (1/radius) of the gripped face; the
-    # off-centre offset is where the centre of mass sits in the off-centre scenario.
-    "hard_paper_box": {"mass_kg": 0.15, "mu_s": 0.55, "mu_k": 0.45, "size_mm": 80.0, "curvature_1_mm": 0.0},
-    "wooden_box": {"mass_kg": 0.35, "mu_s": 0.5, "mu_k": 0.4, "size_mm": 70.0, "curvature_1_mm": 0.0},
-    "shampoo_bottle": {"mass_kg": 0.4, "mu_s": 0.45, "mu_k": 0.35, "size_mm": 60.0, "curvature_1_mm": 1 / 40},
-    "coffee_jar": {"mass_kg": 0.5, "mu_s": 0.55, "mu_k": 0.45, "size_mm": 90.0, "curvature_1_mm": 1 / 45},
-    "pringles_can": {"mass_kg": 0.2, "mu_s": 0.5, "mu_k": 0.4, "size_mm": 75.0, "curvature_1_mm": 1 / 37},
-    "thermos_flask": {"mass_kg": 0.6, "mu_s": 0.4, "mu_k": 0.32, "size_mm": 70.0, "curvature_1_mm": 1 / 35},
+    # Filled masses, friction of the gripped face against silicone, size (inertia) and curvature
+    # (1/radius; cylinders stand upright, so the curvature runs across the sensor's x axis).
+    "hard_paper_box": {"mass_kg": 0.25, "mu_s": 0.35, "mu_k": 0.28, "size_mm": 80.0, "curvature_1_mm": 0.0},
+    "wooden_box": {"mass_kg": 0.5, "mu_s": 0.35, "mu_k": 0.28, "size_mm": 70.0, "curvature_1_mm": 0.0},
+    "shampoo_bottle": {"mass_kg": 0.6, "mu_s": 0.3, "mu_k": 0.24, "size_mm": 60.0, "curvature_1_mm": 1 / 40},
+    "coffee_jar": {"mass_kg": 0.8, "mu_s": 0.35, "mu_k": 0.28, "size_mm": 90.0, "curvature_1_mm": 1 / 45},
+    "pringles_can": {"mass_kg": 0.3, "mu_s": 0.3, "mu_k": 0.24, "size_mm": 75.0, "curvature_1_mm": 1 / 37},
+    "thermos_flask": {"mass_kg": 1.0, "mu_s": 0.3, "mu_k": 0.24, "size_mm": 70.0, "curvature_1_mm": 1 / 35},
 }
-OFFCENTRE_MM = 25.0
+OFFCENTRE_MM = 15.0
 GRIP_FRACTIONS = (0.6, 0.75, 0.9)
 """Slip trials grip at these fractions of the force that would just hold the load."""
 TRANSFER_MOTIONS = ("lift", "lift_offcentre", "push")
@@ -126,7 +126,7 @@ def gripper_scene(obj_name: str, motion: str, level: str, grip_fraction: float |
     else:
         hold = obj.mass_kg * 9.81 / (2 * obj.mu_s) if kind == "lift" else resist / (2 * obj.mu_s)
         if offcentre:
-            hold *= 1.0 + OFFCENTRE_MM / 10.0  # the twist needs more grip than the weight alone
+            hold *= 1.0 + OFFCENTRE_MM / 20.0  # the twist needs more grip than the weight alone
         grip = grip_fraction * hold
     effects: list[dict[str, Any]] = [*MEASUREMENT, {"name": "servo_lag"}]
     if kind == "lift":
@@ -141,7 +141,7 @@ def gripper_scene(obj_name: str, motion: str, level: str, grip_fraction: float |
         "sensor": "v2",
         "object": {"name": obj_name, **spec},
         "grip": {"force_n": round(float(grip), 3)},
-        "motion": {"kind": kind, "level": level},
+        "motion": {"kind": kind, "level": level, **({"push_resist_n": round(resist, 3)} if kind == "push" else {})},
         "trial": "stop" if grip_fraction is None else "slip",
         "effects": effects,
     }

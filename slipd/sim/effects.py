@@ -48,6 +48,8 @@ class SimContext:
     com_offset: np.ndarray | None = None
     object_com_offset: tuple[float, float] = (0.0, 0.0)
     """The scene object's centre-of-mass offset, which ``offcenter_torque`` applies."""
+    table: bool = False
+    """Gripper: the object starts on a table that carries its weight until lift-off (set by ``gravity``)."""
     curvature_1_mm: float = 0.0
     """Object curvature (1/radius) a ``curvature`` effect may apply; set by gripper scenes."""
     force: np.ndarray | None = None
@@ -160,7 +162,10 @@ class Tilt(Effect):
 
 @register
 class Curvature(Effect):
-    """A convex surface of radius R: pillars at distance r from the contact centre miss it by r^2 / 2R."""
+    """A convex surface of radius R: a pillar at distance r from the contact line/point misses it by r^2 / 2R.
+
+    ``axis_deg`` set: a cylinder whose axis runs along that direction (bottles, cans); omitted: a sphere.
+    """
 
     name, stage = "curvature", "contact"
 
@@ -168,10 +173,16 @@ class Curvature(Effect):
         radius_mm: float | None = Field(None, gt=0.0)
         """Radius of curvature; default: the scene object's curvature (gripper scenes)."""
         centre_mm: tuple[float, float] = (0.0, 0.0)
+        axis_deg: float | None = 90.0
 
     def apply(self, ctx: SimContext, rng: np.random.Generator) -> None:
         k = 1.0 / self.p.radius_mm if self.p.radius_mm is not None else ctx.curvature_1_mm
-        r2 = ((PILLAR_XY_MM - np.asarray(self.p.centre_mm)) ** 2).sum(1)
+        rel = PILLAR_XY_MM - np.asarray(self.p.centre_mm)
+        if self.p.axis_deg is None:
+            r2 = (rel**2).sum(1)
+        else:
+            a = np.deg2rad(self.p.axis_deg)
+            r2 = (rel @ np.array([-np.sin(a), np.cos(a)])) ** 2  # distance from the axis line
         ctx.contact_offset = ctx.contact_offset + 0.5 * k * r2
 
 
@@ -228,23 +239,18 @@ class ServoLag(Effect):
 # ---------------------------------------------------------------------------- load stage
 @register
 class Gravity(Effect):
-    """The object's weight acts in the sensor plane (the table carries it until the lift starts)."""
+    """The object's weight acts in the sensor plane (-y); a table carries it until the grasp lifts it."""
 
     name, stage = "gravity", "load"
 
     class Params(EffectParams):
         g_mm_s2: float = Field(9810.0, ge=0.0)
-        direction_deg: float = -90.0
-        """Direction of 'down' in the sensor plane (-90 = -y)."""
-        transfer_s: float = Field(0.05, gt=0.0)
-        """Time over which the weight moves from the table to the grasp at lift-off."""
 
     def apply(self, ctx: SimContext, rng: np.random.Generator) -> None:
         if ctx.gravity is None:
             raise ValueError("gravity: only gripper scenes carry an object")
-        d = np.deg2rad(self.p.direction_deg)
-        share = np.clip((ctx.t_s - ctx.t_s[ctx.motion_start]) / self.p.transfer_s, 0.0, 1.0)
-        ctx.gravity = ctx.gravity + self.p.g_mm_s2 * share[:, None] * np.array([np.cos(d), np.sin(d)])
+        ctx.gravity = ctx.gravity + np.array([0.0, -self.p.g_mm_s2])
+        ctx.table = True
 
 
 @register

@@ -28,10 +28,12 @@ Steppers (closed-loop rig API)
     ``reset(contact_offset=None, contact_mask=None)``
     ``step(T_mm [B,2], theta_deg [B], depth_mm [B]) -> StepOut``
 
-``GripperStepper(sensor, obj, batch=1)``: an object held between the sensor finger and a rigid
-finger. Inputs per sample: grip force from the servo (N), the finger's acceleration (mm/s^2, sensor
-plane x/y), the external load on the object as an acceleration (mm/s^2 in the sensor plane: gravity
-once the table no longer carries the object, plus e.g. table drag / mass while pushing), and the
+``GripperStepper(sensor, obj, batch=1, contact_offset=None, contact_mask=None, table=False)``: an
+object held between the sensor finger and a rigid finger (``table``: the object starts resting on a
+table, which carries its weight until the grasp lifts it off, along +y). Inputs per sample: grip
+force from the servo (N); the finger's acceleration (mm/s^2, sensor plane x/y; the stepper
+integrates it into the finger's motion); the external load on the object as an acceleration
+(mm/s^2 in the sensor plane: gravity, plus e.g. table drag / mass while pushing); and the
 centre-of-mass offset of an off-centre grasp (mm; its load twists the grasp).
     ``reset()``
     ``step(grip_n [B], accel_mm_s2 [B,2], load_mm_s2 [B,2], com_offset_mm [B,2]) -> StepOut``
@@ -325,8 +327,10 @@ class GripperStepper:
     SUBSTEPS = 2
 
     def __init__(self, sensor: SensorParams, objects: list[ObjectParams] | ObjectParams, batch: int = 1,
-                 contact_offset: np.ndarray | None = None, contact_mask: np.ndarray | None = None) -> None:
+                 contact_offset: np.ndarray | None = None, contact_mask: np.ndarray | None = None,
+                 table: bool | np.ndarray = False) -> None:
         objs = [objects] * batch if isinstance(objects, ObjectParams) else list(objects)
+        self.table = np.broadcast_to(np.asarray(table, bool), (batch,)).copy()
         if len(objs) != batch:
             raise ValueError(f"{len(objs)} objects for a batch of {batch}")
         self.sensor = sensor
@@ -358,6 +362,8 @@ class GripperStepper:
         self.r_sliding = np.zeros(b, bool)
         self.ur_rot = np.zeros((b, 2))  # torsional pad "deflection" (rad, 0)
         self.rot_sliding = np.zeros(b, bool)
+        self.finger_pos = np.zeros((b, 2))
+        self.finger_vel = np.zeros((b, 2))
         self._last_grip: np.ndarray | None = None
         self._depth = np.zeros(b)
 
@@ -387,7 +393,8 @@ class GripperStepper:
         tl_s, tl_k = self.mu_s * grip * self.rr / krot * 0.67, self.mu_k * grip * self.rr / krot * 0.67
         # Object loads relative to the finger (N and N mm): gravity and the pseudo-force of the
         # finger's acceleration act at the centre of mass.
-        acc = np.asarray(load_mm_s2, np.float64).reshape(b, 2) - np.asarray(accel_mm_s2, np.float64).reshape(b, 2)
+        accel = np.asarray(accel_mm_s2, np.float64).reshape(b, 2)
+        acc = np.asarray(load_mm_s2, np.float64).reshape(b, 2) - accel
         load = self.mass[:, None] * acc * 1e-3
         arm0 = np.asarray(com_offset_mm, np.float64).reshape(b, 2)
         # The centre of mass turns with the object, so an off-centre object swings towards hanging.
@@ -413,8 +420,22 @@ class GripperStepper:
             rot_acc = (t_obj * 1e-3 - c_rot * self.vel[:, 2]) / self.inertia  # rad/s^2
             self.vel[:, :2] += lin_acc * dt
             self.vel[:, 2] += rot_acc * dt
-            d_pose = self.vel * dt
-            self.pose += d_pose
+            old_pose = self.pose.copy()
+            self.pose += self.vel * dt
+            # The finger moves with the commanded acceleration (world frame, +y up).
+            self.finger_vel += accel * dt
+            self.finger_pos += self.finger_vel * dt
+            if self.table.any():
+                # A table under the object (unilateral, +y): it cannot sink below its start height;
+                # while it rests there the table also stops it turning.
+                world_y = self.finger_pos[:, 1] + self.pose[:, 1]
+                down = self.table & (world_y < 0.0)
+                if down.any():
+                    self.pose[down, 1] = -self.finger_pos[down, 1]
+                    self.vel[down, 1] = np.maximum(self.vel[down, 1], -self.finger_vel[down, 1])
+                    self.pose[down, 2] = old_pose[down, 2]
+                    self.vel[down, 2] = 0.0
+            d_pose = self.pose - old_pose
             # Material points over the pillars move with the object's increment.
             rot = rotation_matrix(d_pose[:, 2])
             centre = self.pose[:, None, :2] - d_pose[:, None, :2]

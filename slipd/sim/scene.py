@@ -143,7 +143,7 @@ class ObjectModel(_Model):
 
 
 class Grip(_Model):
-    force_n: float = Field(..., ge=0.0, le=60.0)
+    force_n: float = Field(..., ge=0.0, le=100.0)
     close_s: float = Field(0.3, gt=0.0)
 
 
@@ -480,9 +480,11 @@ def _grip_context(sc: GripperScene) -> fx.SimContext:
     ctx.accel = accel[:, None] * unit
     ctx.gravity = np.zeros((n, 2))
     if m.kind == "push":
-        # Table drag opposes the push once the arm moves, expressed as a load per unit mass.
-        moving = (k >= start).astype(float)
-        ctx.gravity = ctx.gravity - (m.push_resist_n / sc.object.mass_kg * 1e3) * moving[:, None] * unit
+        # Table drag opposes the push; it builds up over the first millimetre of arm travel (the
+        # compliant contacts load first), expressed as a load per unit mass.
+        travel = np.cumsum(np.cumsum(accel) * DT_S) * DT_S
+        share = np.clip(travel / 1.0, 0.0, 1.0)
+        ctx.gravity = ctx.gravity - (m.push_resist_n / sc.object.mass_kg * 1e3) * share[:, None] * unit
     ctx.com_offset = np.zeros(2)
     ctx.object_com_offset = tuple(sc.object.com_offset_mm)
     ctx.curvature_1_mm = sc.object.curvature_1_mm
@@ -504,7 +506,7 @@ def _generate_gripper(scenes: list[GripperScene], seeds: list[int]) -> list[Reco
             for sc in scenes]
     offs = np.stack([c.contact_offset for c in ctxs])
     masks = np.stack([c.contact_mask for c in ctxs])
-    stepper = GripperStepper(sensor, objs, b, offs, masks)
+    stepper = GripperStepper(sensor, objs, b, offs, masks, np.array([c.table for c in ctxs]))
     grip = np.stack([_pad(c.grip, n) for c in ctxs], 1)  # [N, B]
     depth = depth_for_total_force(grip, sensor, offs, masks)  # all samples at once
     accel = np.stack([_pad(c.accel, n) for c in ctxs], 1)
@@ -531,7 +533,7 @@ def _generate_gripper(scenes: list[GripperScene], seeds: list[int]) -> list[Reco
     return recs
 
 
-def secure_grip_n(obj: ObjectModel, accel_mm_s2: float, sensor_name: str = "v2", safety: float = 2.0) -> float:
+def secure_grip_n(obj: ObjectModel, accel_mm_s2: float, safety: float = 1.5) -> float:
     """Grip force (N) that holds ``obj`` against gravity plus ``accel_mm_s2`` with a safety factor.
 
     Both contact sides carry friction (sensor pillars and rigid pad), each up to mu_s * grip.
@@ -539,7 +541,7 @@ def secure_grip_n(obj: ObjectModel, accel_mm_s2: float, sensor_name: str = "v2",
     load = obj.mass_kg * (9810.0 + accel_mm_s2) * 1e-3
     torque_arm = float(np.hypot(*obj.com_offset_mm))
     # The torsional capacity is weaker than the linear one: give off-centre objects more grip.
-    return safety * load / (2 * obj.mu_s) * (1.0 + torque_arm / 10.0)
+    return safety * load / (2 * obj.mu_s) * (1.0 + torque_arm / 20.0)
 
 
 def contact_forces(depth_mm: float, sensor_name: str) -> np.ndarray:
