@@ -218,10 +218,14 @@ def pillar_outputs(u: np.ndarray, c: np.ndarray, fz: np.ndarray, sensor: SensorP
 
 
 def saturate(force: np.ndarray, sensor: SensorParams) -> np.ndarray:
-    """Clip forces to the sensor's ranges as the real sensor saturates (+-ft tangential, 0..fz normal)."""
+    """Clip forces to the sensor's ranges as the real sensor saturates (+-ft tangential, +-fz normal).
+
+    The normal channel is symmetric too: physics never pushes it below 0, but measurement noise and
+    drift around the tared zero do, as on the real sensor.
+    """
     out = np.array(force, dtype=np.float64, copy=True)
     np.clip(out[..., :2], -sensor.ft_range_n, sensor.ft_range_n, out=out[..., :2])
-    np.clip(out[..., 2], 0.0, sensor.fz_range_n, out=out[..., 2])
+    np.clip(out[..., 2], -sensor.fz_range_n, sensor.fz_range_n, out=out[..., 2])
     return out
 
 

@@ -1,0 +1,61 @@
+"""Data sets: determinism, disjoint seeds, the transfer design, the make_dataset and realism tools."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from slipd.recording import Recording
+from slipd.sim.datasets import dataset_scenes, scene_seed, transfer_design, write_dataset
+from tools import make_dataset, realism
+
+
+def test_train_and_test_never_share_a_seed():
+    train = {scene_seed(s, "train", seed, i) for s in ("offline", "transfer") for seed in (0, 1, 999)
+             for i in (0, 1, 99_999)}
+    test = {scene_seed(s, "test", seed, i) for s in ("offline", "transfer") for seed in (0, 1, 999)
+            for i in (0, 1, 99_999)}
+    assert not train & test
+    with pytest.raises(ValueError):
+        scene_seed("offline", "valid", 0, 0)
+    a = dataset_scenes("offline", "train", 5, 0)
+    b = dataset_scenes("offline", "test", 5, 0)
+    assert [d for d, _ in a] != [d for d, _ in b]
+
+
+def test_transfer_design_is_the_216_trial_design():
+    design = transfer_design()
+    assert len(design) == 216
+    assert sum(d["trial"] == "stop" for d in design) == 54
+    assert {d["object"]["name"] for d in design} == {
+        "hard_paper_box", "wooden_box", "shampoo_bottle", "coffee_jar", "pringles_can", "thermos_flask"}
+    assert {d["motion"]["level"] for d in design} == {"low", "medium", "high"}
+    assert all(d["sensor"] == "v2" for d in design)
+
+
+def test_make_dataset_writes_deterministic_recordings(tmp_path, capsys):
+    out1, out2 = tmp_path / "a", tmp_path / "b"
+    assert make_dataset.main(["--set", "offline", "--split", "test", "--out", str(out1), "--count", "4"]) == 0
+    printed = capsys.readouterr().out
+    assert "x real time" in printed
+    write_dataset("offline", "test", out2, count=4)
+    index = json.loads((out1 / "index.json").read_text())
+    assert index["count"] == 4 and len(index["recordings"]) == 4
+    for entry in index["recordings"]:
+        r1, r2 = Recording.load(out1 / entry["file"]), Recording.load(out2 / entry["file"])
+        assert np.array_equal(r1.force, r2.force) and np.array_equal(r1.label, r2.label)
+        assert r1.meta["sensor"]["name"] == "v1" and entry["scene"]["family"] == "hexapod"
+        assert entry["label_samples"] == int(r1.label.sum())
+
+
+def test_realism_skips_cleanly_without_checkpoints(tmp_path, capsys):
+    assert realism.main(["--count", "2", "--ckpt", str(tmp_path)]) == 0
+    assert "skipping" in capsys.readouterr().out
+
+
+def test_realism_runs_the_reference_ensemble(reference_ckpt_dir, capsys):
+    assert realism.main(["--count", "6", "--ckpt", str(reference_ckpt_dir)]) == 0
+    out = capsys.readouterr().out
+    assert "slip scenes detected" in out and "first alarm - onset" in out
