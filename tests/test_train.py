@@ -203,14 +203,14 @@ def test_pack_lanes_resets_h_at_each_sequence_start() -> None:
     assert int((lanes.keep == 0).sum()) == 4
     # every window of every sequence is present exactly once
     got = sorted(lanes.x[..., 0][lanes.valid].tolist())
-    assert got == sorted(sum(([float(i)] * k for i, k in enumerate([5, 3, 4, 2])), []))
+    assert got == sorted(float(i) for i, k in enumerate([5, 3, 4, 2]) for _ in range(k))
 
 
 # ----------------------------------------------------------------------------------------- train
-def test_tiny_training_writes_loadable_members_whose_loss_falls(data_dir: Path, tmp_path: Path) -> None:
+def test_tiny_training_writes_loadable_members(data_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "run"
-    assert T.main(["--data", str(data_dir), "--out", str(out), "--tiny", "--epochs", "6", "--quiet",
-                   "--seed", "3", "--threads", "1"]) == 0
+    assert T.main(["--data", str(data_dir), "--out", str(out), "--tiny", "--quiet", "--seed", "3",
+                   "--threads", "1"]) == 0
     for k in range(2):
         ckpt = torch.load(out / f"member_{k}.pt", map_location="cpu", weights_only=False)
         assert set(ckpt) >= {"state_dict", "config", "feature_spec", "provenance", "history"}
@@ -219,31 +219,39 @@ def test_tiny_training_writes_loadable_members_whose_loss_falls(data_dir: Path, 
         net.load_state_dict(ckpt["state_dict"])
         assert ckpt["config"]["input_size"] == 640 and ckpt["config"]["hidden"] == 16
         prov = ckpt["provenance"]
-        assert prov["seed"] == 3 and prov["data"] == str(data_dir)
+        assert prov["seed"] == 3 and prov["data"] == str(data_dir) and prov["member"] == k
         assert prov["index"] == {"recordings": 8, "generator": "test"}
         assert prov["args"]["augs"] == ["mixing", "rotation", "speed", "unloaded"]
-        hist = ckpt["history"]
-        assert len(hist) == 6
-        assert hist[-1]["loss"] < hist[0]["loss"]
+        assert len(ckpt["history"]) == 2 and all(np.isfinite(e["loss"]) for e in ckpt["history"])
         p, _ = net.eval()(torch.zeros(3, 640), torch.zeros(3, 16))
         torch.testing.assert_close(p.sum(1), torch.ones(3))
     lines = [json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines()]
-    assert sum(1 for e in lines if "epoch" in e) == 12
+    assert sum(1 for e in lines if "epoch" in e) == 4
     assert sum(1 for e in lines if e.get("event") == "done") == 2
 
-    # Resumable: existing members are skipped, and the same seed reproduces the same weights.
+    # Resumable: an existing member is skipped (file untouched), a missing one is trained.
+    (out / "member_1.pt").unlink()
     before = (out / "member_0.pt").stat().st_mtime_ns
-    assert T.main(["--data", str(data_dir), "--out", str(out), "--tiny", "--epochs", "6", "--quiet",
-                   "--seed", "3", "--threads", "1", "--members", "1"]) == 0
+    assert T.main(["--data", str(data_dir), "--out", str(out), "--tiny", "--quiet", "--seed", "3",
+                   "--threads", "1", "--no-eval"]) == 0
     assert (out / "member_0.pt").stat().st_mtime_ns == before
-    assert json.loads((out / "train_log.jsonl").read_text().splitlines()[-1])["event"] == "skipped"
-    again = tmp_path / "again"
-    assert T.main(["--data", str(data_dir), "--out", str(again), "--tiny", "--epochs", "6", "--quiet",
-                   "--seed", "3", "--threads", "1", "--members", "1", "--no-eval"]) == 0
-    a = torch.load(out / "member_0.pt", weights_only=False)["state_dict"]
-    b = torch.load(again / "member_0.pt", weights_only=False)["state_dict"]
-    for key in a:
-        torch.testing.assert_close(a[key], b[key], rtol=0, atol=0)
+    assert (out / "member_1.pt").exists()
+    events = [json.loads(line).get("event") for line in (out / "train_log.jsonl").read_text().splitlines()]
+    assert events[-4:] == ["skipped", None, None, "done"]
+
+
+def test_training_lowers_the_loss_and_is_deterministic(data_dir: Path, tmp_path: Path) -> None:
+    # Without augmentation and with the whole (tiny) set every epoch, the loss must fall clearly.
+    common = ["--data", str(data_dir), "--tiny", "--quiet", "--seed", "5", "--threads", "1", "--members", "1",
+              "--epochs", "8", "--aug", "none", "--bootstrap", "1", "--no-eval", "--lr", "0.01"]
+    assert T.main([*common, "--out", str(tmp_path / "a")]) == 0
+    ckpt = torch.load(tmp_path / "a" / "member_0.pt", weights_only=False)
+    losses = [e["loss"] for e in ckpt["history"]]
+    assert np.mean(losses[-2:]) < 0.8 * np.mean(losses[:2]), losses
+    assert T.main([*common, "--out", str(tmp_path / "b")]) == 0
+    other = torch.load(tmp_path / "b" / "member_0.pt", weights_only=False)
+    for key, value in ckpt["state_dict"].items():
+        torch.testing.assert_close(value, other["state_dict"][key], rtol=0, atol=0)
 
 
 def test_no_advanced_aug_and_bad_input(data_dir: Path, tmp_path: Path) -> None:
@@ -257,5 +265,5 @@ def test_no_advanced_aug_and_bad_input(data_dir: Path, tmp_path: Path) -> None:
     rec = synthetic_recording(np.random.default_rng(0))
     rec.label = None
     rec.save(empty / "nolabel.npz")
-    with pytest.raises(RecordingError, match="nolabel.npz.*label"):
+    with pytest.raises(RecordingError, match=r"nolabel\.npz.*label"):
         T.load_sequences(empty, FeatureSpec())

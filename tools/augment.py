@@ -128,7 +128,7 @@ def drop_samples(seq: Seq, rate: float, rng: np.random.Generator) -> Seq:
     if not 0.0 <= rate < 1.0:
         raise ValueError(f"drop rate must be in [0, 1), got {rate}")
     n = len(seq)
-    n_drop = int(round(rate * n))
+    n_drop = round(rate * n)
     if n_drop == 0:
         return seq
     keep = np.sort(rng.choice(n, size=n - n_drop, replace=False))

@@ -42,9 +42,9 @@ from torch import nn
 if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from slipd.features import FeatureSpec, batch_windows, tare_offset, window_labels  # noqa: E402
-from slipd.recording import Recording, RecordingError, list_recordings  # noqa: E402
-from tools.augment import (  # noqa: E402
+from slipd.features import FeatureSpec, batch_windows, tare_offset, window_labels
+from slipd.recording import Recording, RecordingError, list_recordings
+from tools.augment import (
     SPEED_RATES,
     Seq,
     drop_samples,
@@ -53,7 +53,7 @@ from tools.augment import (  # noqa: E402
     rotate_grid_90,
     unload_pillars,
 )
-from tools.slipnet import SlipNet  # noqa: E402
+from tools.slipnet import SlipNet
 
 ALL_AUGS = ("rotation", "speed", "unloaded", "mixing", "grid90")
 DEFAULT_AUGS = ("rotation", "speed", "unloaded", "mixing")
@@ -110,7 +110,7 @@ def bootstrap_indices(n: int, frac: float, rng: np.random.Generator) -> np.ndarr
     """``round(frac * n)`` (at least 1) indices into ``n`` sequences, drawn with replacement."""
     if n < 1:
         raise ValueError("bootstrap needs at least one sequence")
-    return rng.integers(0, n, size=max(1, int(round(frac * n))))
+    return rng.integers(0, n, size=max(1, round(frac * n)))
 
 
 def augment_epoch(
@@ -120,7 +120,7 @@ def augment_epoch(
     chosen = [pool[i] for i in idx]
     if "mixing" in augs:
         with_truth = np.unique([i for i in idx if pool[i].slip is not None])
-        n_mix = int(round(mix_frac * len(idx)))
+        n_mix = round(mix_frac * len(idx))
         if len(with_truth) and n_mix:
             for _ in range(n_mix):
                 pick = rng.choice(with_truth, size=min(9, len(with_truth)), replace=False)
@@ -374,7 +374,7 @@ def make_optimizer(net: SlipNet, args: argparse.Namespace) -> torch.optim.Optimi
 
 
 def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureSpec, args: argparse.Namespace,
-                 log: Any, progress: bool) -> dict:
+                 log: Any, progress: bool, names: list[str] | None = None) -> dict:
     """Train member ``k`` and return its checkpoint dict (also logs one line per epoch to ``log``)."""
     rng = np.random.default_rng([args.seed, k])
     torch.manual_seed(args.seed * 1000 + k)
@@ -411,7 +411,8 @@ def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureS
     net.cpu().eval()
     return {"state_dict": net.state_dict(), "config": net.config(), "feature_spec": spec.to_dict(),
             "provenance": {"data": str(args.data), "index": _index_summary(args.data), "seed": args.seed,
-                           "member": k, "args": _jsonable(vars(args)), "git": _git_commit()},
+                           "member": k, "args": _jsonable(vars(args)), "git": _git_commit(),
+                           "recordings": names or []},
             "history": history, "eval": result.get("eval")}
 
 
@@ -437,7 +438,7 @@ def main(argv: list[str] | None = None) -> int:
             if path.exists() and not args.overwrite:
                 log.write(json.dumps({"member": k, "event": "skipped", "reason": f"{path.name} exists"}) + "\n")
                 continue
-            ckpt = train_member(k, pool, eval_items, spec, args, log, progress)
+            ckpt = train_member(k, pool, eval_items, spec, args, log, progress, names)
             tmp = path.with_name(path.name + ".tmp")
             torch.save(ckpt, tmp)
             tmp.replace(path)  # atomic: a killed run never leaves half a checkpoint that resume would skip
