@@ -176,7 +176,8 @@ def test_hexapod_stepper_agrees_with_batch_path():
     stepper = HexapodStepper(V1, batch=1, mu_s=0.6, mu_k=0.5)
     for k in range(n):
         out = stepper.step(t[k][None], np.rad2deg(th[k])[None], depth[k][None])
-        np.testing.assert_allclose(out.force[0], batch["force"][k, 0], atol=1e-9)
+        np.testing.assert_allclose(out.force[0, :, :2], V1.kt_n_mm * batch["u"][k, 0], atol=1e-9)
+        np.testing.assert_allclose(out.force[0, :, 2], batch["fz"][k, 0], atol=1e-9)
         assert np.array_equal(out.slip[0], batch["slip"][k, 0])
     assert batch["slip"].any() and not batch["slip"].all()
 

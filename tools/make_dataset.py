@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="output folder (created)")
     p.add_argument("--count", type=int, default=None, help="number of scenes (default: 200 offline, 216 transfer)")
     p.add_argument("--seed", type=int, default=0, help="data-set seed 0..999")
-    p.add_argument("--batch", type=int, default=64, help="scenes simulated together in one time loop")
+    p.add_argument("--batch", type=int, default=16, help="scenes simulated together in one time loop")
     args = p.parse_args(argv)
     if args.count is not None and args.count < 1:
         p.error("--count must be >= 1")

@@ -176,7 +176,7 @@ def dataset_scenes(set_name: str, split: str, count: int | None, seed: int) -> l
 
 
 def write_dataset(set_name: str, split: str, out: str | Path, count: int | None = None, seed: int = 0,
-                  batch: int = 64, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
+                  batch: int = 16, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Simulate and write a data set; returns the index (also written as ``index.json``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -193,7 +193,7 @@ def stick_slip_step(u: np.ndarray, delta: np.ndarray, lim_s: np.ndarray, lim_k: 
     ever left beyond its static limit.
     """
     trial = u + delta
-    mag = np.sqrt(trial[..., 0] ** 2 + trial[..., 1] ** 2)
+    mag = np.hypot(trial[..., 0], trial[..., 1])
     # Relative tolerance: a sliding tip whose surface stopped has |trial| == lim_k up to rounding.
     slide = np.where(sliding, mag > lim_k * (1.0 + 1e-9) + 1e-12, mag >= lim_s)
     scale = np.where(slide, lim_k / np.maximum(mag, _TINY), 1.0)
@@ -277,7 +277,9 @@ def run_hexapod(sensor: SensorParams, t_mm: np.ndarray, theta_rad: np.ndarray, d
     ``contact_offset``/``contact_mask`` [B,9]. The kinematics (surface deltas, compressions, friction
     limits) are computed for all samples at once with the same functions the stepper calls per
     sample; only the stick-slip recurrence runs in a time loop, over the whole batch.
-    Returns force [N,B,9,3], disp [N,B,9,3], slip [N,B,9] (true forces, unsaturated).
+    Returns u [N,B,9,2] tip deflections, c [N,B,9] compressions, fz [N,B,9] normal forces and
+    slip [N,B,9]; ``pillar_outputs(u, c, fz, sensor)`` assembles force/disp arrays (per scene: the
+    [N,B,...] arrays are large, and slicing before assembling keeps the work in cache).
     """
     n, b = depth_mm.shape
     c = compression(depth_mm, contact_offset, contact_mask)  # [N,B,9]
@@ -297,8 +299,7 @@ def run_hexapod(sensor: SensorParams, t_mm: np.ndarray, theta_rad: np.ndarray, d
         sliding = slide & in_contact[k]
         u_all[k] = u
         slip[k] = sliding
-    force, disp = pillar_outputs(u_all, c, fz, sensor)
-    return {"force": force, "disp": disp, "slip": slip}
+    return {"u": u_all, "c": c, "fz": fz, "slip": slip}
 
 
 # ---------------------------------------------------------------------------- gripper stepper
@@ -323,12 +324,13 @@ class GripperStepper:
     """Object between the sensor finger and a rigid finger; see the module docstring for the API.
 
     The object's pose s = (x, y, phi) relative to the finger obeys m s'' = loads - contact forces
-    (semi-implicit Euler at 1 kHz, two sub-steps). Contacts: the nine pillars (stick-slip tips,
-    normal forces from the grip force) and the rigid finger's pad (one translational and one
-    torsional stick-slip element with Coulomb limits mu * grip).
+    (semi-implicit Euler at 1 kHz, sub-stepped for very light objects). Contacts: the nine pillars
+    (stick-slip tips, normal forces from the grip force) and the rigid finger's pad (one
+    translational and one torsional stick-slip element with Coulomb limits mu * grip).
     """
 
-    SUBSTEPS = 2
+    MAX_OMEGA_DT = 0.8
+    """Largest contact-mode angular frequency x sub-step allowed (semi-implicit Euler is stable below 2)."""
 
     def __init__(self, sensor: SensorParams, objects: list[ObjectParams] | ObjectParams, batch: int = 1,
                  contact_offset: np.ndarray | None = None, contact_mask: np.ndarray | None = None,
@@ -350,6 +352,10 @@ class GripperStepper:
         self.inertia = self.mass * size_m**2 / 6.0  # kg m^2, cube about an edge-normal axis
         self.kr, self.rr = arr("rigid_kt_n_mm"), arr("rigid_radius_mm")
         self.zeta = arr("damping_ratio")
+        # Sub-steps from the stiffest contact mode of the lightest object: one for ordinary objects.
+        k_max = (N_PILLARS * sensor.kt_n_mm + self.kr.max()) * 1e3  # N/m
+        omega = float(np.sqrt(k_max / self.mass.min()))
+        self.substeps = max(1, int(np.ceil(omega * DT_S / self.MAX_OMEGA_DT)))
         self.contact_offset = None if contact_offset is None else np.broadcast_to(contact_offset, (batch, N_PILLARS))
         self.contact_mask = None if contact_mask is None else np.broadcast_to(contact_mask, (batch, N_PILLARS))
         self.reset()
@@ -405,11 +411,11 @@ class GripperStepper:
         cphi, sphi = np.cos(self.pose[:, 2]), np.sin(self.pose[:, 2])
         arm = np.stack([cphi * arm0[:, 0] - sphi * arm0[:, 1], sphi * arm0[:, 0] + cphi * arm0[:, 1]], 1)
         torque = arm[:, 0] * load[:, 1] - arm[:, 1] * load[:, 0]
-        dt = DT_S / self.SUBSTEPS
+        dt = DT_S / self.substeps
         u, sliding = self.u, self.sliding
         splay = splay_delta(c - self.c, sensor)
         in_contact = fz > 0
-        for sub in range(self.SUBSTEPS):
+        for sub in range(self.substeps):
             ft = sensor.kt_n_mm * u  # force on the pillars, so -ft on the object
             f_obj = load - ft.sum(1) - self.kr[:, None] * self.ur
             tz_pillars = (PILLAR_XY_MM[:, 0] * ft[..., 1] - PILLAR_XY_MM[:, 1] * ft[..., 0]).sum(1)

@@ -42,6 +42,7 @@ from slipd.sim.physics import (
     compression,
     depth_for_total_force,
     normal_force,
+    pillar_outputs,
     run_hexapod,
     saturate,
     sensor_params,
@@ -363,7 +364,11 @@ def _run_hex_contexts(sensor_name: str, scenes: list[HexapodScene], ctxs: list[f
         np.stack([c.contact_offset for c in ctxs]),
         np.stack([c.contact_mask for c in ctxs]),
     )
-    return [{k: v[: c.n, b] for k, v in res.items()} for b, c in enumerate(ctxs)]
+    out = []
+    for b, c in enumerate(ctxs):
+        force, disp = pillar_outputs(res["u"][: c.n, b], res["c"][: c.n, b], res["fz"][: c.n, b], sensor)
+        out.append({"force": force, "disp": disp, "slip": res["slip"][: c.n, b]})
+    return out
 
 
 def _generate_hexapod(scenes: list[HexapodScene], seeds: list[int]) -> list[Recording]:
