@@ -269,6 +269,8 @@ def build_devices(cfg: Any, metrics: Metrics) -> tuple[Any, Any]:
             metrics=metrics,
         )
         gripper.connect()
+        # slipd owns the grip: it holds at the hold setting from the start and tightens on an alarm.
+        gripper.hold()
     if cfg.arm.enabled:
         from slipd.arm import URArm, URSettings
 

@@ -1,0 +1,440 @@
+"""The closed-loop simulated rig: physics at 1 kHz wired to emulated devices, the unchanged daemon reacting.
+
+    rig process                                               daemon process (``slipd run``)
+    GripperStepper (physics) --force/disp--> EmulatedPapillArray --pty, PTSCOM--> SerialSensor -> Detector
+          ^ grip force                                                                      | alarm
+          |                         EmulatedMX28 <--pty, Dynamixel 2.0-- DynamixelGripper <--+ tighten
+          ^ finger motion           URControllerProcess <--RTDE, 127.0.0.x-- URArm <---------+ stopL
+          +------------------------ (own process; the rig lifts with move_l, reads the TCP speed)
+
+The physics steps inside the sensor emulator's frame callback, once per frame, so the sensor stream
+and the physics share one real-time clock. Each step reads the servo's grip force (with its lag and
+62 Hz refresh) and the arm's TCP speed (the finger's motion), so the daemon's reaction changes the
+physics: a stop halts the lift, a tighten raises the grip.
+
+Timeline (seconds from the first frame): the object rests on a table, the sensor unloaded, while the
+daemon tares (``GRASP_S``); the grasp closes on the object (the servo already holds the daemon's hold
+setting; the object enters the jaw); after the scene's close and settle time the arm lifts it with the
+scene's UR ``movel`` speed and acceleration (``LIFT_MM`` up).
+
+Measurement per run (``RigResult``): truth onset of incipient slip and gross slip (the method's labels
+from per-pillar slip), the daemon's first alarm (its log), when the stop reached the UR controller and
+the tighten reached the servo, the object's translation and rotation relative to the finger when the
+grasp became secure (object at rest after the reaction), and whether it was dropped.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from slipd.geometry import CONTACT_THRESHOLD_N, OUTER
+from slipd.sim import effects as fx
+from slipd.sim.devices.mx28 import JawParams
+from slipd.sim.harness import EmulatedDevices
+from slipd.sim.physics import DT_S, GripperStepper, ObjectParams, saturate, sensor_params
+from slipd.sim.scene import GripperScene, _grip_context, incipient_labels, load_scene
+
+ROOT = Path(__file__).resolve().parents[2]
+DEFAULT_SCENE = ROOT / "config" / "scenes" / "default.yaml"
+DEFAULT_CONFIG = ROOT / "config" / "sim.yaml"
+
+GRASP_S = 0.8
+"""The object enters the jaw here: the daemon has opened the sensor and tared on an unloaded stretch."""
+LIFT_MM = 100.0
+SECURE_REST_MM_S = 1.0
+"""The grasp counts as secure once the object moves slower than this relative to the finger ..."""
+SECURE_HOLD_S = 0.05
+"""... for this long after the reaction reached the devices."""
+DROP_MM = 20.0
+GROSS_MM, GROSS_DEG = 2.0, 2.0
+_ALARM_RE = re.compile(r"ALARM: .* at t=([0-9.]+) s")
+
+
+@dataclass
+class RigResult:
+    """Summary of one closed-loop run (times in seconds from the first sensor frame; None: did not happen)."""
+
+    scene: str
+    reaction: bool
+    lift_start_s: float
+    onset_s: float | None
+    gross_slip_s: float | None
+    alarm_s: float | None
+    stop_reached_s: float | None
+    tighten_reached_s: float | None
+    secure_s: float | None
+    translation_mm: float
+    rotation_deg: float
+    dropped: bool
+    max_grip_n: float
+    frames: int
+
+    def lines(self) -> list[str]:
+        """Human-readable summary."""
+
+        def t(v: float | None) -> str:
+            return "-" if v is None else f"{v:.3f} s"
+
+        return [
+            f"scene {self.scene}  (reaction {'on' if self.reaction else 'off'}, {self.frames} frames)",
+            f"  lift started          {t(self.lift_start_s)}",
+            f"  incipient slip (truth){t(self.onset_s):>10}   gross slip (truth) {t(self.gross_slip_s)}",
+            f"  daemon alarm          {t(self.alarm_s)}",
+            f"  stop reached UR       {t(self.stop_reached_s)}   tighten reached servo {t(self.tighten_reached_s)}",
+            f"  grasp secure          {t(self.secure_s)}",
+            f"  object motion         {self.translation_mm:.2f} mm, {self.rotation_deg:.2f} deg relative to the finger",
+            f"  dropped               {'YES' if self.dropped else 'no'}   (max grip {self.max_grip_n:.1f} N)",
+        ]
+
+
+class RigPhysics:
+    """The physics side of the rig: one GripperStepper advanced per sensor frame from device state."""
+
+    def __init__(self, scene: GripperScene, seed: int, duration_s: float, devices: EmulatedDevices | None = None):
+        self.scene = scene
+        self.seed = seed
+        self.sensor = sensor_params(scene.sensor)
+        self.effects = scene.build_effects()
+        ctx = _grip_context(scene)
+        for stage in ("contact", "motion", "load"):
+            fx.run_stage(stage, self.effects, ctx, seed)
+        self.ctx = ctx
+        o = scene.object
+        self.stepper = GripperStepper(
+            self.sensor, ObjectParams(o.mass_kg, o.mu_s, o.mu_k, o.size_mm, scene.rigid_kt_n_mm), 1,
+            ctx.contact_offset[None], ctx.contact_mask[None], np.array([ctx.table]),
+        )
+        self.load = np.asarray(ctx.gravity[0], np.float64)[None]
+        self.com = np.asarray(ctx.com_offset, np.float64)[None]
+        self.devices = devices
+        n = round(duration_s / DT_S)
+        self.n = n
+        self.force = np.zeros((n, 9, 3), np.float32)
+        self.disp = np.zeros((n, 9, 3), np.float32)
+        self.slip = np.zeros((n, 9), bool)
+        self.motion = np.zeros((n, 3), np.float32)
+        self.grip = np.zeros(n, np.float32)
+        self.arm_speed = np.zeros(n, np.float32)
+        self.mono = np.zeros(n, np.float64)
+        self.steps = 0
+        self.done = threading.Event()
+        self.lift_index: int | None = None
+        self.grasp_index = round(GRASP_S / DT_S)
+        self.lift_at = self.grasp_index + round((scene.grip.close_s + scene.settle_s) / DT_S)
+        self._prepare_measurement()
+
+    def grasp(self) -> None:
+        """The object enters the jaw (hook for the rig's timeline)."""
+
+    def lift(self) -> None:
+        """Start the scene's lift on the UR controller (hook for the rig's timeline)."""
+
+    def source(self, i: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The sensor emulator's frame callback: advance the physics one sample, return (force, disp)."""
+        if i >= self.n:
+            self.done.set()
+            return None
+        if i == self.grasp_index:
+            self.grasp()
+        if i == self.lift_at:
+            self.lift_index = i
+            self.lift()
+        grip, v_up = self.device_inputs()
+        st = self.stepper
+        # Drive the finger at the arm's measured speed: the acceleration that brings the stepper's
+        # finger velocity to the TCP's over one sample (+y in the sensor plane is up).
+        accel = np.array([[0.0, (v_up - st.finger_vel[0, 1]) / DT_S]])
+        out = st.step(np.array([grip]), accel, self.load, self.com)
+        force = saturate(out.force, self.sensor)[0]
+        measured = self._measure(force, i)
+        self.force[i], self.disp[i] = measured, out.disp[0]
+        self.slip[i], self.motion[i] = out.slip[0], out.object_motion[0]
+        self.grip[i], self.arm_speed[i], self.mono[i] = grip, v_up, time.monotonic()
+        self.steps = i + 1
+        return measured, out.disp[0].astype(np.float32)
+
+    def device_inputs(self) -> tuple[float, float]:
+        """(grip force N, finger speed up mm/s) from the emulated servo and UR controller."""
+        dev = self.devices
+        grip = dev.servo.grip_force_n if dev is not None else 0.0
+        v = dev.ur.state().tcp_speed[2] * 1e3 if dev is not None and dev.ur is not None else 0.0
+        return grip, v
+
+    def _measure(self, force: np.ndarray, i: int) -> np.ndarray:
+        """The scene's signal-stage effects on one sample.
+
+        Additive effects (noise, glitches, drift) are the same effect classes run once, at start-up,
+        on a zero signal (``_additive``); quantisation is applied per sample. The anti-alias lowpass
+        needs filter state across samples and is not applied in closed loop (at 338.8 Hz it barely
+        changes a 1 kHz stream of slowly varying forces).
+        """
+        x = force.astype(np.float64) + self._additive[i]
+        if self._quantise is not None:
+            ctx = fx.SimContext(family="gripper", n=1, t_s=self._t1, motion_start=0)
+            ctx.force = x[None]
+            self._quantise.apply(ctx, None)  # type: ignore[arg-type]
+            x = ctx.force[0]
+        return x.astype(np.float32)
+
+    def _prepare_measurement(self) -> None:
+        additive = [e for e in self.effects if e.stage == "signal" and e.name in ("noise", "glitches", "drift")]
+        ctx = fx.SimContext(family="gripper", n=self.n, t_s=np.arange(self.n) * DT_S, motion_start=0)
+        ctx.force = np.zeros((self.n, 9, 3))
+        fx.run_stage("signal", additive, ctx, self.seed)
+        self._additive = ctx.force
+        self._quantise = next((e for e in self.effects if e.name == "quantisation"), None)
+        self._t1 = np.zeros(1)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _scrape(port: int) -> str:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=2) as r:
+        return r.read().decode()
+
+
+def _daemon_config(base: Path, dev: EmulatedDevices, metrics_port: int, react: bool, out_dir: Path) -> Path:
+    from slipd.config import load_config, override
+
+    cfg = load_config(base)
+    updates: dict[str, Any] = {**dev.overrides(), "metrics.enabled": True, "metrics.port": metrics_port,
+                               "recorder.directory": str(out_dir / "recordings")}
+    if not react:
+        updates["reaction.actions"] = []
+    cfg = override(cfg, updates)
+    path = out_dir / "daemon.yaml"
+    path.write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
+    return path
+
+
+def run_rig(
+    scene_path: str | Path = DEFAULT_SCENE,
+    config_path: str | Path = DEFAULT_CONFIG,
+    *,
+    duration_s: float | None = None,
+    react: bool = True,
+    seed: int | None = None,
+    host: str = "127.0.0.2",
+    out_dir: str | Path | None = None,
+    log=print,
+) -> tuple[RigResult, RigPhysics]:
+    """Run one closed-loop scene: start the emulators and ``slipd run`` as a separate process, stream the
+    physics in real time, and measure what happened. Returns the summary and the recorded physics."""
+    scene = load_scene(scene_path)
+    if not isinstance(scene, GripperScene):
+        raise ValueError(f"{scene_path}: the rig runs gripper scenes (family: gripper)")
+    seed = scene.seed if seed is None and scene.seed is not None else (seed or 0)
+    duration_s = duration_s or max(scene.duration_s, 3.0)
+    tmp_ctx = tempfile.TemporaryDirectory(prefix="slipd-rig-") if out_dir is None else contextlib.nullcontext(out_dir)
+    with tmp_ctx as tmp:
+        out = Path(tmp)
+        out.mkdir(parents=True, exist_ok=True)
+        from slipd.config import load_config
+
+        base_cfg = load_config(config_path)
+        g = base_cfg.gripper
+        stiffness = JawParams().stiffness_n_per_tick
+        # The jaw meets the object where the hold setting produces the scene's grip force.
+        sign = 1 if g.secure_position > g.hold_position else -1
+        contact = g.hold_position - sign * scene.grip.force_n / stiffness
+        jaw = JawParams(contact_position=None, closing_sign=sign, initial_position=float(g.hold_position))
+        physics = RigPhysics(scene, seed, duration_s)
+        with EmulatedDevices(physics.source, host=host, protocol=float(g.protocol), jaw=jaw) as dev:
+            physics.devices = dev
+            physics.grasp = lambda: dev.servo.set_contact(contact)  # type: ignore[method-assign]
+            v, a = scene.motion.speed_accel()
+
+            def lift() -> None:
+                pose = list(dev.ur.state().tcp_pose)
+                pose[2] += LIFT_MM / 1e3
+                dev.ur.move_l(pose, speed=v / 1e3, accel=a / 1e3)
+
+            physics.lift = lift  # type: ignore[method-assign]
+            port = _free_port()
+            cfg_file = _daemon_config(Path(config_path), dev, port, react, out)
+            log_file = out / "daemon.log"
+            env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+            env.pop("NOTIFY_SOCKET", None)
+            with open(log_file, "w") as lf:
+                proc = subprocess.Popen([sys.executable, "-m", "slipd", "run", "--config", str(cfg_file)],
+                                        stdout=lf, stderr=subprocess.STDOUT, env=env)
+            try:
+                _wait_ready(proc, port, log_file)
+                log(f"rig: daemon ready (pid {proc.pid}, metrics http://127.0.0.1:{port}/metrics); streaming")
+                dev.start_sensor()
+                physics.done.wait(duration_s + 30)
+                # Snapshot at once: with the stream ended the daemon will soon see a stalled sensor
+                # and (rightly) fail safe, which must not count as this run's reaction.
+                ur_state = dev.ur.state()
+                writes = dev.servo.writes()
+                metrics_text = _scrape(port)
+            finally:
+                proc.terminate()
+                try:
+                    proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+        text = log_file.read_text()
+        (out / "metrics.txt").write_text(metrics_text)
+        result = summarise(physics, scene_path, react, text, ur_state, writes, g.secure_position)
+    return result, physics
+
+
+def _wait_ready(proc: subprocess.Popen, port: int, log_file: Path, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"daemon exited with {proc.returncode}:\n{log_file.read_text()[-3000:]}")
+        with contextlib.suppress(OSError):
+            if "slipd_ready 1.0" in _scrape(port):
+                return
+        time.sleep(0.1)
+    raise RuntimeError(f"daemon not ready after {timeout} s:\n{log_file.read_text()[-3000:]}")
+
+
+def _index_of(mono: np.ndarray, t: float | None) -> int | None:
+    if t is None or t <= 0 or not len(mono):
+        return None
+    return int(np.searchsorted(mono, t))
+
+
+def summarise(physics: RigPhysics, scene_path: Any, react: bool, daemon_log: str, ur_state: Any, writes: list,
+              secure_position: int) -> RigResult:
+    """Turn the recorded run into a ``RigResult`` (see the module docstring)."""
+    n = physics.steps
+    mono = physics.mono[:n]
+    lift = physics.lift_index or 0
+    motion = physics.motion[:n].astype(np.float64) - physics.motion[lift]
+    considered = (physics.force[lift, :, 2] > CONTACT_THRESHOLD_N)
+    outer = np.zeros(9, bool)
+    outer[list(OUTER)] = True
+    _, onset, gross = incipient_labels(physics.slip[:n], considered & outer if considered[outer].any() else
+                                       considered, lift)
+    alarms = [float(m) for m in _ALARM_RE.findall(daemon_log)]
+    alarm_s = alarms[0] if alarms else None
+    stop_i = _index_of(mono, ur_state.last_stop_received_t) if ur_state.stop_count else None
+    tighten = [w.t for w in writes if w.address in (116, 30) and
+               int.from_bytes(bytes(w.data[:2]), "little") == secure_position]
+    tighten_i = _index_of(mono, tighten[0]) if tighten else None
+    reached = max([i for i in (stop_i, tighten_i) if i is not None], default=None)
+    speed = np.hypot(*np.gradient(motion[:, :2], DT_S, axis=0).T) if n > 2 else np.zeros(n)
+    rot_speed = np.abs(np.gradient(motion[:, 2], DT_S)) if n > 2 else np.zeros(n)
+    secure_i = None
+    start = reached if reached is not None else lift
+    hold = int(SECURE_HOLD_S / DT_S)
+    rest = (speed < SECURE_REST_MM_S) & (rot_speed < SECURE_REST_MM_S)
+    if react and reached is not None:
+        for k in range(start, n - hold):
+            if rest[k: k + hold].all():
+                secure_i = k
+                break
+    at = secure_i if secure_i is not None else n - 1
+    translation = float(np.hypot(motion[at, 0], motion[at, 1]))
+    rotation = float(abs(motion[at, 2]))
+    final = float(np.hypot(motion[n - 1, 0], motion[n - 1, 1]))
+    dropped = final > DROP_MM or (speed[n - hold:].mean() > 5.0 if n > hold else False)
+    big = (np.hypot(motion[:, 0], motion[:, 1]) > GROSS_MM) | (np.abs(motion[:, 2]) > GROSS_DEG)
+    gross_motion = np.flatnonzero(big)
+    gross_motion = gross_motion[gross_motion >= lift]
+    gross_i = gross if gross is not None else (int(gross_motion[0]) if len(gross_motion) else None)
+
+    def s(i: int | None) -> float | None:
+        return None if i is None else i * DT_S
+
+    return RigResult(
+        scene=str(Path(str(scene_path)).stem),
+        reaction=react,
+        lift_start_s=lift * DT_S,
+        onset_s=s(onset),
+        gross_slip_s=s(gross_i),
+        alarm_s=alarm_s,
+        stop_reached_s=s(stop_i),
+        tighten_reached_s=s(tighten_i),
+        secure_s=s(secure_i),
+        translation_mm=translation,
+        rotation_deg=rotation,
+        dropped=bool(dropped),
+        max_grip_n=float(physics.grip[:n].max()) if n else 0.0,
+        frames=n,
+    )
+
+
+def plot_run(physics: RigPhysics, result: RigResult, path: str | Path, daemon_p: list[tuple[float, float]] | None = None
+             ) -> Path:
+    """Force traces, grip, object motion and the events of one run, on one figure (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = physics.steps
+    t = np.arange(n) * DT_S
+    fig, ax = plt.subplots(4, 1, figsize=(10, 10), sharex=True)
+    for p in range(9):
+        ax[0].plot(t, physics.force[:n, p, 1], lw=0.8, label=f"P{p}")
+    ax[0].set_ylabel("fy (N)")
+    ax[0].legend(ncol=9, fontsize=7, loc="upper left")
+    ax[1].plot(t, physics.force[:n, :, 2].sum(1), label="total fz (N)")
+    ax[1].plot(t, physics.grip[:n], label="servo grip (N)")
+    ax[1].legend(fontsize=8)
+    ax[2].plot(t, physics.slip[:n].sum(1), drawstyle="steps-post", label="pillars slipping (truth)")
+    if daemon_p:
+        tp, pp = zip(*daemon_p)
+        ax2 = ax[2].twinx()
+        ax2.plot(tp, pp, "k.-", ms=3, lw=0.8, label="P(slip)")
+        ax2.axhline(0.5, color="k", ls=":", lw=0.8)
+        ax2.set_ylim(0, 1)
+    ax[2].set_ylabel("slipping pillars")
+    ax[2].legend(fontsize=8, loc="upper left")
+    lift = physics.lift_index or 0
+    mot = physics.motion[:n] - physics.motion[lift]
+    ax[3].plot(t, np.hypot(mot[:, 0], mot[:, 1]), label="object translation (mm)")
+    ax[3].plot(t, np.abs(mot[:, 2]), label="object rotation (deg)")
+    ax[3].set_ylabel("relative to finger")
+    ax[3].set_xlabel("time (s)")
+    ax[3].legend(fontsize=8)
+    for a in ax:
+        for val, style, _name in ((result.onset_s, "g--", "onset"), (result.alarm_s, "r-", "alarm"),
+                                 (result.secure_s, "b:", "secure"), (result.lift_start_s, "k:", "lift")):
+            if val is not None:
+                a.axvline(val, color=style[0], ls=style[1:], lw=1)
+    ax[0].set_title(" | ".join(result.lines()[0:1]) + f"   alarm {result.alarm_s}  onset {result.onset_s}")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def main_sim(args: Any) -> int:
+    """``slipd sim``: the README's main command."""
+    scene = Path(args.scene) if args.scene else DEFAULT_SCENE
+    config = Path(args.config) if args.config else DEFAULT_CONFIG
+    result, physics = run_rig(scene, config, duration_s=args.duration, react=not args.no_reaction)
+    print("\n".join(result.lines()))
+    if args.plot:
+        print(f"plot: {plot_run(physics, result, args.plot)}")
+    Path("out").mkdir(exist_ok=True)
+    Path("out/sim_result.json").write_text(json.dumps(asdict(result), indent=1))
+    return 0
