@@ -181,6 +181,8 @@ def write_dataset(set_name: str, split: str, out: str | Path, count: int | None 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     items = dataset_scenes(set_name, split, count, seed)
+    import scipy.signal  # noqa: F401  (the lowpass effect's one-off import is not simulation time)
+
     entries = []
     sim_s = 0.0
     wall = 0.0

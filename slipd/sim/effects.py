@@ -230,8 +230,8 @@ class ServoLag(Effect):
         out = np.empty_like(ctx.grip)
         g = 0.0
         step_max = self.p.max_rate_n_s * dt
-        for k, target in enumerate(ctx.grip):  # once per scene, before physics: a plain loop is fine
-            g += float(np.clip(alpha * (target - g), -step_max, step_max))
+        for k, target in enumerate(ctx.grip.tolist()):  # once per scene, before physics: a plain loop
+            g += min(max(alpha * (target - g), -step_max), step_max)
             out[k] = g
         ctx.grip = out
 

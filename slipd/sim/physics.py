@@ -375,6 +375,8 @@ class GripperStepper:
         self.finger_pos = np.zeros((b, 2))
         self.finger_vel = np.zeros((b, 2))
         self._last_grip: np.ndarray | None = None
+        self._contact_key: np.ndarray | None = None
+        self._contact: tuple[np.ndarray, ...] = ()
         self._depth = np.zeros(b)
 
     def step(self, grip_n: np.ndarray, accel_mm_s2: np.ndarray, load_mm_s2: np.ndarray,
@@ -394,9 +396,14 @@ class GripperStepper:
         solves all samples at once with ``depth_for_total_force``)."""
         b, sensor = self.batch, self.sensor
         grip = np.maximum(np.asarray(grip_n, np.float64).reshape(b), 0.0)
-        c = compression(np.asarray(depth_mm, np.float64).reshape(b), self.contact_offset, self.contact_mask)
-        fz = normal_force(c, sensor)
-        lim_s, lim_k = friction_limits(fz, self.mu_s, self.mu_k, sensor)
+        depth = np.asarray(depth_mm, np.float64).reshape(b)
+        if self._contact_key is None or not np.array_equal(depth, self._contact_key):
+            # The contact state only changes with the grip: recompute it only then.
+            c = compression(depth, self.contact_offset, self.contact_mask)
+            fz = normal_force(c, sensor)
+            self._contact = (c, fz, *friction_limits(fz, self.mu_s, self.mu_k, sensor))
+            self._contact_key = depth
+        c, fz, lim_s, lim_k = self._contact
         # Rigid pad: translational limit mu*grip/kr (mm), torsional limit mu*grip*r/(kr r^2) (rad).
         rl_s, rl_k = self.mu_s * grip / self.kr, self.mu_k * grip / self.kr
         krot = self.kr * self.rr**2  # N mm / rad
@@ -446,11 +453,9 @@ class GripperStepper:
                     self.pose[down, 2] = old_pose[down, 2]
                     self.vel[down, 2] = 0.0
             d_pose = self.pose - old_pose
-            # Material points over the pillars move with the object's increment.
-            rot = rotation_matrix(d_pose[:, 2])
-            centre = self.pose[:, None, :2] - d_pose[:, None, :2]
-            rel = PILLAR_XY_MM[None] - centre
-            delta = np.einsum("bij,bpj->bpi", rot, rel) + centre + d_pose[:, None, :2] - PILLAR_XY_MM[None]
+            # Material points over the pillars move with the object's increment (a rigid-body move
+            # about the object's grasp centre: the same surface kinematics as the hexapod's plate).
+            delta = surface_delta(old_pose[:, :2], np.zeros(b), self.pose[:, :2], d_pose[:, 2])
             if sub == 0:
                 delta = delta + splay
             u, slide = stick_slip_step(u, delta, lim_s, lim_k, sliding)

@@ -513,7 +513,12 @@ def _generate_gripper(scenes: list[GripperScene], seeds: list[int]) -> list[Reco
     masks = np.stack([c.contact_mask for c in ctxs])
     stepper = GripperStepper(sensor, objs, b, offs, masks, np.array([c.table for c in ctxs]))
     grip = np.stack([_pad(c.grip, n) for c in ctxs], 1)  # [N, B]
-    depth = depth_for_total_force(grip, sensor, offs, masks)  # all samples at once
+    # Depth for every sample's grip force: the grip takes few distinct values (a ramp, then a hold),
+    # so solve only those, per scene, with the same bisection the stepper uses.
+    depth = np.empty_like(grip)
+    for i in range(b):
+        values, inverse = np.unique(grip[:, i], return_inverse=True)
+        depth[:, i] = depth_for_total_force(values[:, None], sensor, offs[i], masks[i])[:, 0][inverse]
     accel = np.stack([_pad(c.accel, n) for c in ctxs], 1)
     load = np.stack([_pad(c.gravity, n) for c in ctxs], 1)
     com = np.stack([c.com_offset for c in ctxs])
