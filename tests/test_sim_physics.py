@@ -209,3 +209,29 @@ def test_gripper_at_the_friction_limit_is_finite():
     assert np.all(np.isfinite(o.force)) and o.force[..., 2].min() >= 0.0
     ft = np.hypot(o.force[0, :, 0], o.force[0, :, 1])
     assert np.all(ft <= 0.4 * o.force[0, :, 2] * (1 + 1e-6) + 1e-9)
+
+
+def test_fast_forward_of_stuck_stretches_is_bit_identical_to_stepping():
+    from slipd.sim.physics import friction_limits, splay_delta, surface_delta
+
+    n = 900
+    k = np.arange(n)
+    depth = np.clip((k - 100) / 200.0, 0.0, 1.0)[:, None] * np.array([0.8, 0.0])  # one scene never touches
+    t = np.zeros((n, 2, 2))
+    t[:, :, 0] = (np.clip(k - 400, 0, None) * 0.003)[:, None]
+    th = np.zeros((n, 2))
+    mu_s, mu_k = np.array([0.6, 0.6]), np.array([0.5, 0.5])
+    fast = run_hexapod(V1, t, th, depth, mu_s, mu_k)
+    c = compression(depth)
+    c_prev = np.concatenate([np.zeros((1, 2, 9)), c[:-1]])
+    t_prev = np.concatenate([np.zeros((1, 2, 2)), t[:-1]])
+    delta = surface_delta(t_prev, np.zeros((n, 2)), t, th) + splay_delta(c - c_prev, V1)
+    fz = normal_force(c, V1)
+    ls, lk = friction_limits(fz, mu_s, mu_k, V1)
+    u = np.zeros((2, 9, 2))
+    sliding = np.zeros((2, 9), bool)
+    for i in range(n):
+        u, slide = stick_slip_step(u, delta[i], ls[i], lk[i], sliding)
+        sliding = slide & (fz[i] > 0)
+        assert np.array_equal(fast["u"][i], u) and np.array_equal(fast["slip"][i], sliding), i
+    assert fast["slip"].any()

@@ -294,12 +294,51 @@ def run_hexapod(sensor: SensorParams, t_mm: np.ndarray, theta_rad: np.ndarray, d
     slip = np.empty((n, b, N_PILLARS), bool)
     u = np.zeros((b, N_PILLARS, 2))
     sliding = np.zeros((b, N_PILLARS), bool)
-    for k in range(n):
+    k = 0
+    retry_at = 0
+    while k < n:
+        if k >= retry_at and not sliding.any():
+            # Fast-forward while every tip sticks: deflections are then the running sum of the
+            # surface increments (np.cumsum adds sequentially, so the values are bit-identical to
+            # the step-by-step law) until the first tip reaches its static limit or contact changes.
+            m = _stuck_run(u, delta, lim_s, in_contact, k, min(n, k + _FF_CHUNK))
+            if m:
+                u_all[k: k + m] = _stuck_path(u, delta[k: k + m], in_contact[k])
+                slip[k: k + m] = False
+                u = u_all[k + m - 1].copy()
+                k += m
+            if m < 8:
+                retry_at = k + 32  # a limit is near: step normally for a while
+            if k >= n:
+                break
         u, slide = stick_slip_step(u, delta[k], lim_s[k], lim_k[k], sliding)
         sliding = slide & in_contact[k]
         u_all[k] = u
         slip[k] = sliding
+        k += 1
     return {"u": u_all, "c": c, "fz": fz, "slip": slip}
+
+
+_FF_CHUNK = 512
+
+
+def _stuck_path(u: np.ndarray, deltas: np.ndarray, in_contact: np.ndarray) -> np.ndarray:
+    """Deflections over ``deltas`` [M,B,9,2] if every tip sticks (tips out of contact stay at 0)."""
+    path = np.cumsum(np.concatenate([u[None], deltas]), axis=0)[1:]
+    return np.where(in_contact[None, ..., None], path, 0.0)
+
+
+def _stuck_run(u: np.ndarray, delta: np.ndarray, lim_s: np.ndarray, in_contact: np.ndarray, k: int,
+               end: int) -> int:
+    """How many samples from ``k`` all tips stay stuck (no static limit reached, contact unchanged)."""
+    same = np.all(in_contact[k:end] == in_contact[k], axis=(1, 2))
+    end = k + (int(np.argmin(same)) if not same.all() else end - k)
+    if end <= k:
+        return 0
+    path = _stuck_path(u, delta[k:end], in_contact[k])
+    mag = np.hypot(path[..., 0], path[..., 1])
+    hit = np.any((mag >= lim_s[k:end]) & in_contact[k:end], axis=(1, 2))
+    return int(np.argmax(hit)) if hit.any() else end - k
 
 
 # ---------------------------------------------------------------------------- gripper stepper
