@@ -17,6 +17,8 @@ Labels (the method's rule): incipient slip (1) from the first sample after motio
 considered pillar slides until all considered pillars slide at once (gross slip, 0 again). Considered:
 pillars in contact at motion start; for hexapod rotations only the outer eight. Gripper scenes also
 end the label at gross object motion (> 2 mm or > 2 deg relative to the finger). Stop scenes are all 0.
+In a combined motion whose instantaneous centre of rotation lies on a pillar, that pillar never
+slides: the label then runs to the end and there is no ``gross_slip`` event (physically right).
 
 API: ``load_scene(path) -> Scene``, ``parse_scene(dict, source) -> Scene``,
 ``generate(scene, seed=None) -> Recording``, ``generate_batch(scenes, seeds) -> list[Recording]``
