@@ -498,6 +498,11 @@ def _grip_context(sc: GripperScene) -> fx.SimContext:
     return ctx
 
 
+gripper_context = _grip_context
+"""Public name of the gripper scene's input profiles (grip, arm acceleration, loads) before physics;
+the closed-loop rig builds its stepper from it."""
+
+
 def _generate_gripper(scenes: list[GripperScene], seeds: list[int]) -> list[Recording]:
     sensor = sensor_params(scenes[0].sensor)
     effects = [sc.build_effects() for sc in scenes]
