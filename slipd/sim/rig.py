@@ -48,7 +48,7 @@ from slipd.sim import effects as fx
 from slipd.sim.devices.mx28 import JawParams
 from slipd.sim.harness import EmulatedDevices
 from slipd.sim.physics import DT_S, GripperStepper, ObjectParams, saturate, sensor_params
-from slipd.sim.scene import GripperScene, _grip_context, incipient_labels, load_scene
+from slipd.sim.scene import GripperScene, gripper_context, incipient_labels, load_scene
 
 ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_SCENE = ROOT / "config" / "scenes" / "default.yaml"
@@ -111,7 +111,7 @@ class RigPhysics:
         self.seed = seed
         self.sensor = sensor_params(scene.sensor)
         self.effects = scene.build_effects()
-        ctx = _grip_context(scene)
+        ctx = gripper_context(scene)
         for stage in ("contact", "motion", "load"):
             fx.run_stage(stage, self.effects, ctx, seed)
         self.ctx = ctx
