@@ -64,6 +64,7 @@ class Detector:
         self.features = FeatureStream(self.spec, offset)
         self.tare_samples = 0 if offset is not None else int(tare_samples)
         self._tare_buf = np.zeros((max(self.tare_samples, 1), 9, 3), np.float32)
+        self._tare_t = np.zeros(max(self.tare_samples, 1), np.int64)
         self.contact_reset = contact_reset
         self.index = -1
         self.windows = 0
@@ -95,6 +96,7 @@ class Detector:
         self.index += 1
         if not self._tared:
             self._tare_buf[self._n_tare] = force
+            self._tare_t[self._n_tare] = t_us
             self._n_tare += 1
             if self._n_tare < self.tare_samples:
                 return None
@@ -105,7 +107,7 @@ class Detector:
             self._tared = True
             last = None
             for k in range(self.tare_samples):
-                det = self._process(self._tare_buf[k], t_us, self.index - self.tare_samples + 1 + k)
+                det = self._process(self._tare_buf[k], int(self._tare_t[k]), self.index - self.tare_samples + 1 + k)
                 last = det or last
             return last
         return self._process(force, t_us, self.index)

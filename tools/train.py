@@ -335,7 +335,10 @@ def _jsonable(v: Any) -> Any:
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """Command line; sizes left unset take the full (or --tiny) defaults."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--data", type=Path, required=True, help="folder of recordings (*.npz)")
+    p.add_argument("--data", type=Path, required=True, nargs="+", help="folder(s) of recordings (*.npz)")
+    p.add_argument("--pillars", default="outer",
+                   help="pillars feeding the model: 'outer' (the authors' 8, SDK P0-P3,P5-P8), 'all' (9), "
+                        "or a comma list of SDK indices")
     p.add_argument("--out", type=Path, required=True, help="run directory for member_<k>.pt and train_log.jsonl")
     p.add_argument("--members", type=int, help="ensemble size Z (5)")
     p.add_argument("--epochs", type=int, help=f"epochs per member ({FULL['epochs']})")
@@ -382,6 +385,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+def pillars_arg(text: str) -> tuple[int, ...]:
+    """``--pillars``: 'outer', 'all' or a comma list of SDK indices."""
+    from slipd.geometry import N_PILLARS, OUTER
+
+    if text == "outer":
+        return OUTER
+    if text == "all":
+        return tuple(range(N_PILLARS))
+    return tuple(int(x) for x in text.split(","))
+
+
 def make_optimizer(net: SlipNet, args: argparse.Namespace) -> torch.optim.Optimizer:
     """SGD with momentum (the method) or Adam, both with L2 weight decay."""
     if args.optimizer == "adam":
@@ -426,7 +440,8 @@ def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureS
     log.flush()
     net.cpu().eval()
     return {"state_dict": net.state_dict(), "config": net.config(), "feature_spec": spec.to_dict(),
-            "provenance": {"data": str(args.data), "index": _index_summary(args.data), "seed": args.seed,
+            "provenance": {"data": [str(d) for d in args.data], "index": [_index_summary(d) for d in args.data],
+                           "seed": args.seed,
                            "member": k, "args": _jsonable(vars(args)), "git": _git_commit(),
                            "recordings": names or []},
             "history": history, "eval": result.get("eval")}
@@ -436,9 +451,13 @@ def main(argv: list[str] | None = None) -> int:
     """Train the ensemble described by the command line; returns the exit status."""
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
-    spec = FeatureSpec()
+    spec = FeatureSpec(pillars=pillars_arg(args.pillars))
     try:
-        pool, names = load_sequences(args.data, spec, args.max_recordings)
+        pool, names = [], []
+        for folder in args.data:
+            p, n = load_sequences(folder, spec, args.max_recordings)
+            pool += p
+            names += n
     except RecordingError as exc:
         print(f"train: {exc}", file=sys.stderr)
         return 2
