@@ -73,7 +73,8 @@ class Daemon:
         if cfg.model.stride:
             spec = spec.with_(stride=cfg.model.stride)
         threshold = cfg.decision.effective_threshold(ensemble.threshold)
-        self.decision = Decision(threshold=threshold, hysteresis=cfg.decision.hysteresis)
+        self.decision = Decision(threshold=threshold, hysteresis=cfg.decision.hysteresis,
+                                 min_consecutive=cfg.decision.min_consecutive)
         tare_n = cfg.sensor.tare_samples if cfg.sensor.tare == "startup" else 0
         self.detector = Detector(ensemble, self.decision, spec, offset=None if tare_n else np.zeros((9, 3)),
                                  tare_samples=tare_n)
@@ -89,6 +90,7 @@ class Daemon:
             metrics=self.metrics,
             graded=cfg.reaction.graded,
             rearm_after_s=cfg.reaction.rearm_after_s,
+            on_failsafe=cfg.reaction.on_failsafe,
         )
         self.notifier = notifier
         self.recorder = None
@@ -194,7 +196,7 @@ class Daemon:
     # ---------------------------------------------------------------- lifecycle
     async def run(self, sensor_port: str | None = None, duration_s: float | None = None) -> LoopStats:
         """Open the sensor, run until ``stop()`` (or ``duration_s``), then close everything."""
-        from slipd.pts import CMD_BIAS
+        from slipd.pts import CMD_BIAS, rate_command
         from slipd.sensor import SerialSensor
 
         cfg = self.cfg.sensor
@@ -208,6 +210,7 @@ class Daemon:
             metrics=self.metrics,
         )
         await self.sensor.start()
+        self.sensor.send_command(rate_command(cfg.rate_hz))
         if cfg.tare == "bias_command":
             self.sensor.send_command(CMD_BIAS)
             await asyncio.sleep(cfg.bias_timeout_s)

@@ -37,18 +37,23 @@ class DecisionResult:
 class Decision:
     """Stateful thresholding of ensemble outputs. ``update`` once per model step; ``reset`` on a new contact."""
 
-    def __init__(self, threshold: float = 0.5, hysteresis: float = 0.0) -> None:
+    def __init__(self, threshold: float = 0.5, hysteresis: float = 0.0, min_consecutive: int = 1) -> None:
         if not 0.0 < threshold < 1.0:
             raise ValueError(f"threshold must be in (0, 1), got {threshold}")
         if not 0.0 <= hysteresis < threshold:
             raise ValueError(f"hysteresis must be in [0, threshold), got {hysteresis} (threshold {threshold})")
+        if min_consecutive < 1:
+            raise ValueError(f"min_consecutive must be >= 1, got {min_consecutive}")
         self.threshold = float(threshold)
         self.hysteresis = float(hysteresis)
+        self.min_consecutive = int(min_consecutive)
         self.alarm = False
+        self._above = 0  # consecutive decisions at or above the threshold
 
     def reset(self) -> None:
         """Clear the alarm state."""
         self.alarm = False
+        self._above = 0
 
     def update(self, p_slip: float, p_members: np.ndarray | None = None) -> DecisionResult:
         """Feed one step's mean P(slip) (and optionally the members' [Z]); return the decision.
@@ -59,7 +64,12 @@ class Decision:
         if not (math.isfinite(p) and 0.0 <= p <= 1.0):
             raise ValueError(f"p_slip must be a probability in [0, 1], got {p_slip!r}")
         # Raised at the threshold; once raised, held down to threshold - hysteresis.
-        alarm = p >= (self.threshold - self.hysteresis if self.alarm else self.threshold)
+        self._above = self._above + 1 if p >= self.threshold else 0
+        if self.alarm:
+            alarm = p >= self.threshold - self.hysteresis
+        else:
+            # Raising needs min_consecutive decisions in a row at or above the threshold.
+            alarm = self._above >= self.min_consecutive
         rising = alarm and not self.alarm
         self.alarm = alarm
         frac = None

@@ -53,6 +53,7 @@ class Reaction:
         graded: bool = False,
         rearm_after_s: float = 1.0,
         enabled: bool = True,
+        on_failsafe: str = "stop_arm",
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         unknown = [a for a in actions if a not in ACTIONS]
@@ -65,6 +66,9 @@ class Reaction:
         self.graded = graded
         self.rearm_after_s = rearm_after_s
         self.enabled = enabled
+        if on_failsafe not in ("stop_arm", "stop_arm_and_tighten", "log_only"):
+            raise ValueError(f"unknown on_failsafe policy {on_failsafe!r}")
+        self.on_failsafe = on_failsafe
         self.clock = clock
         self.records: list[ReactionRecord] = []
         self._last_t: float | None = None
@@ -93,15 +97,23 @@ class Reaction:
         return futures
 
     def failsafe(self, reason: str) -> Future | None:
-        """Stop the arm and keep the grip (sensor stalled, model failed, reaction failed)."""
+        """Fail safe (sensor stalled, model failed, reaction failed): by default stop the arm, keep the grip.
+
+        ``on_failsafe="stop_arm_and_tighten"`` also tightens to the secure setting; ``"log_only"`` only
+        logs and counts (for bench tests, never production).
+        """
         self.failsafe_count += 1
-        log.warning("fail-safe: %s: stopping the arm, keeping the grip", reason)
+        log.warning("fail-safe: %s: policy %s", reason, self.on_failsafe)
         if self.metrics is not None:
             self.metrics.failsafe.labels(reason=reason).inc()
-        if self.arm is None or not self.enabled:
+        if not self.enabled or self.on_failsafe == "log_only":
             return None
         rec = ReactionRecord(t_decision=self.clock(), risk=1.0)
         self.records.append(rec)
+        if self.on_failsafe == "stop_arm_and_tighten" and self.gripper is not None and "tighten" not in reason:
+            self._submit(rec, "tighten_gripper", self.gripper_worker, self.gripper.tighten, None)
+        if self.arm is None:
+            return None
         return self._submit(rec, "stop_arm", self.arm_worker, self.arm.stop, f"fail-safe: {reason}")
 
     def reset(self) -> None:

@@ -29,13 +29,14 @@ DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "models" / "slip_ensemble.
 def detector_for(rec: Recording, ensemble: Any, cfg: Any = None) -> Detector:
     """The Detector the daemon would build for this recording (see the module docstring for the tare)."""
     spec = ensemble.feature_spec
-    threshold, hysteresis = ensemble.threshold, 0.0
+    threshold, hysteresis, consecutive = ensemble.threshold, 0.0, 1
     if cfg is not None:
         if cfg.model.stride:
             spec = spec.with_(stride=cfg.model.stride)
         threshold = cfg.decision.effective_threshold(ensemble.threshold)
         hysteresis = cfg.decision.hysteresis
-    decision = Decision(threshold=threshold, hysteresis=hysteresis)
+        consecutive = cfg.decision.min_consecutive
+    decision = Decision(threshold=threshold, hysteresis=hysteresis, min_consecutive=consecutive)
     if "tare_offset" in rec.meta:
         return Detector(ensemble, decision, spec, offset=np.asarray(rec.meta["tare_offset"], np.float32))
     if cfg is not None:

@@ -78,3 +78,11 @@ def test_bad_values_are_refused_without_changing_state() -> None:
     for kw in ({"threshold": 0.0}, {"threshold": 1.0}, {"hysteresis": -0.1}, {"hysteresis": 0.5}):
         with pytest.raises(ValueError):
             Decision(**kw)
+
+
+def test_min_consecutive_needs_a_run_above_threshold() -> None:
+    from slipd.decision import Decision
+
+    d = Decision(threshold=0.5, min_consecutive=3)
+    got = [d.update(p).alarm for p in (0.6, 0.7, 0.4, 0.6, 0.6, 0.6, 0.7)]
+    assert got == [False, False, False, False, False, True, True]

@@ -84,3 +84,13 @@ def test_disabled_reaction_issues_nothing() -> None:
     r, arm, grip, _ = _reaction(enabled=False)
     assert r.on_alarm(1.0) == [] and r.failsafe("sensor stalled") is None
     assert arm.calls == grip.calls == []
+
+
+def test_failsafe_policies() -> None:
+    r, arm, grip, _ = _reaction(on_failsafe="stop_arm_and_tighten")
+    f = r.failsafe("sensor_stall")
+    f.exception(timeout=5)
+    assert grip.event.wait(5)
+    assert arm.calls[0][1] == "fail-safe: sensor_stall" and grip.calls == [("tighten", None)]
+    r, arm, grip, _ = _reaction(on_failsafe="log_only")
+    assert r.failsafe("sensor_stall") is None and arm.calls == grip.calls == []
