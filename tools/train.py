@@ -328,6 +328,8 @@ def _jsonable(v: Any) -> Any:
         return [_jsonable(w) for w in v]
     if isinstance(v, dict):
         return {k: _jsonable(w) for k, w in v.items()}
+    if isinstance(v, np.generic):
+        return v.item()  # numpy scalars would make torch.load(weights_only=True) refuse the checkpoint
     return v
 
 
@@ -444,7 +446,7 @@ def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureS
                            "seed": args.seed,
                            "member": k, "args": _jsonable(vars(args)), "git": _git_commit(),
                            "recordings": names or []},
-            "history": history, "eval": result.get("eval")}
+            "history": _jsonable(history), "eval": _jsonable(result.get("eval"))}
 
 
 def main(argv: list[str] | None = None) -> int:
