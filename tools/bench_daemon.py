@@ -1,0 +1,183 @@
+"""Daemon benchmarks: reaction latency and CPU share at 1 kHz, against the emulated devices.
+
+    python tools/bench_daemon.py [--model models/slip_ensemble.json] [--seconds 20]
+
+1. **Reaction latency**: the last sample of the deciding window written to the sensor pty -> the tighten
+   command's bytes read from the servo pty. The daemon (`slipd.control.Daemon`, real pyserial reader,
+   real ONNX session, real dynamixel-sdk driver) runs in this process against the emulated PapillArray
+   and MX-28. To get many samples, the benchmark sets the threshold to 0 and clears the alarm after each
+   decision, so *every* window raises an alarm and a tighten (the arm is left out: it has its own thread).
+   Emulators share the interpreter with the daemon here, so the figures include their GIL contention:
+   an upper bound for a daemon talking to real hardware.
+2. **CPU share**: ``slipd run`` as its own process, fed 1 kHz frames of a quiet hold, the model stepping
+   every window; CPU seconds per wall second from /proc, side by side with a baseline process that only
+   reads and decodes the same frames (``--baseline`` mode of this script), so the model's share shows.
+Prints median, p99 and max latency against the 5 ms target, and the CPU shares with their ratio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+import yaml  # noqa: E402
+
+from slipd.recording import Recording  # noqa: E402
+
+TARGET_P99_MS = 5.0
+TARGET_CPU = 0.15
+
+
+def quiet_hold(n: int, seed: int = 0) -> Recording:
+    """A steady grasp with sensor noise: the daemon's everyday input."""
+    rng = np.random.default_rng(seed)
+    force = rng.normal(0, 0.01, (n, 9, 3)).astype(np.float32)
+    force[:, :, 2] += 1.5
+    force[:300] = rng.normal(0, 0.01, (300, 9, 3))  # unloaded start for the tare
+    return Recording(t_us=np.arange(n) * 1000, force=force, disp=np.zeros((n, 9, 3)))
+
+
+def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str) -> Path:
+    cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
+    cfg["model"]["manifest"] = str(model.resolve())
+    cfg["sensor"].update(port=sensor_port, tare="startup", tare_samples=300, stall_timeout_ms=1000)
+    cfg["gripper"]["port"] = servo_port
+    cfg["arm"]["enabled"] = False
+    cfg["reaction"].update(actions=["tighten_gripper"], on_failsafe="log_only", rearm_after_s=0.0)
+    cfg["recorder"]["enabled"] = False
+    path = tmp / "bench.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def reaction_latency(model: Path, seconds: float) -> np.ndarray:
+    """Latencies (s) from the window's last sample written to the tighten bytes parsed by the servo."""
+    from slipd.config import load_config
+    from slipd.control import Daemon, build_devices
+    from slipd.ensemble import Ensemble
+    from slipd.metrics import Metrics
+    from slipd.sim.devices.mx28 import EmulatedMX28
+    from slipd.sim.devices.papillarray import EmulatedPapillArray
+
+    n = int(seconds * 1000) + 1000
+    rec = quiet_hold(n)
+    written = np.zeros(n)
+
+    def source(i: int):
+        if i >= n:
+            return None
+        written[i] = time.monotonic()  # the frame is encoded and written right after this returns
+        return rec.force[i], rec.disp[i]
+
+    with tempfile.TemporaryDirectory() as tmp, EmulatedMX28() as servo, EmulatedPapillArray(source) as sensor:
+        cfg = load_config(_config(Path(tmp), model, sensor.port, servo.port))
+        metrics = Metrics()
+        ens = Ensemble.load(cfg.model.manifest)
+        _, gripper = build_devices(cfg, metrics)
+        daemon = Daemon(cfg, ens, metrics=metrics, gripper=gripper)
+        daemon.decision.threshold = 1e-9  # every window alarms ...
+        update = daemon.decision.update
+
+        def always_rising(p, pm=None):
+            daemon.decision.reset()  # ... and rises again
+            return update(p, pm)
+
+        daemon.decision.update = always_rising  # type: ignore[method-assign]
+        servo.clear_writes()
+
+        async def main():
+            task = asyncio.create_task(daemon.run(duration_s=seconds + 1.0))
+            await daemon.ready.wait()
+            sensor.start()
+            return await task
+
+        stats = asyncio.run(main())
+        time.sleep(0.3)
+        daemon.close()
+        secure = cfg.gripper.secure_position
+        tightens = [w.t for w in servo.writes() if w.address == 116 and int.from_bytes(w.data[:4], "little") == secure]
+    ends = np.array([a[0] for a in stats.alarms])
+    lat = []
+    for end, t_write in zip(ends, tightens):
+        lat.append(t_write - written[end])
+    return np.array(lat[1:])  # the first includes the tare replay
+
+
+def cpu_share(model: Path, seconds: float, baseline: bool) -> float:
+    """CPU seconds per wall second of one process reading the 1 kHz stream (daemon or decode-only)."""
+    from slipd.sim.devices.mx28 import EmulatedMX28
+    from slipd.sim.devices.papillarray import EmulatedPapillArray
+
+    rec = quiet_hold(int((seconds + 30) * 1000))
+    with tempfile.TemporaryDirectory() as tmp, EmulatedMX28() as servo, EmulatedPapillArray(rec) as sensor:
+        cfg = _config(Path(tmp), model, sensor.port, servo.port)
+        cmd = ([sys.executable, __file__, "--decode-only", sensor.port] if baseline else
+               [sys.executable, "-m", "slipd", "run", "--config", str(cfg)])
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            time.sleep(4.0)  # start-up (imports, warm-up) is not the steady state
+            sensor.start()
+            time.sleep(2.0)
+            t0, c0 = time.monotonic(), _cpu_seconds(proc.pid)
+            time.sleep(seconds)
+            t1, c1 = time.monotonic(), _cpu_seconds(proc.pid)
+        finally:
+            proc.terminate()
+            proc.wait(20)
+    return (c1 - c0) / (t1 - t0)
+
+
+def _cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def decode_only(port: str) -> None:
+    """Baseline process: the same serial reader and decoder, no model."""
+    from slipd.sensor import SerialSensor
+
+    async def main():
+        s = SerialSensor(port, lambda frames: None)
+        await s.start()
+        await asyncio.Event().wait()
+
+    asyncio.run(main())
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run both benchmarks and print the figures."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--model", type=Path, default=ROOT / "models" / "slip_ensemble.json")
+    p.add_argument("--seconds", type=float, default=20.0)
+    p.add_argument("--decode-only", metavar="PORT", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.decode_only:
+        decode_only(args.decode_only)
+        return 0
+    logging.getLogger("slipd").setLevel(logging.ERROR)  # one alarm per window here: keep the log quiet
+    lat = reaction_latency(args.model, args.seconds) * 1e3
+    print(f"reaction latency (window's last sample written -> tighten bytes at the servo), {len(lat)} alarms:")
+    print(f"  median {np.median(lat):.2f} ms   p99 {np.percentile(lat, 99):.2f} ms   max {lat.max():.2f} ms"
+          f"   p99 / target {np.percentile(lat, 99) / TARGET_P99_MS:.2f} (target {TARGET_P99_MS} ms)")
+    daemon = cpu_share(args.model, args.seconds, baseline=False)
+    base = cpu_share(args.model, args.seconds, baseline=True)
+    print("CPU share of one core at 1 kHz (steady state):")
+    print(f"  slipd run {daemon * 100:.1f} %   decode-only baseline {base * 100:.1f} %   ratio {daemon / base:.2f}"
+          f"   daemon / target {daemon / TARGET_CPU:.2f} (target {TARGET_CPU * 100:.0f} %)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
