@@ -128,8 +128,8 @@ def test_gripper_effects_gravity_torque_and_servo_lag():
     assert np.abs(none.object_motion).max() < 0.05  # without gravity the lift only meets inertia
     assert grav.object_motion[:, 1].min() < -1.0  # under-gripped: slides down relative to the finger
     # Gripped firmly enough to lift off the table, an off-centre weight twists the grasp.
-    held = _grip([{"name": "gravity"}], grip_n=12.0)
-    torque = _grip([{"name": "gravity"}, {"name": "offcenter_torque", "offset_mm": [20.0, 0.0]}], grip_n=12.0)
+    held = _grip([{"name": "gravity"}], grip_n=24.0)
+    torque = _grip([{"name": "gravity"}, {"name": "offcenter_torque", "offset_mm": [20.0, 0.0]}], grip_n=24.0)
     assert np.abs(held.object_motion[:, 2]).max() < 0.01
     assert np.abs(torque.object_motion[:, 2]).max() > 2.0
     lag = _grip([{"name": "servo_lag", "tau_s": 0.2, "max_rate_n_s": 10.0}])
