@@ -75,6 +75,9 @@ class RigResult:
     lift_start_s: float
     onset_s: float | None
     gross_slip_s: float | None
+    """All considered pillars slipping (the method's label end)."""
+    gross_motion_s: float | None
+    """The object moved more than 2 mm or 2 deg relative to the finger (the method's online T_g)."""
     alarm_s: float | None
     stop_reached_s: float | None
     tighten_reached_s: float | None
@@ -94,7 +97,8 @@ class RigResult:
         return [
             f"scene {self.scene}  (reaction {'on' if self.reaction else 'off'}, {self.frames} frames)",
             f"  lift started          {t(self.lift_start_s)}",
-            f"  incipient slip (truth){t(self.onset_s):>10}   gross slip (truth) {t(self.gross_slip_s)}",
+            f"  incipient slip (truth){t(self.onset_s):>10}   all pillars slipping {t(self.gross_slip_s)}"
+            f"   object moved 2 mm / 2 deg {t(self.gross_motion_s)}",
             f"  daemon alarm          {t(self.alarm_s)}",
             f"  stop reached UR       {t(self.stop_reached_s)}   tighten reached servo {t(self.tighten_reached_s)}",
             f"  grasp secure          {t(self.secure_s)}",
@@ -356,7 +360,7 @@ def summarise(physics: RigPhysics, scene_path: Any, react: bool, daemon_log: str
     big = (np.hypot(motion[:, 0], motion[:, 1]) > GROSS_MM) | (np.abs(motion[:, 2]) > GROSS_DEG)
     gross_motion = np.flatnonzero(big)
     gross_motion = gross_motion[gross_motion >= lift]
-    gross_i = gross if gross is not None else (int(gross_motion[0]) if len(gross_motion) else None)
+    gross_motion_i = int(gross_motion[0]) if len(gross_motion) else None
 
     def s(i: int | None) -> float | None:
         return None if i is None else i * DT_S
@@ -366,7 +370,8 @@ def summarise(physics: RigPhysics, scene_path: Any, react: bool, daemon_log: str
         reaction=react,
         lift_start_s=lift * DT_S,
         onset_s=s(onset),
-        gross_slip_s=s(gross_i),
+        gross_slip_s=s(gross),
+        gross_motion_s=s(gross_motion_i),
         alarm_s=alarm_s,
         stop_reached_s=s(stop_i),
         tighten_reached_s=s(tighten_i),
