@@ -113,7 +113,11 @@ class Detector:
         return self._process(force, t_us, self.index)
 
     def _process(self, force: np.ndarray, t_us: int, index: int) -> Detection | None:
+        window = self.features.push(force)
+        if window is None:
+            return None
         if self.contact_reset:
+            # Checked once per window (on its last sample): a release is seen before the next model step.
             fz = np.asarray(force, np.float32).reshape(9, 3)[:, 2] - self.features._offset[2::3]
             in_contact = bool(np.nanmax(fz) > CONTACT_THRESHOLD_N) if np.isfinite(fz).any() else self._in_contact
             if self._in_contact and not in_contact:
@@ -121,9 +125,6 @@ class Detector:
                 self.decision.reset()
                 self.resets += 1
             self._in_contact = in_contact
-        window = self.features.push(force)
-        if window is None:
-            return None
         stream = self.windows % self.n_streams
         self.windows += 1
         t0 = time.perf_counter()
