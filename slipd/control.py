@@ -13,6 +13,14 @@ A supervision task runs on absolute deadlines (``next = start + k * period``; a 
 as an overrun and the schedule is not shifted): it detects a stalled sensor (no frame for
 ``sensor.stall_timeout_ms``) and fails safe (stop the arm, keep the grip), and pings the systemd
 watchdog only while frames keep arriving, so a wedged loop or a dead sensor lets systemd act.
+
+A device health task polls the arm (``read_state``, every 150 ms) and the gripper
+(``read_status``, every 500 ms) on their own worker threads; the loop only looks at finished futures, so a slow or
+dead device never blocks it. An arm link that drops is logged and reconnected with backoff (the
+arm's own metrics count ``disconnected`` / ``protective_stop``); a protective stop is logged, never
+unlocked automatically. A gripper that stops answering or reports a hardware error or torque off
+fails safe (stop the arm) once per occurrence and is counted as
+``slipd_device_errors{device="gripper", kind="unhealthy"}``.
 """
 
 from __future__ import annotations
@@ -37,6 +45,13 @@ from slipd.worker import DeviceWorker
 log = logging.getLogger("slipd.control")
 
 SUPERVISION_PERIOD_S = 0.005
+HEALTH_PERIOD_S = 0.15
+"""Device health poll period: the issue asks for 100-200 ms; an MX-28 status read at 57.6 kBd takes a few ms."""
+GRIPPER_HEALTH_PERIOD_S = 0.5
+"""Slower for the gripper: its status block (83 bytes) takes ~20 ms at 57.6 kBd, and a tighten submitted
+while a status read is on the wire waits for it; 0.5 s keeps that chance small."""
+ARM_RECONNECT_INITIAL_S = 0.25
+ARM_RECONNECT_MAX_S = 5.0
 
 
 @dataclass
@@ -51,6 +66,7 @@ class LoopStats:
     failsafes: int = 0
     restarts: int = 0
     step_errors: int = 0
+    health_polls: int = 0
 
 
 class Daemon:
@@ -65,8 +81,15 @@ class Daemon:
         arm: Any = None,
         gripper: Any = None,
         notifier: Any = None,
+        health_period_s: float = HEALTH_PERIOD_S,
+        gripper_health_period_s: float = GRIPPER_HEALTH_PERIOD_S,
     ) -> None:
         self.cfg = cfg
+        self.health_period_s = health_period_s
+        self.gripper_health_period_s = gripper_health_period_s
+        self.health: dict[str, str] = {}
+        """Last known device condition: ``{"arm": "ok" | "disconnected" | "protective_stop",
+        "gripper": "ok" | reason}``; filled by the health poll."""
         self.metrics = metrics or Metrics()
         self.ensemble = ensemble
         spec = ensemble.feature_spec
@@ -193,6 +216,104 @@ class Daemon:
                 self._pinged_progress = self._progress
                 last_ping = now
 
+    # ------------------------------------------------------------ device health
+    async def _health(self) -> None:
+        """Poll arm (every ``health_period_s``) and gripper (every ``gripper_health_period_s``) state on
+        their worker threads; react to changes on the loop thread.
+
+        At most one poll per device is in flight: a device that hangs delays only its own next poll.
+        A poll queued on the gripper thread can delay a tighten submitted behind it by one status read.
+        """
+        arm = self.arm if self.arm_worker is not None and hasattr(self.arm, "read_state") else None
+        grip = self.gripper if self.gripper_worker is not None and hasattr(self.gripper, "read_status") else None
+        if arm is None and grip is None:
+            return
+        arm_poll: Any = None
+        grip_poll: Any = None
+        arm_reconnect: Any = None
+        reconnect_delay = ARM_RECONNECT_INITIAL_S
+        next_reconnect = 0.0
+        next_grip = 0.0
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if arm is not None:
+                if arm_poll is not None and arm_poll.done():
+                    self._on_arm_health(arm_poll)
+                    arm_poll = None
+                if arm_reconnect is not None and arm_reconnect.done():
+                    ok = arm_reconnect.exception() is None and bool(arm_reconnect.result())
+                    arm_reconnect = None
+                    if ok:
+                        self.metrics.reconnects.labels(device="arm").inc()
+                        log.warning("arm: reconnected")
+                        reconnect_delay = ARM_RECONNECT_INITIAL_S
+                        self.health["arm"] = "reconnected"  # the next poll says whether it is healthy
+                    else:
+                        next_reconnect = now + reconnect_delay
+                        reconnect_delay = min(2 * reconnect_delay, ARM_RECONNECT_MAX_S)
+                if self.health.get("arm") == "disconnected" and arm_reconnect is None and now >= next_reconnect:
+                    assert self.arm_worker is not None
+                    arm_reconnect = self.arm_worker.submit(arm.reconnect)
+                elif arm_poll is None and arm_reconnect is None:
+                    assert self.arm_worker is not None
+                    arm_poll = self.arm_worker.submit(self._probe_arm)
+            if grip is not None:
+                if grip_poll is not None and grip_poll.done():
+                    self._on_gripper_health(grip_poll)
+                    grip_poll = None
+                if grip_poll is None and now >= next_grip:
+                    assert self.gripper_worker is not None
+                    grip_poll = self.gripper_worker.submit(grip.read_status)
+                    next_grip = now + self.gripper_health_period_s
+            self.stats.health_polls += 1
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), self.health_period_s)
+
+    def _probe_arm(self) -> str:
+        """On the arm thread: ``ok``, ``disconnected`` or ``protective_stop`` (read_state counts the metrics)."""
+        st = self.arm.read_state()
+        if not st.connected or not self.arm.is_connected():
+            return "disconnected"
+        return "protective_stop" if st.protective_stop else "ok"
+
+    def _on_arm_health(self, fut: Any) -> None:
+        exc = fut.exception()
+        if exc is not None:
+            self.metrics.device_errors.labels(device="arm", kind="health").inc()
+            log.error("arm: health poll failed: %s", exc)
+            return
+        state, before = fut.result(), self.health.get("arm")
+        self.health["arm"] = state
+        if state == before:
+            return
+        if state == "disconnected":
+            log.error("arm: RTDE link lost; reconnecting (the controller's script halts the arm on its own)")
+        elif state == "protective_stop":
+            log.error("arm: protective stop; slipd does not unlock it: inspect the cell, unlock from the pendant")
+        elif before is not None:
+            log.warning("arm: healthy again (was %s)", before)
+
+    def _on_gripper_health(self, fut: Any) -> None:
+        exc = fut.exception()
+        if exc is not None:
+            problem = f"not answering: {exc}"
+        else:
+            st = fut.result()
+            if st.healthy:
+                problem = ""
+            elif st.hardware_error:
+                problem = f"hardware error {', '.join(st.hardware_errors)}"
+            else:
+                problem = "torque off"
+        before = self.health.get("gripper")
+        self.health["gripper"] = problem or "ok"
+        if problem and (before is None or before == "ok"):
+            self.metrics.device_errors.labels(device="gripper", kind="unhealthy").inc()
+            log.error("gripper: %s", problem)
+            self._fail_safe("gripper_fault")
+        elif not problem and before not in (None, "ok"):
+            log.warning("gripper: healthy again (was: %s)", before)
+
     # ---------------------------------------------------------------- lifecycle
     async def run(self, sensor_port: str | None = None, duration_s: float | None = None) -> LoopStats:
         """Open the sensor, run until ``stop()`` (or ``duration_s``), then close everything."""
@@ -216,6 +337,7 @@ class Daemon:
             await asyncio.sleep(cfg.bias_timeout_s)
             self.detector.restart()
         supervisor = asyncio.create_task(self._supervise())
+        health = asyncio.create_task(self._health()) if self.health_period_s > 0 else None
         self.metrics.ready.set(1)
         self.ready.set()
         if self.notifier is not None:
@@ -228,9 +350,12 @@ class Daemon:
                     await asyncio.wait_for(self._stop.wait(), duration_s)
         finally:
             self._stop.set()
-            supervisor.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await supervisor
+            for task in (supervisor, health):
+                if task is None:
+                    continue
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
             await self.sensor.stop()
             self.metrics.ready.set(0)
             if self.notifier is not None:
