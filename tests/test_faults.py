@@ -297,3 +297,16 @@ def test_arm_protective_stop_and_link_loss_are_noticed_and_the_link_comes_back(c
     assert metric(m, "slipd_device_errors_total", device="arm", kind="disconnected") >= 1
     text = caplog.text
     assert "protective stop" in text and "RTDE link lost" in text and "arm: reconnected" in text
+
+
+# ------------------------------------------------------------------------------------------------ soak
+@pytest.mark.slow
+def test_soak_30_s_at_1_khz_loses_no_frame(controller, tiny_model_json) -> None:
+    from tools.soak_live import soak
+
+    rep = soak(30.0, tiny_model_json, controller=controller, threshold=0.999)
+    print("\n" + "\n".join(rep.lines()))
+    assert rep.frames_sent >= 25_000  # the emulator really streamed for the whole run
+    assert rep.frames_lost == 0 and rep.emulator_discarded == 0
+    assert rep.decode_errors == 0 and rep.step_errors == 0 and rep.dropped == 0
+    assert rep.decisions > 0 and rep.health_polls > 0
