@@ -310,3 +310,15 @@ def test_soak_30_s_at_1_khz_loses_no_frame(controller, tiny_model_json) -> None:
     assert rep.frames_lost == 0 and rep.emulator_discarded == 0
     assert rep.decode_errors == 0 and rep.step_errors == 0 and rep.dropped == 0
     assert rep.decisions > 0 and rep.health_polls > 0
+
+
+def test_reliability_report_cites_only_existing_tests() -> None:
+    from tools.reliability_report import FAULTS, missing_tests, table
+
+    assert missing_tests() == []
+    assert len(table()) == len(FAULTS) + 2
+    # Every daemon-level test of this file appears in the report's table.
+    cited = {t.split("::")[1] for f in FAULTS for t in f.tests if t.startswith("tests/test_faults.py")}
+    this = "test_reliability_report_cites_only_existing_tests"
+    here = {name for name in globals() if name.startswith("test_") and name != this}
+    assert here <= cited, here - cited
