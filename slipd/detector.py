@@ -15,7 +15,9 @@ window sequence the model was trained on, shifted in phase, and a decision is ma
 samples.
 
 Contact: when every pillar's normal force falls below the SDK contact threshold after having been in
-contact, the GRU states are reset, so a new grasp starts from the trained initial state (h0 = 0).
+contact, the GRU states are reset, so a new grasp starts from the trained initial state (h0 = 0). The loss
+must persist beyond ``median // 2`` samples (a run the median filter would remove), so a dropout frame or a
+short glitch does not reset the state in the middle of a grasp.
 """
 
 from __future__ import annotations
@@ -74,6 +76,7 @@ class Detector:
         self._tared = self.tare_samples == 0
         self._n_tare = 0
         self._in_contact = False
+        self._loss_since: int | None = None  # sample index of the first check that saw no contact
 
     @property
     def offset(self) -> np.ndarray:
@@ -117,14 +120,22 @@ class Detector:
         if window is None:
             return None
         if self.contact_reset:
-            # Checked once per window (on its last sample): a release is seen before the next model step.
+            # Checked once per window (on its last sample); a release is acted on at the first check past
+            # median // 2 samples of no contact (one window later at stride = window).
             fz = np.asarray(force, np.float32).reshape(9, 3)[:, 2] - self.features._offset[2::3]
             in_contact = bool(np.nanmax(fz) > CONTACT_THRESHOLD_N) if np.isfinite(fz).any() else self._in_contact
-            if self._in_contact and not in_contact:
-                self.ensemble.reset()
-                self.decision.reset()
-                self.resets += 1
-            self._in_contact = in_contact
+            if in_contact:
+                self._in_contact, self._loss_since = True, None
+            elif self._in_contact:
+                # A release must last longer than a glitch the median filter removes (median // 2 samples):
+                # one dropout frame on a check's sample must not wipe the GRU state in the middle of a grasp.
+                if self._loss_since is None:
+                    self._loss_since = index
+                if index - self._loss_since > self.spec.median // 2:
+                    self.ensemble.reset()
+                    self.decision.reset()
+                    self.resets += 1
+                    self._in_contact, self._loss_since = False, None
         stream = self.windows % self.n_streams
         self.windows += 1
         t0 = time.perf_counter()

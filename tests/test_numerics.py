@@ -152,6 +152,37 @@ def test_dead_pillar_from_the_start_reads_as_no_load_and_is_counted(ens) -> None
     assert all(ens.step(w, stream=2).valid for w in wins)
 
 
+@pytest.mark.parametrize("glitch", ["dropout_frame", "negative_burst", "ten_zero_frames"])
+def test_a_glitch_on_every_normal_force_does_not_reset_the_state_mid_grasp(ens, glitch: str) -> None:
+    """During a firm grasp, one all-zero frame, a 5-sample burst of -1e6 N on every fz, or 10 zero frames
+    (runs the median removes) neither reset the GRU state nor change any decision; a real release does.
+
+    Catches: contact-loss detection on the raw sample (one dropout frame looks like a release and wipes
+    the model's memory in the middle of a grasp, exactly when slip may be building up)."""
+    clean = _hold(1200, seed=8)
+    dirty = clean.copy()
+    # Each glitch covers sample 519, the last sample of window 12, where the contact check looks.
+    if glitch == "dropout_frame":
+        dirty[519] = 0.0
+    elif glitch == "negative_burst":
+        dirty[517:522, :, 2] = -1e6
+    else:
+        dirty[510:520] = 0.0
+    out = {}
+    for reset in (False, True):  # the same samples with and without contact resets: only resets can differ
+        ens.reset()
+        det = Detector(ens, Decision(), offset=np.zeros((9, 3), np.float32), contact_reset=reset)
+        out[reset] = (np.array([d.p_slip for d in run_recording(det, dirty)]), det.resets)
+    assert out[True][1] == 0
+    assert np.array_equal(out[True][0], out[False][0])
+    released = clean.copy()
+    released[600:, :, 2] = 0.0
+    ens.reset()
+    det = Detector(ens, Decision(), offset=np.zeros((9, 3), np.float32))
+    run_recording(det, released)
+    assert det.resets == 1
+
+
 # ----------------------------------------------------------------- 2. saturation and glitch spikes
 
 
