@@ -46,7 +46,7 @@ log = logging.getLogger("slipd.control")
 
 SUPERVISION_PERIOD_S = 0.005
 HEALTH_PERIOD_S = 0.15
-"""Device health poll period: the issue asks for 100-200 ms; an MX-28 status read at 57.6 kBd takes a few ms."""
+"""Arm health poll period (100-200 ms asked for): ``read_state`` reads ur_rtde's cached receive values."""
 GRIPPER_HEALTH_PERIOD_S = 0.5
 """Slower for the gripper: its status block (83 bytes) takes ~20 ms at 57.6 kBd, and a tighten submitted
 while a status read is on the wire waits for it; 0.5 s keeps that chance small."""
@@ -287,7 +287,7 @@ class Daemon:
         if state == before:
             return
         if state == "disconnected":
-            log.error("arm: RTDE link lost; reconnecting (the controller's script halts the arm on its own)")
+            log.error("arm: RTDE link lost; reconnecting (slipd cannot stop the arm until the link is back)")
         elif state == "protective_stop":
             log.error("arm: protective stop; slipd does not unlock it: inspect the cell, unlock from the pendant")
         elif before is not None:
