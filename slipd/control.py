@@ -124,6 +124,7 @@ class Daemon:
         self._progress = 0
         self._pinged_progress = -1
         self.ready = asyncio.Event()
+        self._nonfinite_seen = 0
         m = self.metrics
         m.model.info({"name": str(cfg.model.manifest.name), "sha256": ensemble.manifest.sha256})
 
@@ -146,8 +147,13 @@ class Daemon:
                 continue
             if self.detector.windows != before and self.detector.last_step_s is not None:
                 m.inference_seconds.observe(self.detector.last_step_s)
+            bad = self.detector.features.nonfinite_count
+            if bad != self._nonfinite_seen:  # counted once per window, not per sample
+                m.nonfinite.inc(bad - self._nonfinite_seen)
+                self._nonfinite_seen = bad
             if not det.valid:
                 self.stats.step_errors += 1
+                m.step_errors.inc()
                 continue
             self.stats.decisions += 1
             m.decisions.inc()

@@ -30,6 +30,9 @@ class Metrics:
         )
         self.reconnects = Counter("slipd_reconnects", "Sensor reconnections", ["device"], registry=r)
         self.nonfinite = Counter("slipd_nonfinite_values", "Non-finite sensor values replaced", registry=r)
+        self.step_errors = Counter(
+            "slipd_model_step_errors", "Windows that produced no decision (refused or non-finite output)", registry=r
+        )
         self.loop_seconds = Histogram(
             "slipd_loop_duration_seconds", "Work per control-loop iteration", buckets=FAST_BUCKETS, registry=r
         )
