@@ -34,6 +34,8 @@ from slipd.geometry import FT_RANGE_N, FZ_RANGE_N, N_PILLARS, OUTER
 CHANNEL_INDEX = {"fx": 0, "fy": 1, "fz": 2}
 CLIP_N = np.array([2 * FT_RANGE_N, 2 * FT_RANGE_N, 2 * FZ_RANGE_N], dtype=np.float32)
 """Bound on tared forces per axis (twice the sensor's range)."""
+TARE_GLITCH_FLOOR_N = 0.05
+"""Smallest deviation from the median that ``tare_offset`` may treat as a glitch (five noise sigmas)."""
 
 
 @dataclass(frozen=True)
@@ -116,7 +118,10 @@ class FeatureSpec:
 
 
 def tare_offset(force: np.ndarray, start: int = 0, stop: int = 100) -> np.ndarray:
-    """[9, 3] float32 mean of ``force[start:stop]`` (an unloaded stretch), ignoring non-finite values.
+    """[9, 3] float32 mean of ``force[start:stop]`` (an unloaded stretch), ignoring non-finite values and
+    glitches: samples farther than ``max(6 sigma, 0.05 N)`` from the channel's median (sigma estimated from
+    the median absolute deviation) are left out, so one 1e6 N spike cannot shift the offset, and with it
+    every later feature, by 1e6 / n N. On clean sensor noise nothing is left out (the plain mean).
 
     Accumulates in float64 so long stretches do not bias the offset.
     """
@@ -124,6 +129,12 @@ def tare_offset(force: np.ndarray, start: int = 0, stop: int = 100) -> np.ndarra
     if seg.shape[0] == 0:
         raise ValueError(f"empty tare stretch [{start}, {stop}) of a {len(force)}-sample recording")
     finite = np.isfinite(seg)
+    vals = np.where(finite, seg, np.nan)
+    vals[:, ~finite.any(axis=0)] = 0.0  # never finite: a dummy 0 (its offset is 0 below), so nanmedian won't warn
+    med = np.nanmedian(vals, axis=0)
+    dev = np.abs(vals - med)
+    sigma = 1.4826 * np.nanmedian(dev, axis=0)
+    finite &= dev <= np.maximum(6.0 * sigma, TARE_GLITCH_FLOOR_N)  # NaN compares False: stays excluded
     count = finite.sum(axis=0)
     total = np.where(finite, seg, 0.0).sum(axis=0)
     return np.where(count > 0, total / np.maximum(count, 1), 0.0).astype(np.float32)

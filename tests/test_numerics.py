@@ -598,6 +598,28 @@ def test_tare_over_a_long_stretch_is_exact_to_float32_rounding() -> None:
     assert np.abs(naive / np.float32(n) - exact).max() > 4 * np.spacing(np.float32(1234.5678))
 
 
+def test_a_glitch_in_the_tare_stretch_does_not_shift_the_offset(ens) -> None:
+    """A 1e6 N spike (and a NaN) inside the detector's 100-sample start-up tare leave the offset within 1 mN
+    of the clean one, and the decisions equal the clean run's; on clean noise the tare is the plain mean.
+
+    Catches: a plain mean over the tare stretch (one spike shifts every later feature by 1e6 / 100 N, so
+    the model sees saturated forces for the whole session)."""
+    clean = _hold(1000, seed=13, shear=0.0, normal=0.0) + np.float32(0.7)  # unloaded, sensor not zeroed
+    clean[300:, :, 0] += 0.5  # then a load
+    dirty = clean.copy()
+    dirty[50, 3, 0] = 1e6
+    dirty[60, 4, 1] = np.nan
+    out = {}
+    for name, f in (("clean", clean), ("dirty", dirty)):
+        ens.reset()
+        det = Detector(ens, Decision(), tare_samples=100, contact_reset=False)
+        out[name] = (np.array([d.p_slip for d in run_recording(det, f)]), det.offset)
+    assert np.abs(out["dirty"][1] - out["clean"][1]).max() < 1e-3
+    assert np.abs(out["dirty"][0] - out["clean"][0]).max() < 1e-3
+    plain = clean[:100].astype(np.float64).mean(axis=0)
+    assert np.abs(out["clean"][1] - plain).max() <= 1e-7  # nothing left out of clean noise
+
+
 def test_slow_drift_passes_through_unbiased_with_exactly_the_median_lag() -> None:
     """A slow linear drift on top of a large offset comes out tared, unbiased and delayed by exactly
     (median - 1) / 2 = 10 samples (the median of an arithmetic run is its middle element).
