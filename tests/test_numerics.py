@@ -533,6 +533,35 @@ def test_exported_graph_cannot_make_nan_from_finite_inputs(variants, prec: str) 
     assert bounds["p_slip"] <= 1.0 and bounds["p_members"] <= 1.0 and bounds["h_next"] <= 1.0
 
 
+def test_fp16_overflow_beyond_the_feature_range_is_caught_by_the_runtime_policy(variants) -> None:
+    """Adversarial windows (each the sign pattern of one first-layer weight column): at the feature pipeline's
+    bound (8 N) every fp16 step is valid; at the graph's own input clip (1000 N) an fp16 overflow to inf/NaN
+    may happen, and then the step is refused, counted and the stream reset, and the state stays finite.
+
+    Catches: an fp16 NaN stored as the recurrent state (every later decision lost), or reported as a
+    probability."""
+    e = variants["fp16"]
+    model = onnx.load(str(e.manifest_path.with_name(e.manifest.onnx_file)))
+    w1 = next(numpy_helper.to_array(t) for t in model.graph.initializer if t.name == "enc0_w").astype(np.float32)
+    cols = range(0, w1.shape[1], max(1, w1.shape[1] // 48))
+    for bound, must_be_valid in ((8.0, True), (1000.0, False)):
+        e.reset()
+        before = e.nonfinite_outputs
+        n_bad = 0
+        for j in cols:
+            r = e.step(np.sign(w1[:, j]) * np.float32(bound), stream=0)
+            h = e.hidden_state(0)
+            assert np.isfinite(h).all() and np.abs(h).max() <= 1.0
+            if r.valid:
+                assert np.isfinite(r.p_slip) and 0.0 <= r.p_slip <= 1.0
+            else:
+                n_bad += 1
+                assert r.status == "nonfinite_output" and np.isnan(r.p_slip) and not h.any()
+        assert e.nonfinite_outputs - before == n_bad
+        if must_be_valid:
+            assert n_bad == 0
+
+
 def test_int8_graph_holds_no_op_that_makes_nan(variants) -> None:
     """The int8 graph (rewritten by the quantiser) holds none of the ops that produce NaN from finite inputs.
 
