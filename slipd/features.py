@@ -214,8 +214,11 @@ class FeatureStream:
         self._buf = np.zeros((2 * self._hist_len, spec.n_channels), np.float32)
         self._last_good = np.zeros(N_PILLARS * 3, np.float32)
         self._scratch = np.zeros(N_PILLARS * 3, np.float32)
+        self._abs = np.zeros(N_PILLARS * 3, np.float32)
         self.set_offset(offset)
         self.nonfinite_count = 0
+        self.clipped_count = 0
+        """Tared values beyond twice the sensor range (impossible readings, e.g. a 1e6 N glitch), clipped."""
         self.reset()
 
     def set_offset(self, offset: np.ndarray | None) -> None:
@@ -248,6 +251,9 @@ class FeatureStream:
             s[bad] = self._last_good[bad]
         self._last_good[:] = s
         np.subtract(s, self._offset, out=s)
+        np.abs(s, out=self._abs)
+        if (self._abs > self._clip).any():
+            self.clipped_count += int(np.count_nonzero(self._abs > self._clip))
         np.clip(s, -self._clip, self._clip, out=s)
         row = s[self._cols]
         spec = self.spec
