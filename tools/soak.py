@@ -60,12 +60,19 @@ class CaseResult:
     p_final: float
     p_max: float
     alarms: int
+    alarm_windows: int
+    windows: int
     hours: float
 
     @property
     def drift(self) -> float:
         """Mean P(slip) over the last 10 % minus that just after settling (10-20 %)."""
         return self.p_final - self.p_settled
+
+    @property
+    def alarm_fraction(self) -> float:
+        """Share of windows spent with the alarm raised."""
+        return self.alarm_windows / self.windows
 
     @property
     def alarms_per_hour(self) -> float:
@@ -125,6 +132,7 @@ def soak(
     rng = np.random.default_rng(seed + 1)
     decisions = [Decision(ens.threshold, hysteresis) for _ in CASES]
     alarms = [0, 0, 0]
+    alarm_windows = [0, 0, 0]
     p_all = np.empty((len(CASES), n_windows), np.float32)
     h_max = np.zeros(len(CASES))
     nonfinite = [0, 0, 0]
@@ -151,7 +159,9 @@ def soak(
             p_all[:, k] = p
             np.maximum(h_max, np.abs(ens.hidden_state(stream)).max(axis=(0, 2)), out=h_max)
             for i, d in enumerate(decisions):
-                alarms[i] += d.update(float(p[i])).rising_edge
+                r = d.update(float(p[i]))
+                alarms[i] += r.rising_edge
+                alarm_windows[i] += r.alarm
     hours = n_windows * spec.step / spec.rate_hz / 3600.0
     a, b = n_windows // 10, n_windows // 5
     out = []
@@ -165,6 +175,8 @@ def soak(
             p_final=float(np.nanmean(p[n_windows - a:])),
             p_max=float(np.nanmax(p[a:])),
             alarms=alarms[i],
+            alarm_windows=alarm_windows[i],
+            windows=n_windows,
             hours=hours,
         ))
     return out
@@ -194,10 +206,10 @@ def main(argv: list[str] | None = None) -> int:
           f"threshold {ens.threshold}, hysteresis {args.hysteresis}, wall {wall:.1f} s "
           f"({wall / args.windows * 1e6:.1f} us per B=3 step)")
     print(f"{'case':<14} {'max|h|':>8} {'nonfinite':>9} {'p_settled':>10} {'p_final':>10} {'drift':>10} "
-          f"{'p_max':>8} {'alarms':>7} {'FA/h':>8}")
+          f"{'p_max':>8} {'alarms':>7} {'FA/h':>8} {'in_alarm':>9}")
     for r in results:
         print(f"{r.name:<14} {r.h_max_abs:8.5f} {r.nonfinite_steps:9d} {r.p_settled:10.6f} {r.p_final:10.6f} "
-              f"{r.drift:+10.2e} {r.p_max:8.5f} {r.alarms:7d} {r.alarms_per_hour:8.3f}")
+              f"{r.drift:+10.2e} {r.p_max:8.5f} {r.alarms:7d} {r.alarms_per_hour:8.3f} {r.alarm_fraction:9.2%}")
     return 0
 
 
