@@ -44,6 +44,8 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--duration", type=float, default=None, help="seconds to run (default: the scene's)")
     sim.add_argument("--plot", default="out/sim.png", help="where to write the plot ('' for none)")
     sim.add_argument("--no-reaction", action="store_true", help="detect but do not react (control run)")
+    sim.add_argument("--detector", choices=["onnx", "deceleration", "reference_pillar"], default=None,
+                     help="override the config's model.detector (the ensemble or a published heuristic)")
     sim.set_defaults(handler="slipd.sim.rig:main_sim")
 
     ver = sub.add_parser("version", help="print the version")

@@ -169,20 +169,27 @@ class ModelConfig(_Section):
         description="model manifest (.json beside the .onnx); a relative path resolves against this file's folder"
     )
     threads: int = Field(1, ge=1, le=64, description="onnxruntime intra-op threads (1: lowest jitter)")
+    detector: Literal["onnx", "deceleration", "reference_pillar"] = Field(
+        "onnx", description="onnx: the ensemble of the manifest; deceleration / reference_pillar: a published "
+        "heuristic (slipd.baselines) with the tuned parameters of baseline_params, for comparison on the rig"
+    )
+    baseline_params: Path | None = Field(
+        None, description="tuned heuristic parameters (JSON); null: baselines.json beside the manifest"
+    )
     stride: int = Field(
         0, ge=0, le=10_000, description="decision every N samples; 0 = the model's window (non-overlapping windows); "
         "otherwise it must divide the window"
     )
 
-    @field_validator("manifest", mode="before")
+    @field_validator("manifest", "baseline_params", mode="before")
     @classmethod
     def _manifest_text(cls, v: Any) -> Any:
-        return _path_text(v)
+        return v if v is None else _path_text(v)
 
-    @field_validator("manifest")
+    @field_validator("manifest", "baseline_params")
     @classmethod
-    def _resolve_manifest(cls, v: Path, info: ValidationInfo) -> Path:
-        return _resolve(v, info)
+    def _resolve_manifest(cls, v: Path | None, info: ValidationInfo) -> Path | None:
+        return v if v is None else _resolve(v, info)
 
 
 class DecisionConfig(_Section):

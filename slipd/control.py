@@ -99,8 +99,16 @@ class Daemon:
         self.decision = Decision(threshold=threshold, hysteresis=cfg.decision.hysteresis,
                                  min_consecutive=cfg.decision.min_consecutive)
         tare_n = cfg.sensor.tare_samples if cfg.sensor.tare == "startup" else 0
-        self.detector = Detector(ensemble, self.decision, spec, offset=None if tare_n else np.zeros((9, 3)),
-                                 tare_samples=tare_n)
+        if cfg.model.detector == "onnx":
+            self.detector = Detector(ensemble, self.decision, spec, offset=None if tare_n else np.zeros((9, 3)),
+                                     tare_samples=tare_n)
+        else:
+            # A published heuristic instead of the ensemble (comparisons on the rig); it has no start-up
+            # tare of its own, so it expects a zeroed sensor (tare: bias_command).
+            from slipd.detector import HeuristicDetector
+
+            params = cfg.model.baseline_params or cfg.model.manifest.parent / "baselines.json"
+            self.detector = HeuristicDetector(cfg.model.detector, str(params))
         self.arm, self.gripper = arm, gripper
         self.arm_worker = DeviceWorker("arm") if arm is not None else None
         self.gripper_worker = DeviceWorker("gripper") if gripper is not None else None
@@ -142,12 +150,13 @@ class Daemon:
                 rec.push_frame(f.t_us, f.force, f.disp)
             self.stats.frames += 1
             before = self.detector.windows
-            det = self.detector.push(f.force, f.t_us)
+            det = self.detector.push(f.force, f.t_us, f.disp)
             if det is None:
                 continue
             if self.detector.windows != before and self.detector.last_step_s is not None:
                 m.inference_seconds.observe(self.detector.last_step_s)
-            bad = self.detector.features.nonfinite_count
+            feats = self.detector.features
+            bad = feats.nonfinite_count if feats is not None else 0
             if bad != self._nonfinite_seen:  # counted once per window, not per sample
                 m.nonfinite.inc(bad - self._nonfinite_seen)
                 self._nonfinite_seen = bad

@@ -94,8 +94,9 @@ class Detector:
             self._tared = False
             self._n_tare = 0
 
-    def push(self, force: np.ndarray, t_us: int = 0) -> Detection | None:
-        """Feed one raw sample; returns a Detection when a window completes, else None."""
+    def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
+        """Feed one raw sample; returns a Detection when a window completes, else None (``disp`` unused:
+        the model reads forces only; the argument keeps the signature of the heuristic detectors)."""
         self.index += 1
         if not self._tared:
             self._tare_buf[self._n_tare] = force
@@ -151,6 +152,33 @@ class Detector:
             return Detection(index, t_us, float("nan"), 0.0, bool(self.decision.alarm), False, valid=False)
         d = self.decision.update(result.p_slip, result.p_members)
         return Detection(index, t_us, float(result.p_slip), float(d.risk), bool(d.alarm), bool(d.rising_edge))
+
+
+class HeuristicDetector:
+    """A published heuristic (``slipd.baselines``) behind the Detector interface the loop uses."""
+
+    def __init__(self, name: str, params_path: str, offset: np.ndarray | None = None) -> None:
+        from slipd.baselines import load_params, make_baseline
+
+        params, frontend = load_params(params_path, name)
+        self.name = name
+        self._det = make_baseline(name, params, frontend, offset)
+        self.windows = 0
+        self.resets = 0
+        self.last_step_s: float | None = None
+        self.features = None
+
+    def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
+        """Feed one raw sample (forces and tip displacements); a Detection when the heuristic decides."""
+        d = self._det.push(force, t_us, disp)
+        if d is not None:
+            self.windows += 1
+        return d
+
+    def restart(self, retare: bool = False) -> None:
+        """Forget the history (reconnect, discontinuity)."""
+        self._det.restart()
+        self.resets += 1
 
 
 def run_recording(detector: Detector, force: np.ndarray, t_us: np.ndarray | None = None) -> list[Detection]:

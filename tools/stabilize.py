@@ -49,19 +49,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=ROOT / "reports" / "stabilize.md")
     p.add_argument("--objects", default=",".join(OBJECTS))
     p.add_argument("--no-control", action="store_true", help="skip the runs with the reaction disabled")
+    p.add_argument("--detectors", default="onnx",
+                   help="comma list among onnx, deceleration, reference_pillar (each one a full set of runs)")
     args = p.parse_args(argv)
     runs = []
     objects = args.objects.split(",")
-    conditions = [True] if args.no_control else [True, False]
+    conditions = [(d, True) for d in args.detectors.split(",")] + ([] if args.no_control else [("onnx", False)])
     for obj in objects:
         for scen in SCENARIOS:
             scene = ROOT / "config" / "scenes" / f"{obj}_{scen}.yaml"
             for rep in range(args.reps):
-                for react in conditions:
-                    res, _ = run_rig(scene, args.config, react=react, seed=1000 + rep, log=lambda *a: None)
-                    row = {"object": obj, "scenario": scen, "rep": rep, **asdict(res)}
+                for detector, react in conditions:
+                    res, _ = run_rig(scene, args.config, react=react, seed=1000 + rep, detector=detector,
+                                     log=lambda *a: None)
+                    row = {"object": obj, "scenario": scen, "rep": rep, "detector": detector, **asdict(res)}
                     runs.append(row)
-                    print(f"{obj:15s} {scen:9s} rep {rep} reaction {'on ' if react else 'off'}: "
+                    print(f"{obj:15s} {scen:9s} rep {rep} {detector:16s} reaction {'on ' if react else 'off'}: "
                           f"{res.translation_mm:6.2f} mm {res.rotation_deg:6.2f} deg "
                           f"alarm {res.alarm_s} dropped {res.dropped}", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -72,47 +75,36 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def report(runs: list[dict], args: argparse.Namespace) -> str:
-    """The markdown report."""
+    """The markdown report: one table per detector, plus the runs without a reaction."""
     lines = [
         "# Grasp stabilisation on the simulated rig",
         "",
-        f"Regenerate: `python tools/stabilize.py --reps {args.reps}` (config `{Path(args.config).name}`).",
+        f"Regenerate: `python tools/stabilize.py --reps {args.reps} --detectors {args.detectors}` "
+        f"(config `{Path(args.config).name}`).",
         "Object motion relative to the finger when the grasp became secure (object at rest after the",
-        "reaction reached the devices), mean ± sd over both scenarios and all repetitions. 'Without slipd':",
-        "the same runs with the reaction disabled, motion at the end of the run.",
+        "reaction reached the devices), mean ± sd over both scenarios (under-gripped lift, off-centre lift)",
+        "and all repetitions. 'No reaction': the same runs with the reaction disabled (motion at the end).",
         "",
-        "| object | slipd translation (mm) | slipd rotation (deg) | alarms | dropped | without slipd (mm) "
-        "| without: dropped | paper (mm / deg) |",
-        "|---|---|---|---|---|---|---|---|",
     ]
-    on_t, on_r = [], []
-    for obj in dict.fromkeys(r["object"] for r in runs):
-        on = [r for r in runs if r["object"] == obj and r["reaction"]]
-        off = [r for r in runs if r["object"] == obj and not r["reaction"]]
-        t = [r["translation_mm"] for r in on]
-        rot = [r["rotation_deg"] for r in on]
-        on_t += t
-        on_r += rot
-        alarms = sum(r["alarm_s"] is not None for r in on)
-        paper = PAPER.get(obj)
-        lines.append(
-            f"| {obj} | {_ms(t)} | {_ms(rot)} | {alarms}/{len(on)} | {sum(r['dropped'] for r in on)} | "
-            f"{_ms([r['translation_mm'] for r in off])} | {sum(r['dropped'] for r in off)}/{len(off)} | "
-            f"{paper[0]} / {paper[1]} |" if paper else "| - |"
-        )
-    lines += [
-        f"| **all** | **{_ms(on_t)}** | **{_ms(on_r)}** | | | | | **2.5 ± 0.7 / 1.9 ± 0.5** |",
-        "",
-        "Per scenario:",
-        "",
-        "| scenario | translation (mm) | rotation (deg) | dropped |",
-        "|---|---|---|---|",
-    ]
-    for scen in SCENARIOS:
-        on = [r for r in runs if r["scenario"] == scen and r["reaction"]]
-        lines.append(f"| {scen} | {_ms([r['translation_mm'] for r in on])} | {_ms([r['rotation_deg'] for r in on])} "
-                     f"| {sum(r['dropped'] for r in on)}/{len(on)} |")
-    lines += ["", "Raw runs: `" + args.out.with_suffix(".json").name + "`.", ""]
+    groups = [(d, True) for d in dict.fromkeys(r["detector"] for r in runs if r["reaction"])]
+    groups += [("onnx", False)] if any(not r["reaction"] for r in runs) else []
+    for detector, react in groups:
+        sel = [r for r in runs if r["detector"] == detector and r["reaction"] == react]
+        title = f"detector `{detector}`" + ("" if react else ", **no reaction** (what happens without slipd)")
+        lines += [f"## {title}", "",
+                  "| object | translation (mm) | rotation (deg) | alarms | dropped | paper (mm / deg) |",
+                  "|---|---|---|---|---|---|"]
+        for obj in dict.fromkeys(r["object"] for r in sel):
+            rows = [r for r in sel if r["object"] == obj]
+            paper = PAPER.get(obj, ("-", "-"))
+            lines.append(f"| {obj} | {_ms([r['translation_mm'] for r in rows])} | "
+                         f"{_ms([r['rotation_deg'] for r in rows])} | {sum(r['alarm_s'] is not None for r in rows)}"
+                         f"/{len(rows)} | {sum(r['dropped'] for r in rows)} | {paper[0]} / {paper[1]} |")
+        lines.append(f"| **all** | **{_ms([r['translation_mm'] for r in sel])}** | "
+                     f"**{_ms([r['rotation_deg'] for r in sel])}** | {sum(r['alarm_s'] is not None for r in sel)}"
+                     f"/{len(sel)} | {sum(r['dropped'] for r in sel)} | **2.5 ± 0.7 / 1.9 ± 0.5** |")
+        lines.append("")
+    lines += ["Raw runs: `" + args.out.with_suffix(".json").name + "`.", ""]
     return "\n".join(lines)
 
 

@@ -217,7 +217,8 @@ def _scrape(port: int) -> str:
         return r.read().decode()
 
 
-def _daemon_config(base: Path, dev: EmulatedDevices, metrics_port: int, react: bool, out_dir: Path) -> Path:
+def _daemon_config(base: Path, dev: EmulatedDevices, metrics_port: int, react: bool, out_dir: Path,
+                   detector: str | None = None) -> Path:
     from slipd.config import load_config, override
 
     cfg = load_config(base)
@@ -225,6 +226,8 @@ def _daemon_config(base: Path, dev: EmulatedDevices, metrics_port: int, react: b
                                "recorder.directory": str(out_dir / "recordings")}
     if not react:
         updates["reaction.actions"] = []
+    if detector is not None:
+        updates["model.detector"] = detector
     cfg = override(cfg, updates)
     path = out_dir / "daemon.yaml"
     path.write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
@@ -240,6 +243,7 @@ def run_rig(
     seed: int | None = None,
     host: str = "127.0.0.2",
     out_dir: str | Path | None = None,
+    detector: str | None = None,
     log=print,
 ) -> tuple[RigResult, RigPhysics]:
     """Run one closed-loop scene: start the emulators and ``slipd run`` as a separate process, stream the
@@ -275,7 +279,7 @@ def run_rig(
 
             physics.lift = lift  # type: ignore[method-assign]
             port = _free_port()
-            cfg_file = _daemon_config(Path(config_path), dev, port, react, out)
+            cfg_file = _daemon_config(Path(config_path), dev, port, react, out, detector)
             log_file = out / "daemon.log"
             env = {**os.environ, "PYTHONUNBUFFERED": "1"}
             env.pop("NOTIFY_SOCKET", None)
@@ -436,7 +440,8 @@ def main_sim(args: Any) -> int:
     """``slipd sim``: the README's main command."""
     scene = Path(args.scene) if args.scene else DEFAULT_SCENE
     config = Path(args.config) if args.config else DEFAULT_CONFIG
-    result, physics = run_rig(scene, config, duration_s=args.duration, react=not args.no_reaction)
+    result, physics = run_rig(scene, config, duration_s=args.duration, react=not args.no_reaction,
+                              detector=args.detector)
     print("\n".join(result.lines()))
     if args.plot:
         print(f"plot: {plot_run(physics, result, args.plot)}")
