@@ -23,6 +23,7 @@ from slipd.sim.devices.papillarray import EmulatedPapillArray
 def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str) -> Path:
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
     cfg["model"]["manifest"] = str(model)
+    cfg["model"]["detector"] = "onnx"
     cfg["sensor"]["port"] = sensor_port
     cfg["gripper"]["port"] = servo_port
     cfg["arm"]["enabled"] = False

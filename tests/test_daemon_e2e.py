@@ -47,7 +47,7 @@ def _scenes(kind: str, ens: Ensemble, cfg, want_alarm: bool, tries: int = 12):
 @pytest.fixture(scope="module")
 def base_cfg(detect_model_json):
     cfg = load_config(ROOT / "config" / "sim.yaml")
-    return override(cfg, {"model.manifest": str(detect_model_json), "sensor.tare": "startup",
+    return override(cfg, {"model.manifest": str(detect_model_json), "model.detector": "onnx", "sensor.tare": "startup",
                           "sensor.tare_samples": TARE, "recorder.enabled": False, "sensor.stall_timeout_ms": 1000})
 
 

@@ -52,6 +52,7 @@ def quiet_hold(n: int, seed: int = 0) -> Recording:
 def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str) -> Path:
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
     cfg["model"]["manifest"] = str(model.resolve())
+    cfg["model"]["detector"] = "onnx"
     cfg["sensor"].update(port=sensor_port, tare="startup", tare_samples=300, stall_timeout_ms=1000)
     cfg["gripper"]["port"] = servo_port
     cfg["arm"]["enabled"] = False
