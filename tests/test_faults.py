@@ -58,7 +58,8 @@ def controller():
 def base_cfg(tiny_model_json):
     cfg = load_config(ROOT / "config" / "sim.yaml")
     return override(cfg, {
-        "model.manifest": str(tiny_model_json), "model.detector": "onnx", "decision.threshold": 0.999, "sensor.tare": "startup",
+        "model.manifest": str(tiny_model_json), "model.detector": "onnx", "decision.threshold": 0.999,
+        "sensor.tare": "startup",
         "sensor.tare_samples": TARE, "recorder.enabled": False, "sensor.stall_timeout_ms": 150,
         "reaction.rearm_after_s": 0.0,
     })

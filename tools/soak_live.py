@@ -134,7 +134,8 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
     dev.sensor.loop = True
     daemon = None
     try:
-        updates = {**dev.overrides(), "arm.enabled": True, "arm.host": host, "model.manifest": str(model), "model.detector": "onnx",
+        updates = {**dev.overrides(), "arm.enabled": True, "arm.host": host, "model.manifest": str(model),
+                   "model.detector": "onnx",
                    "sensor.tare": "startup", "sensor.tare_samples": TARE, "recorder.enabled": False}
         if threshold is not None:
             updates["decision.threshold"] = threshold
