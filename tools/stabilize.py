@@ -66,7 +66,8 @@ def main(argv: list[str] | None = None) -> int:
                     runs.append(row)
                     print(f"{obj:15s} {scen:9s} rep {rep} {detector:16s} reaction {'on ' if react else 'off'}: "
                           f"{res.translation_mm:6.2f} mm {res.rotation_deg:6.2f} deg "
-                          f"alarm {res.alarm_s} dropped {res.dropped}", flush=True)
+                          f"alarm {res.alarm_s} dropped {res.dropped}"
+                          + (f"  STALLS {res.sensor_stalls}" if res.sensor_stalls else ""), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".json").write_text(json.dumps(runs, indent=1))
     args.out.write_text(report(runs, args))
@@ -104,7 +105,9 @@ def report(runs: list[dict], args: argparse.Namespace) -> str:
                      f"**{_ms([r['rotation_deg'] for r in sel])}** | {sum(r['alarm_s'] is not None for r in sel)}"
                      f"/{len(sel)} | {sum(r['dropped'] for r in sel)} | **2.5 ± 0.7 / 1.9 ± 0.5** |")
         lines.append("")
-    lines += ["Raw runs: `" + args.out.with_suffix(".json").name + "`.", ""]
+    stalled = sum(r.get("sensor_stalls", 0) > 0 for r in runs)
+    lines += [f"Runs in which the rig fell behind real time (sensor-stall fail-safe): {stalled} of {len(runs)}.",
+              "", "Raw runs: `" + args.out.with_suffix(".json").name + "`.", ""]
     return "\n".join(lines)
 
 

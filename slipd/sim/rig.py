@@ -87,6 +87,9 @@ class RigResult:
     dropped: bool
     max_grip_n: float
     frames: int
+    sensor_stalls: int = 0
+    """Fail-safe stops for a stalled sensor: the rig fell behind real time (a busy machine), so the run
+    measured the fail-safe, not the detector."""
 
     def lines(self) -> list[str]:
         """Human-readable summary."""
@@ -104,7 +107,8 @@ class RigResult:
             f"  grasp secure          {t(self.secure_s)}",
             f"  object motion         {self.translation_mm:.2f} mm, {self.rotation_deg:.2f} deg relative to the finger",
             f"  dropped               {'YES' if self.dropped else 'no'}   (max grip {self.max_grip_n:.1f} N)",
-        ]
+        ] + ([f"  WARNING: {self.sensor_stalls} sensor stall(s): the rig fell behind real time; run it on a quieter "
+              "machine"] if self.sensor_stalls else [])
 
 
 class RigPhysics:
@@ -385,6 +389,7 @@ def summarise(physics: RigPhysics, scene_path: Any, react: bool, daemon_log: str
         dropped=bool(dropped),
         max_grip_n=float(physics.grip[:n].max()) if n else 0.0,
         frames=n,
+        sensor_stalls=daemon_log.count("fail-safe: sensor_stall"),
     )
 
 
