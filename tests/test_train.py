@@ -219,8 +219,8 @@ def test_tiny_training_writes_loadable_members(data_dir: Path, tmp_path: Path) -
         net.load_state_dict(ckpt["state_dict"])
         assert ckpt["config"]["input_size"] == 640 and ckpt["config"]["hidden"] == 16
         prov = ckpt["provenance"]
-        assert prov["seed"] == 3 and prov["data"] == str(data_dir) and prov["member"] == k
-        assert prov["index"] == {"recordings": 8, "generator": "test"}
+        assert prov["seed"] == 3 and prov["data"] == [str(data_dir)] and prov["member"] == k
+        assert prov["index"] == [{"recordings": 8, "generator": "test"}]
         assert prov["args"]["augs"] == ["mixing", "rotation", "speed", "unloaded"]
         assert len(ckpt["history"]) == 2 and all(np.isfinite(e["loss"]) for e in ckpt["history"])
         p, _ = net.eval()(torch.zeros(3, 640), torch.zeros(3, 16))
