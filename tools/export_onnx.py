@@ -163,8 +163,9 @@ class _Graph:
         return outs
 
 
-def build_graph(members: list[FoldedMember], precision: str = "fp32") -> onnx.ModelProto:
-    """The fused ensemble graph (fp32 or fp16 compute; I/O always float32)."""
+def build_graph(members: list[FoldedMember], precision: str = "fp32", input_clip: float = INPUT_CLIP
+                ) -> onnx.ModelProto:
+    """The fused ensemble graph (fp32 or fp16 compute; I/O always float32); windows clipped to +-input_clip."""
     if not members:
         raise ExportError("no members to export")
     if precision not in ("fp32", "fp16"):
@@ -183,8 +184,8 @@ def build_graph(members: list[FoldedMember], precision: str = "fp32") -> onnx.Mo
             {} if precision == "fp32" else {"to": TensorProto.FLOAT}))
 
     # Clip in float32 before any cast so a huge finite value cannot become fp16 inf.
-    x = g.op("Clip", ["window", g.const("clip_lo", np.float32(-INPUT_CLIP), True),
-                      g.const("clip_hi", np.float32(INPUT_CLIP), True)])
+    x = g.op("Clip", ["window", g.const("clip_lo", np.float32(-input_clip), True),
+                      g.const("clip_hi", np.float32(input_clip), True)])
     x = to_compute(x)
     h = g.op("Clip", ["h", g.const("h_lo", np.float32(-1.0), True), g.const("h_hi", np.float32(1.0), True)])
     h = to_compute(h)
@@ -337,7 +338,15 @@ def export(
         raise ExportError(f"{out}: output must end in .onnx")
     if members[0].input_size != spec.input_size:
         raise ExportError(f"input size {members[0].input_size} != feature spec's {spec.input_size}")
-    model = build_graph(members, "fp16" if precision == "fp16" else "fp32")
+    # fp16 has a range of 65504: at +-1000 N inputs the hidden layers can overflow (found by the interval
+    # check in tests/test_numerics.py), so an fp16 graph clips to what slipd.features can produce for its
+    # channels (twice the sensor range), which leaves every real window unchanged.
+    input_clip = INPUT_CLIP
+    if precision == "fp16":
+        from slipd.features import CHANNEL_INDEX, CLIP_N
+
+        input_clip = float(max(CLIP_N[CHANNEL_INDEX[c]] for c in spec.channels))
+    model = build_graph(members, "fp16" if precision == "fp16" else "fp32", input_clip)
     data = model.SerializeToString()
     if precision == "int8":
         data = _quantize_int8(data, out)
@@ -362,7 +371,7 @@ def export(
         members=len(members),
         hidden=members[0].hidden,
         threshold=threshold,
-        input_clip=INPUT_CLIP,
+        input_clip=input_clip,
         feature_spec=spec.to_dict(),
         source=source,
         provenance=provenance,
