@@ -156,7 +156,7 @@ class Daemon:
             if self.detector.windows != before and self.detector.last_step_s is not None:
                 m.inference_seconds.observe(self.detector.last_step_s)
             feats = self.detector.features
-            bad = feats.nonfinite_count if feats is not None else 0
+            bad = feats.nonfinite_count + feats.clipped_count if feats is not None else 0
             if bad != self._nonfinite_seen:  # counted once per window, not per sample
                 m.nonfinite.inc(bad - self._nonfinite_seen)
                 self._nonfinite_seen = bad
