@@ -29,7 +29,11 @@ class Metrics:
             "slipd_dropped_frames", "Frames missing according to the packet counter", registry=r
         )
         self.reconnects = Counter("slipd_reconnects", "Sensor reconnections", ["device"], registry=r)
-        self.nonfinite = Counter("slipd_nonfinite_values", "Non-finite or impossible (beyond twice the range) sensor values replaced or clipped", registry=r)
+        self.nonfinite = Counter(
+            "slipd_nonfinite_values",
+            "Non-finite or impossible (beyond twice the range) sensor values replaced or clipped",
+            registry=r,
+        )
         self.step_errors = Counter(
             "slipd_model_step_errors", "Windows that produced no decision (refused or non-finite output)", registry=r
         )
