@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from slipd.detector import Detection
 from slipd.evaluation import (
     SceneResult,
     SceneTruth,
@@ -150,21 +150,11 @@ def test_summary_confusion_latency_and_json() -> None:
     assert back["summary"]["offline"]["tp"] == 3 and back["scenes"][0]["offline_outcome"] == "tp"
 
 
-@dataclass
-class _Det:
-    index: int
-    t_us: int
-    p_slip: float
-    risk: float
-    alarm: bool
-    rising_edge: bool
-    valid: bool = True
-
-
 def test_trace_uses_the_sample_index_and_skips_invalid_decisions() -> None:
     t_us = 5_000_000 + np.arange(200, dtype=np.int64) * 1000
-    dets = [_Det(39, 999, 0.1, 0.2, False, False), _Det(79, 999, float("nan"), 0.0, False, False, valid=False),
-            _Det(119, 999, 0.8, 1.0, True, True)]
+    dets = [Detection(39, 999, 0.1, 0.2, False, False),
+            Detection(79, 999, float("nan"), 0.0, False, False, valid=False),
+            Detection(119, 999, 0.8, 1.0, True, True)]
     tr = Trace.from_detections(dets, t_us)
     assert tr.t_s == [pytest.approx(0.039), pytest.approx(0.119)]
     assert tr.first_alarm_s() == pytest.approx(0.119) and tr.n_rising_edges() == 1
