@@ -144,6 +144,12 @@ class SensorConfig(_Section):
         50.0, ge=2.0, le=10_000.0, description="no frame for this long -> fail-safe (reaction.on_failsafe)"
     )
     low_latency: bool = Field(True, description="set the serial port's ASYNC_LOW_LATENCY flag (ftdi/cdc latency)")
+    coalesce_margin_ms: float | None = Field(
+        2.0, ge=0.0, le=100.0, description="coalesce frame reads: between decisions the loop stops watching the "
+        "port and reads the buffered frames in one go, resuming this many ms before the next decision's last "
+        "sample is due (cuts wake-ups ~10x at a 40-sample stride; the deciding frame is still read at once). "
+        "null: read every frame as it arrives",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> SensorConfig:

@@ -181,6 +181,24 @@ class Daemon:
                     rec.trigger(f.t_us, "alarm", p_slip=det.p_slip)
         self._progress += len(frames)
         m.loop_seconds.observe(time.perf_counter() - t0)
+        self._coalesce()
+
+    def _coalesce(self) -> None:
+        """Pause the sensor reader until shortly before the next decision's last sample is due.
+
+        Frames keep arriving into the kernel's buffer and are read in one go on resume, so no frame is
+        lost or reordered; only the samples that end a window must be handled the moment they arrive.
+        """
+        margin = self.cfg.sensor.coalesce_margin_ms
+        sensor = self.sensor
+        if margin is None or sensor is None:
+            return
+        due = self.detector.samples_to_decision()  # the next deciding sample is `due` frames away
+        wait_s = (due - 1) / self.cfg.sensor.rate_hz - margin / 1e3
+        # Never hide frames from the stall check for more than half its timeout.
+        wait_s = min(wait_s, self.cfg.sensor.stall_timeout_ms / 2e3)
+        if wait_s >= 1e-3:  # shorter pauses save nothing over one wake-up per frame
+            sensor.pause(wait_s, self.cfg.sensor.rate_hz)
 
     def _on_disconnect(self, reason: str) -> None:
         log.error("sensor lost: %s", reason)
@@ -344,6 +362,7 @@ class Daemon:
             reconnect_initial_s=cfg.reconnect_initial_s,
             reconnect_max_s=cfg.reconnect_max_s,
             metrics=self.metrics,
+            low_latency=cfg.low_latency,
         )
         await self.sensor.start()
         self.sensor.send_command(rate_command(cfg.rate_hz))

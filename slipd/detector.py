@@ -94,6 +94,18 @@ class Detector:
             self._tared = False
             self._n_tare = 0
 
+    def samples_to_decision(self) -> int:
+        """Samples still to push until the next one that completes a window (1: the very next one).
+
+        During the startup tare every sample may matter (the replay decides at its end): 1.
+        """
+        if not self._tared:
+            return max(1, self.tare_samples - self._n_tare)
+        n, w, step = self.features.samples_seen, self.spec.window, self.spec.step
+        if n < w:
+            return w - n
+        return step - (n - w) % step
+
     def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
         """Feed one raw sample; returns a Detection when a window completes, else None (``disp`` unused:
         the model reads forces only; the argument keeps the signature of the heuristic detectors)."""
@@ -174,6 +186,10 @@ class HeuristicDetector:
         if d is not None:
             self.windows += 1
         return d
+
+    def samples_to_decision(self) -> int:
+        """Heuristics may decide on any sample: always 1 (the loop never coalesces reads for them)."""
+        return 1
 
     def restart(self, retare: bool = False) -> None:
         """Forget the history (reconnect, discontinuity)."""

@@ -33,6 +33,8 @@ import errno
 import fcntl
 import logging
 import os
+import struct
+import termios
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -52,6 +54,8 @@ _SERIAL_FLAGS_OFFSET = 16  # struct serial_struct: int type, int line, unsigned 
 _SERIAL_STRUCT_BYTES = 128  # larger than the kernel's struct on every ABI; the kernel copies its own size
 
 FTDI_SYSFS = "/sys/bus/usb-serial/devices"
+TTY_BUFFER_BYTES = 4096
+"""The kernel's n_tty read buffer: what a paused reader may let pile up before the device is throttled."""
 
 
 class SensorError(RuntimeError):
@@ -115,6 +119,7 @@ class SerialSensor:
         max_gap: int = 60_000,
         read_bytes: int = 1 << 16,
         sysfs_root: str | Path = FTDI_SYSFS,
+        low_latency: bool = True,
     ) -> None:
         if reconnect_initial_s <= 0 or reconnect_max_s < reconnect_initial_s:
             raise ValueError(
@@ -145,7 +150,13 @@ class SerialSensor:
         self.discontinuities = 0
         self.reconnects = 0
         self.disconnects = 0
+        self.want_low_latency = low_latency
         self.low_latency = False
+        self.frame_bytes = 0
+        """Bytes per frame seen on the latest read (sizes the coalescing pauses)."""
+        self.pauses = 0
+        """Times the reader was paused by ``pause`` (frames coalesced into one later read)."""
+        self._resume_handle: asyncio.TimerHandle | None = None
         self.last_frame_time: float | None = None
         """time.monotonic() of the read that delivered the latest frame (None before the first)."""
         self._metrics = metrics
@@ -221,7 +232,7 @@ class SerialSensor:
             fd = ser.fileno()
             flags = fcntl.fcntl(fd, fcntl.F_GETFL)
             fcntl.fcntl(fd, fcntl.F_SETFL, flags | os.O_NONBLOCK)
-            self.low_latency = set_low_latency(fd, self.port)
+            self.low_latency = set_low_latency(fd, self.port) if self.want_low_latency else False
             check_latency_timer(self.port, self.sysfs_root)
             assert self._loop is not None
             self._loop.add_reader(fd, self._on_readable)
@@ -233,8 +244,50 @@ class SerialSensor:
         self._connected.set()
         log.info("%s: sensor port open", self.port)
 
-    def _close(self) -> None:
+    def pause(self, seconds: float, rate_hz: float) -> bool:
+        """Stop watching the port for up to ``seconds``; the frames that arrive meanwhile are read in one go.
+
+        The control loop calls this when it knows no decision is due before then: frames wait in the
+        kernel's tty buffer, nothing is lost, and the loop wakes a few times per window instead of once per
+        1 ms frame. The pause is refused when bytes are already waiting (the loop is behind: read first)
+        and capped so that the frames due meanwhile fill at most half of the kernel's 4 KiB line-discipline
+        buffer: a full buffer throttles the device (USB CDC stops fetching, so frames would queue or be lost
+        on its side). Returns True when the reader was paused.
+        """
+        if self._fd < 0 or self._loop is None or self._resume_handle is not None or seconds <= 0:
+            return False
+        if self.frame_bytes > 0 and rate_hz > 0:
+            seconds = min(seconds, (TTY_BUFFER_BYTES // 2) / (self.frame_bytes * rate_hz))
+        if seconds < 1e-3 or self.pending_bytes() > 0:
+            return False
+        self._loop.remove_reader(self._fd)
+        self._resume_handle = self._loop.call_later(seconds, self._resume)
+        self.pauses += 1
+        return True
+
+    def pending_bytes(self) -> int:
+        """Bytes received by the kernel and not read yet (FIONREAD); 0 when closed or unknown."""
+        if self._fd < 0:
+            return 0
+        try:
+            return struct.unpack("i", fcntl.ioctl(self._fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+        except OSError:
+            return 0
+
+    def _resume(self) -> None:
+        self._resume_handle = None
         if self._fd >= 0 and self._loop is not None:
+            self._loop.add_reader(self._fd, self._on_readable)
+
+    def _cancel_pause(self) -> None:
+        if self._resume_handle is not None:
+            self._resume_handle.cancel()
+            self._resume_handle = None
+
+    def _close(self) -> None:
+        paused = self._resume_handle is not None
+        self._cancel_pause()
+        if self._fd >= 0 and self._loop is not None and not paused:
             self._loop.remove_reader(self._fd)
         if self._serial is not None:
             with contextlib.suppress(Exception):
@@ -293,6 +346,7 @@ class SerialSensor:
         if not frames:
             return
         self.last_frame_time = time.monotonic()
+        self.frame_bytes = n // len(frames)
         self._account(frames)
         try:
             self.on_frames(frames)

@@ -79,3 +79,24 @@ def test_replay_cli_prints_alarms(tiny_model_json, tmp_path, capsys) -> None:
     assert "2000 samples, 49 decisions" in out
     assert (tmp_path / "o.json").exists()
     assert main(["replay", str(tmp_path / "missing.npz"), "--model", str(tiny_model_json)]) == 1
+
+
+@pytest.mark.parametrize("stride, tare", [(0, 0), (10, 0), (0, 100), (20, 57)])
+def test_samples_to_decision_predicts_the_next_deciding_sample(ens: Ensemble, stride: int, tare: int) -> None:
+    # The loop pauses the sensor reader on this prediction: a wrong one would delay a decision.
+    force = _force(400, seed=2)
+    spec = ens.feature_spec.with_(stride=stride)
+    ens.reset()
+    kwargs = {"tare_samples": tare} if tare else {"offset": np.zeros((9, 3))}
+    det = Detector(ens, Decision(), spec, **kwargs)
+    predicted = det.samples_to_decision()
+    assert predicted >= 1
+    since = 0
+    for sample in force:
+        since += 1
+        decided = det.push(sample) is not None
+        if since < predicted:
+            assert not decided, f"decided {predicted - since} samples before the predicted one"
+        if since == predicted:
+            assert decided
+            predicted, since = det.samples_to_decision(), 0

@@ -376,3 +376,51 @@ def test_a_failing_source_is_reported_not_silent(emulator_factory) -> None:
     emu.start()
     assert emu.finished.wait(10)
     assert isinstance(emu.error, ValueError) and "[9, 3]" in str(emu.error)
+
+
+def test_paused_reader_loses_nothing_and_refuses_when_behind(emulator_factory) -> None:
+    # The control loop pauses the reader between decisions (sensor.coalesce_margin_ms): frames that
+    # arrive meanwhile wait in the kernel and come in one read on resume, in order, none lost.
+    rec = synthetic_recording(800)
+    emu = emulator_factory(rec)
+    col = Collector()
+    batches: list[int] = []
+
+    def on_frames(frames: list[Frame]) -> None:
+        col.on_frames(frames)
+        batches.append(len(frames))
+        s.pause(0.004, 1000)
+
+    async def main() -> None:
+        await s.start()
+        emu.start()
+        await until(lambda: emu.finished.is_set() and len(col.frames) >= emu.frames_written)
+        await s.stop()
+
+    s = SerialSensor(emu.port, on_frames)
+    asyncio.run(main())
+    assert [f.counter for f in col.frames] == list(range(800))
+    assert s.pauses > 0 and s.frame_bytes > 0
+    assert max(batches) > 1  # frames were coalesced
+    # The cap: a pause never lets more than half the kernel's 4 KiB buffer pile up.
+    cap_frames = (4096 // 2) / s.frame_bytes
+    assert sum(batches) / len(batches) <= cap_frames + 2
+
+
+def test_pause_is_refused_while_bytes_wait(emulator_factory) -> None:
+    emu = emulator_factory(synthetic_recording(50))
+
+    async def main() -> tuple[bool, int]:
+        s = SerialSensor(emu.port, lambda frames: None)
+        await s.start()
+        s._loop.remove_reader(s._fd)  # stop reading so that the frames stay in the kernel
+        emu.start()
+        await until(lambda: s.pending_bytes() > 0)
+        s._loop.add_reader(s._fd, s._on_readable)
+        refused = s.pause(0.01, 1000)
+        pending = s.pending_bytes()
+        await s.stop()
+        return refused, pending
+
+    refused, pending = asyncio.run(main())
+    assert pending > 0 and refused is False

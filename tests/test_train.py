@@ -267,3 +267,37 @@ def test_no_advanced_aug_and_bad_input(data_dir: Path, tmp_path: Path) -> None:
     rec.save(empty / "nolabel.npz")
     with pytest.raises(RecordingError, match=r"nolabel\.npz.*label"):
         T.load_sequences(empty, FeatureSpec())
+
+
+def test_lead_labels_extend_the_positive_span_backwards() -> None:
+    label = np.zeros(100, np.uint8)
+    label[50:60] = 1
+    led = T.lead_labels(label, 15)
+    assert led[35:60].all() and not led[:35].any() and not led[60:].any()
+    assert np.array_equal(T.lead_labels(label, 0), label)
+    assert not T.lead_labels(np.zeros(10, np.uint8), 5).any()
+
+
+def test_shift_start_drops_fewer_than_a_window_and_keeps_alignment() -> None:
+    rng = np.random.default_rng(3)
+    seq = _seq(rng, 500)
+    lengths = set()
+    for _ in range(50):
+        out = A.shift_start(seq, 40, rng)
+        r = len(seq) - len(out)
+        lengths.add(r)
+        assert 0 <= r < 40
+        assert np.array_equal(out.force, seq.force[r:]) and np.array_equal(out.label, seq.label[r:])
+    assert len(lengths) > 10  # a spread of phases, not one
+    assert A.shift_start(seq, 1, rng) is seq
+
+
+def test_training_with_a_different_window_median_and_channels(data_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    assert T.main(["--data", str(data_dir), "--out", str(out), "--tiny", "--quiet", "--members", "1",
+                   "--window", "20", "--median", "5", "--channels", "fx,fy,fz", "--pos-weight", "3",
+                   "--label-lead", "10", "--aug", "rotation,shift"]) == 0
+    ck = torch.load(out / "member_0.pt", weights_only=True)
+    spec = FeatureSpec.from_dict(ck["feature_spec"])
+    assert (spec.window, spec.median, spec.channels) == (20, 5, ("fx", "fy", "fz"))
+    assert ck["config"]["input_size"] == 20 * 3 * len(spec.pillars)

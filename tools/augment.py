@@ -136,6 +136,22 @@ def drop_samples(seq: Seq, rate: float, rng: np.random.Generator) -> Seq:
     return Seq(seq.force[keep], seq.label[keep], slip, seq.loaded)
 
 
+def shift_start(seq: Seq, max_shift: int, rng: np.random.Generator) -> Seq:
+    """Drop the first r ~ U{0, ..., max_shift - 1} samples so windows fall at a random phase.
+
+    At run time the daemon can decide every ``window / k`` samples with k phase-shifted GRU streams
+    (``slipd.detector``); each stream sees windows cut at a different phase of the same motion. Without
+    this, every training window starts at a multiple of the window length from the recording start.
+    """
+    if max_shift <= 1 or len(seq) <= max_shift:
+        return seq
+    r = int(rng.integers(0, max_shift))
+    if r == 0:
+        return seq
+    slip = None if seq.slip is None else seq.slip[r:]
+    return Seq(seq.force[r:], seq.label[r:], slip, seq.loaded)
+
+
 def unload_pillars(
     seq: Seq,
     rng: np.random.Generator,

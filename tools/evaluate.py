@@ -103,11 +103,15 @@ def tare_stretch(rec: Recording, spec: FeatureSpec | None = None) -> tuple[int, 
 class ModelRunner:
     """Streams recordings through ``Detector`` with the ensemble of a manifest."""
 
-    def __init__(self, manifest: str, hysteresis: float = 0.0, threshold: float | None = None) -> None:
+    def __init__(self, manifest: str, hysteresis: float = 0.0, threshold: float | None = None,
+                 stride: int | None = None) -> None:
         from slipd.decision import Decision  # onnxruntime only when a model is evaluated
         from slipd.ensemble import Ensemble
 
         self.ensemble = Ensemble.load(manifest)
+        self.spec = self.ensemble.feature_spec
+        if stride is not None:  # decisions every `stride` samples through window/stride phase-shifted streams
+            self.spec = self.spec.with_(stride=0 if stride == self.spec.window else stride)
         self.threshold = float(threshold if threshold is not None else self.ensemble.threshold)
         self.decision = Decision(threshold=self.threshold, hysteresis=hysteresis)
         self.label = f"model {manifest}"
@@ -118,7 +122,7 @@ class ModelRunner:
 
         self.ensemble.reset()
         self.decision.reset()
-        det = Detector(self.ensemble, self.decision, **tare_args(rec, self.ensemble.feature_spec))
+        det = Detector(self.ensemble, self.decision, self.spec, **tare_args(rec, self.spec))
         return Trace.from_detections(run_recording(det, rec.force, rec.t_us), rec.t_us)
 
 
@@ -436,6 +440,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--online", action="store_true", help="report online metrics (default for --set transfer)")
     p.add_argument("--threshold", type=float, default=None, help="override the manifest's threshold")
     p.add_argument("--hysteresis", type=float, default=0.0)
+    p.add_argument("--stride", type=int, default=None,
+                   help="override the manifest's decision stride (a divisor of the window)")
     p.add_argument("--workers", type=int, default=1, help="processes (2 at most on the shared machine)")
     p.add_argument("--json", help="write every figure and per-scene result here")
     p.add_argument("--plots", help="write PNG plots into this folder")
@@ -457,7 +463,7 @@ def main(argv: list[str] | None = None) -> int:
     if not paths:
         raise SystemExit(f"no recordings (.npz / .csv) in {folder}")
     if args.model:
-        kind, rargs = "model", (args.model, args.hysteresis, args.threshold)
+        kind, rargs = "model", (args.model, args.hysteresis, args.threshold, args.stride)
         label = f"model {args.model}"
         threshold = args.threshold
         if threshold is None:

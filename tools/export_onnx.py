@@ -406,6 +406,9 @@ def main(argv: list[str] | None = None) -> int:
     prec.add_argument("--fp16", action="store_true", help="float16 weights and compute (I/O stays float32)")
     prec.add_argument("--int8", action="store_true", help="onnxruntime dynamic int8 quantisation")
     ap.add_argument("--threshold", type=float, default=0.5, help="decision threshold stored in the manifest")
+    ap.add_argument("--stride", type=int, default=None,
+                    help="samples between decisions (default: the window; a divisor of the window runs "
+                         "window/stride phase-shifted GRU streams)")
     args = ap.parse_args(argv)
     try:
         if args.reference:
@@ -414,6 +417,10 @@ def main(argv: list[str] | None = None) -> int:
         else:
             members, spec, prov = load_run(args.run)
             source = "trained"
+        if args.stride is not None:
+            if args.stride < 1 or spec.window % args.stride:
+                raise ExportError(f"--stride {args.stride} must be a divisor of the window ({spec.window})")
+            spec = spec.with_(stride=0 if args.stride == spec.window else args.stride)
         precision = "fp16" if args.fp16 else "int8" if args.int8 else "fp32"
         m = export(members, spec, args.out, source, prov, precision, args.threshold)
     except ExportError as exc:

@@ -67,11 +67,12 @@ from tools.augment import (
     mix_pillars,
     rotate_forces,
     rotate_grid_90,
+    shift_start,
     unload_pillars,
 )
 from tools.slipnet import SlipNet
 
-ALL_AUGS = ("rotation", "speed", "unloaded", "mixing", "grid90")
+ALL_AUGS = ("rotation", "speed", "unloaded", "mixing", "grid90", "shift")
 DEFAULT_AUGS = ("rotation", "speed", "unloaded", "mixing")
 ADVANCED_AUGS = ("unloaded", "mixing")
 
@@ -130,7 +131,8 @@ def bootstrap_indices(n: int, frac: float, rng: np.random.Generator) -> np.ndarr
 
 
 def augment_epoch(
-    pool: list[Seq], idx: np.ndarray, augs: set[str], rng: np.random.Generator, mix_frac: float
+    pool: list[Seq], idx: np.ndarray, augs: set[str], rng: np.random.Generator, mix_frac: float,
+    window: int = 40,
 ) -> list[Seq]:
     """The sequences of one epoch: the bootstrap subset plus mixed sequences, each augmented."""
     chosen = [pool[i] for i in idx]
@@ -151,17 +153,34 @@ def augment_epoch(
             seq = unload_pillars(seq, rng)
         if "speed" in augs:
             seq = drop_samples(seq, float(rng.choice(SPEED_RATES)), rng)
+        if "shift" in augs:
+            seq = shift_start(seq, window, rng)
         out.append(seq)
     return out
 
 
-def featurize(seqs: list[Seq], spec: FeatureSpec) -> list[Item]:
+def lead_labels(label: np.ndarray, lead: int) -> np.ndarray:
+    """``label`` extended ``lead`` samples back in time: 1 where incipient slip starts within ``lead`` samples.
+
+    A window is then positive when incipient slip is under way at its last sample (the method's rule) or
+    begins within the next ``lead`` samples. Gripper trials hold incipient slip for a median of 28 ms,
+    less than one window; the lead asks the network to flag the load pattern that precedes it.
+    """
+    label = np.asarray(label)
+    if lead <= 0 or not label.any():
+        return label
+    padded = np.concatenate([label, np.zeros(lead, label.dtype)])
+    win = np.lib.stride_tricks.sliding_window_view(padded, lead + 1)
+    return win.max(axis=1)
+
+
+def featurize(seqs: list[Seq], spec: FeatureSpec, lead: int = 0) -> list[Item]:
     """Run the daemon's feature pipeline on every sequence (offset already removed)."""
     items = []
     for seq in seqs:
         windows, ends = batch_windows(seq.force, spec, None)
         if len(ends):
-            items.append(Item(windows, window_labels(seq.label, ends).astype(np.int64)))
+            items.append(Item(windows, window_labels(lead_labels(seq.label, lead), ends).astype(np.int64)))
     return items
 
 
@@ -240,10 +259,15 @@ def _summary(loss_sum: float, n: int, c: np.ndarray) -> dict[str, float]:
 
 
 def train_epoch(net: SlipNet, opt: torch.optim.Optimizer, lanes: Lanes, chunk: int, clip_grad: float = 0.0,
-                device: str = "cpu") -> dict[str, float]:
-    """One pass over packed lanes with truncated BPTT; returns mean loss and window metrics."""
+                device: str = "cpu", pos_weight: float = 1.0) -> dict[str, float]:
+    """One pass over packed lanes with truncated BPTT; returns mean loss and window metrics.
+
+    ``pos_weight`` weighs the slip class in the loss: gripper trials hold incipient slip for only
+    20-90 ms (one or two windows in a hundred), and an unweighted loss learns to never alarm.
+    """
     net.train()
-    loss_fn = nn.CrossEntropyLoss(reduction="sum")
+    weight = None if pos_weight == 1.0 else torch.tensor([1.0, pos_weight], device=device)
+    loss_fn = nn.CrossEntropyLoss(weight=weight, reduction="sum")
     b, t_max, _ = lanes.x.shape
     h = torch.zeros(b, net.hidden, device=device)
     loss_sum, n_seen, counts = 0.0, 0, np.zeros(4, np.int64)
@@ -357,6 +381,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--weight-decay", type=float, default=1e-3)
     p.add_argument("--batch", type=int, help="windows per optimiser step (512)")
     p.add_argument("--chunk", type=int, default=9, help="windows per truncated-BPTT chunk (9 = 360 samples)")
+    p.add_argument("--pos-weight", type=float, default=1.0,
+                   help="loss weight of the slip class (1 = the method's unweighted cross-entropy)")
+    p.add_argument("--channels", default="fx,fy",
+                   help="per-pillar channels, comma list among fx,fy,fz (the method: fx,fy)")
+    p.add_argument("--label-lead", type=int, default=0,
+                   help="samples: also label a window positive when incipient slip starts this soon after it")
+    p.add_argument("--window", type=int, default=40, help="samples per window (the method: 40)")
+    p.add_argument("--median", type=int, default=21, help="causal median width, odd (the method: 21)")
     p.add_argument("--clip-grad", type=float, default=0.0, help="gradient norm clip (0 = off)")
     p.add_argument("--enc", type=int)
     p.add_argument("--hidden", type=int)
@@ -424,10 +456,10 @@ def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureS
     for epoch in epochs:
         t0 = time.perf_counter()
         idx = bootstrap_indices(len(pool), args.bootstrap, rng)
-        items = featurize(augment_epoch(pool, idx, augs, rng, args.mix_frac), spec)
+        items = featurize(augment_epoch(pool, idx, augs, rng, args.mix_frac, spec.window), spec, args.label_lead)
         lanes = pack_lanes(items, n_lanes, rng)
         t_feat = time.perf_counter() - t0
-        stats = train_epoch(net, opt, lanes, args.chunk, args.clip_grad, args.device)
+        stats = train_epoch(net, opt, lanes, args.chunk, args.clip_grad, args.device, args.pos_weight)
         entry = {"member": k, "epoch": epoch, **stats, "sequences": len(items),
                  "feature_s": round(t_feat, 3), "epoch_s": round(time.perf_counter() - t0, 3)}
         history.append(entry)
@@ -453,7 +485,8 @@ def main(argv: list[str] | None = None) -> int:
     """Train the ensemble described by the command line; returns the exit status."""
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
-    spec = FeatureSpec(pillars=pillars_arg(args.pillars))
+    spec = FeatureSpec(pillars=pillars_arg(args.pillars), window=args.window, median=args.median,
+                       channels=tuple(c.strip() for c in args.channels.split(",")))
     try:
         pool, names = [], []
         for folder in args.data:

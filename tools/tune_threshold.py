@@ -22,7 +22,7 @@ if str(ROOT) not in sys.path:
 
 import numpy as np  # noqa: E402
 
-from slipd.evaluation import offline_outcome  # noqa: E402
+from slipd.evaluation import offline_outcome, online_outcome  # noqa: E402
 from slipd.recording import list_recordings  # noqa: E402
 from tools.evaluate import evaluate_paths  # noqa: E402
 
@@ -35,10 +35,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--every", type=int, default=4, help="use every k-th recording (speed)")
     p.add_argument("--grid", default="0.3:0.85:0.05", help="start:stop:step")
     p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--stride", type=int, default=None, help="decision stride override (phase-shifted streams)")
+    p.add_argument("--criterion", choices=("auto", "offline", "online"), default="auto",
+                   help="success criterion: auto = online for gripper trials, the offline one otherwise")
     args = p.parse_args(argv)
     paths = [q for folder in args.recordings for q in list_recordings(folder)][:: args.every]
     # The threshold passed here only sets the stored alarm flags; the sweep below re-thresholds p_slip.
-    runs = evaluate_paths(paths, "model", (args.model, 0.0, 0.5), workers=args.workers, progress=False)
+    runs = evaluate_paths(paths, "model", (args.model, 0.0, 0.5, args.stride), workers=args.workers, progress=False)
     a, b, s = (float(x) for x in args.grid.split(":"))
     best = None
     print(f"{len(paths)} train recordings")
@@ -49,11 +52,13 @@ def main(argv: list[str] | None = None) -> int:
             p_arr = np.asarray(trace.p_slip)
             hit = np.flatnonzero(p_arr >= th)
             first = trace.t_s[hit[0]] if len(hit) else None
-            out = offline_outcome(truth, first)
+            online = args.criterion == "online" or (args.criterion == "auto" and truth.family == "gripper")
+            out = online_outcome(truth, first) if online else offline_outcome(truth, first)
+            out = "tp" if out == "success" else out  # the online criterion's name for a hit
             if out is None:
                 continue
             outcomes.append(out)
-            if out == "tp":
+            if out == "tp" and truth.onset_s is not None:
                 lats.append(first - truth.onset_s)
         n = len(outcomes)
         ok = sum(o in ("tp", "tn") for o in outcomes)
