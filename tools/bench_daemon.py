@@ -96,7 +96,7 @@ def _emulator_process(conn, n: int) -> None:
         conn.send((written, [(w.t, w.address, bytes(w.data)) for w in servo.writes()]))
 
 
-def reaction_latency(model: Path, seconds: float, separate: bool = True) -> np.ndarray:
+def reaction_latency(model: Path, seconds: float, separate: bool = True, coalesce: bool = True) -> np.ndarray:
     """Latencies (s) from the window's last sample written to the tighten bytes parsed by the servo.
 
     With ``separate`` (default) the emulators run in their own process, as real devices would: the
@@ -122,7 +122,7 @@ def reaction_latency(model: Path, seconds: float, separate: bool = True) -> np.n
         threading.Thread(target=_emulator_process, args=(child, n), daemon=True).start()
     with tempfile.TemporaryDirectory() as tmp:
         sensor_port, servo_port = parent.recv()
-        cfg = load_config(_config(Path(tmp), model, sensor_port, servo_port))
+        cfg = load_config(_config(Path(tmp), model, sensor_port, servo_port, coalesce))
         metrics = Metrics()
         ens = Ensemble.load(cfg.model.manifest)
         _, gripper = build_devices(cfg, metrics)
@@ -212,13 +212,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=20.0)
     p.add_argument("--shared-process", action="store_true",
                    help="latency: run the emulators in the daemon's own process (GIL shared: an upper bound)")
+    p.add_argument("--no-coalesce", action="store_true",
+                   help="latency: read every frame as it arrives (sensor.coalesce_margin_ms: null)")
     p.add_argument("--decode-only", metavar="PORT", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.decode_only:
         decode_only(args.decode_only)
         return 0
     logging.getLogger("slipd").setLevel(logging.ERROR)  # one alarm per window here: keep the log quiet
-    lat = reaction_latency(args.model, args.seconds, separate=not args.shared_process) * 1e3
+    lat = reaction_latency(args.model, args.seconds, separate=not args.shared_process,
+                           coalesce=not args.no_coalesce) * 1e3
     print(f"reaction latency (window's last sample written -> tighten bytes at the servo), {len(lat)} alarms:")
     print(f"  median {np.median(lat):.2f} ms   p99 {np.percentile(lat, 99):.2f} ms   max {lat.max():.2f} ms"
           f"   p99 / target {np.percentile(lat, 99) / TARGET_P99_MS:.2f} (target {TARGET_P99_MS} ms)")

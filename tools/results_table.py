@@ -19,7 +19,8 @@ ROOT = Path(__file__).resolve().parents[1]
 ROWS = [
     ("slipd (shipped model)", ["--model", "models/slip_ensemble.json"]),
     ("authors' checkpoints (ONNX)", ["--model", "out/reference.json"]),
-    ("ablation: no advanced augmentation", ["--model", "out/ablation/ablation.json"]),
+    ("ablation: no advanced augmentation (2 members, seed 7)", ["--model", "out/ablation/ablation.json"]),
+    ("its matched pair: same recipe, all augmentations", ["--model", "out/train_b/with_aug.json"]),
     ("heuristic: deceleration", ["--baseline", "deceleration"]),
     ("heuristic: reference pillar", ["--baseline", "reference_pillar"]),
 ]
