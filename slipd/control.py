@@ -139,27 +139,44 @@ class Daemon:
     # ----------------------------------------------------------------- hot path
     def _on_frames(self, frames: list) -> None:
         t0 = time.perf_counter()
-        m = self.metrics
-        rec = self.recorder
-        for f in frames:
-            if getattr(f, "discontinuity", False):
-                # Counter went backwards or the sensor reconnected: the history is not continuous.
+        n = len(frames)
+        start = 0
+        while start < n:
+            # A block runs to the next discontinuity (counter went backwards or the sensor reconnected):
+            # the history is not continuous there, so the detector restarts before that frame.
+            end = start + 1
+            while end < n and not getattr(frames[end], "discontinuity", False):
+                end += 1
+            if getattr(frames[start], "discontinuity", False):
                 self.detector.restart()
                 self.stats.restarts += 1
+            self._on_block(frames[start:end] if start or end < n else frames)
+            start = end
+        self._progress += n
+        self.metrics.loop_seconds.observe(time.perf_counter() - t0)
+        self._coalesce()
+
+    def _on_block(self, frames: list) -> None:
+        """Frames without a discontinuity: through the detector in one call, then each decision in order.
+
+        Per frame semantics are kept: the recorder gets each frame before the decision made on it, and
+        an alarm carries the sample index and t_us of the frame that completed its window.
+        """
+        m = self.metrics
+        rec = self.recorder
+        det_ = self.detector
+        force = np.stack([f.force for f in frames])
+        dets = det_.push_many(force, [f.t_us for f in frames], [f.disp for f in frames])
+        self.stats.frames += len(frames)
+        recorded = 0
+        for (i, det), step_s in zip(dets, det_.step_seconds):
+            f = frames[i]
             if rec is not None:
-                rec.push_frame(f.t_us, f.force, f.disp)
-            self.stats.frames += 1
-            before = self.detector.windows
-            det = self.detector.push(f.force, f.t_us, f.disp)
-            if det is None:
-                continue
-            if self.detector.windows != before and self.detector.last_step_s is not None:
-                m.inference_seconds.observe(self.detector.last_step_s)
-            feats = self.detector.features
-            bad = feats.nonfinite_count + feats.clipped_count if feats is not None else 0
-            if bad != self._nonfinite_seen:  # counted once per window, not per sample
-                m.nonfinite.inc(bad - self._nonfinite_seen)
-                self._nonfinite_seen = bad
+                for g in frames[recorded : i + 1]:
+                    rec.push_frame(g.t_us, g.force, g.disp)
+                recorded = i + 1
+            if step_s is not None:
+                m.inference_seconds.observe(step_s)
             if not det.valid:
                 self.stats.step_errors += 1
                 m.step_errors.inc()
@@ -179,9 +196,14 @@ class Daemon:
                             det.t_us / 1e6)
                 if rec is not None:
                     rec.trigger(f.t_us, "alarm", p_slip=det.p_slip)
-        self._progress += len(frames)
-        m.loop_seconds.observe(time.perf_counter() - t0)
-        self._coalesce()
+        if rec is not None:
+            for g in frames[recorded:]:
+                rec.push_frame(g.t_us, g.force, g.disp)
+        feats = det_.features
+        bad = feats.nonfinite_count + feats.clipped_count if feats is not None else 0
+        if bad != self._nonfinite_seen:  # counted once per block, not per sample
+            m.nonfinite.inc(bad - self._nonfinite_seen)
+            self._nonfinite_seen = bad
 
     def _coalesce(self) -> None:
         """Pause the sensor reader until shortly before the next decision's last sample is due.

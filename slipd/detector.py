@@ -23,6 +23,7 @@ short glitch does not reset the state in the middle of a grasp.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -73,6 +74,8 @@ class Detector:
         self.resets = 0
         self.step_errors = 0
         self.last_step_s: float | None = None
+        self.step_seconds: list[float | None] = []
+        """Model step time behind each detection the latest ``push_many`` returned (same order)."""
         self._tared = self.tare_samples == 0
         self._n_tare = 0
         self._in_contact = False
@@ -128,10 +131,46 @@ class Detector:
             return last
         return self._process(force, t_us, self.index)
 
+    def push_many(
+        self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: Sequence[np.ndarray] | None = None
+    ) -> list[tuple[int, Detection]]:
+        """Feed a block of raw samples ([k, 9, 3], their ``t_us`` [k]); ``push`` for each, in one pass.
+
+        Returns ``(i, detection)`` for each ``push(force[i], t_us[i])`` that would have returned one, in
+        order: the same detections (index, t_us, model state, contact resets) as k calls of ``push``. The
+        feature stages run once per block (``FeatureStream.push_many``); the model runs per window.
+        ``step_seconds`` holds the model step time behind each returned detection (the inference metric).
+        ``disp`` is unused, as in ``push``.
+        """
+        force = np.asarray(force, dtype=np.float32)
+        out: list[tuple[int, Detection]] = []
+        self.step_seconds = []
+        i = 0
+        while i < len(force) and not self._tared:
+            # The start-up tare holds samples back and replays them: rare, sample by sample.
+            det = self.push(force[i], int(t_us[i]))
+            if det is not None:
+                out.append((i, det))
+                self.step_seconds.append(self.last_step_s)
+            i += 1
+        if i == len(force):
+            return out
+        base = self.index + 1 - i  # sample index of force[0]
+        self.index += len(force) - i
+        for j, window in self.features.push_many(force[i:]):
+            k = i + j
+            out.append((k, self._decide(window, force[k], int(t_us[k]), base + k)))
+            self.step_seconds.append(self.last_step_s)
+        return out
+
     def _process(self, force: np.ndarray, t_us: int, index: int) -> Detection | None:
         window = self.features.push(force)
         if window is None:
             return None
+        return self._decide(window, force, t_us, index)
+
+    def _decide(self, window: np.ndarray, force: np.ndarray, t_us: int, index: int) -> Detection:
+        """A completed window (its last sample ``force``, ``index``): contact check, model step, decision."""
         if self.contact_reset:
             # Checked once per window (on its last sample); a release is acted on at the first check past
             # median // 2 samples of no contact (one window later at stride = window).
@@ -178,6 +217,7 @@ class HeuristicDetector:
         self.windows = 0
         self.resets = 0
         self.last_step_s: float | None = None
+        self.step_seconds: list[float | None] = []
         self.features = None
 
     def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
@@ -186,6 +226,18 @@ class HeuristicDetector:
         if d is not None:
             self.windows += 1
         return d
+
+    def push_many(
+        self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: Sequence[np.ndarray] | None = None
+    ) -> list[tuple[int, Detection]]:
+        """``push`` for each sample of a block; ``(i, detection)`` for each that decided (see Detector)."""
+        out = []
+        for i in range(len(force)):
+            d = self.push(force[i], int(t_us[i]), None if disp is None else disp[i])
+            if d is not None:
+                out.append((i, d))
+        self.step_seconds = [None] * len(out)
+        return out
 
     def samples_to_decision(self) -> int:
         """Heuristics may decide on any sample: always 1 (the loop never coalesces reads for them)."""

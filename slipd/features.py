@@ -276,6 +276,74 @@ class FeatureStream:
         return filtered.reshape(-1).copy()
 
 
+    def push_many(self, samples: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        """Add a block of raw samples ([k, 9, 3] or [k, 27]) at once; ``push`` for each, in one pass.
+
+        Returns ``(i, window)`` for each sample ``samples[i]`` that ends a window, in order: the same
+        windows, bit for bit, and the same counters as k calls of ``push`` (sanitise, tare and clip run
+        as one vectorised call per block; the median runs once per window, as in ``push``). Each window
+        is a fresh copy owned by the caller.
+        """
+        x = np.asarray(samples, dtype=np.float32).reshape(-1, N_PILLARS * 3)
+        k = len(x)
+        if k == 0:
+            return []
+        y = x - self._offset
+        if not (np.abs(y) <= self._clip).all():
+            # Something to sanitise or clip (NaN fails the comparison too): the full sequence of push's
+            # stages. The common block (finite, in range) needs neither and skips them: same values.
+            x = x.copy()
+            bad = ~np.isfinite(x)
+            if bad.any():
+                self.nonfinite_count += int(bad.sum())
+                _hold_from(x, bad, self._last_good)
+            y = np.subtract(x, self._offset)
+            over = np.abs(y) > self._clip
+            if over.any():
+                self.clipped_count += int(np.count_nonzero(over))
+            np.clip(y, -self._clip, self._clip, out=y)
+        self._last_good[:] = x[-1]
+        rows = y.take(self._cols, axis=1)
+        spec = self.spec
+        if self._n == 0:
+            self._buf[: spec.median - 1] = rows[0]
+            self._end = spec.median - 1
+        n0 = self._n
+        # First block index whose sample ends a window: count n = n0 + i + 1 reaches the window, then
+        # every step.
+        first = max(spec.window - 1 - n0, 0)
+        first += -(n0 + first + 1 - spec.window) % spec.step
+        out = []
+        done = 0
+        for i in range(first, k, spec.step):
+            self._append(rows[done : i + 1])
+            done = i + 1
+            hist = self._buf[self._end - self._hist_len : self._end]
+            out.append((i, causal_median_tail(hist, spec.median).reshape(-1).copy()))
+        self._append(rows[done:])
+        self._n = n0 + k
+        return out
+
+    def _append(self, rows: np.ndarray) -> None:
+        """Append prepared rows to the history; fewer than ``window + 1`` at a time (one window's worth)."""
+        m = len(rows)
+        if self._end + m > len(self._buf):
+            # Keep what the next window's median needs; the same rows push keeps when it shifts.
+            keep = self._hist_len - 1
+            self._buf[:keep] = self._buf[self._end - keep : self._end]
+            self._end = keep
+        self._buf[self._end : self._end + m] = rows
+        self._end += m
+
+
+def _hold_from(x: np.ndarray, bad: np.ndarray, last: np.ndarray) -> None:
+    """In place: replace non-finite ``x`` entries by the last finite value of their column, ``last`` before row 0."""
+    k, c = x.shape
+    src = np.where(bad, 0, np.arange(1, k + 1)[:, None])  # row in [last; x] that holds the value to use
+    np.maximum.accumulate(src, axis=0, out=src)
+    x[:] = np.concatenate([last[None, :], x])[src, np.arange(c)[None, :]]
+
+
 def causal_median_tail(hist: np.ndarray, width: int) -> np.ndarray:
     """Median filter outputs for the last ``len(hist) - width + 1`` samples of ``hist`` (no padding)."""
     if width == 1:

@@ -48,8 +48,9 @@ frame that begins inside a corrupt one is still found. Nothing in here raises on
 
 from __future__ import annotations
 
+import itertools
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -272,8 +273,10 @@ class FrameDecoder:
 
     Frames split across reads are joined, garbage is skipped by searching for the start marker, and a
     corrupt frame is counted and skipped (never raised). Bytes live in one preallocated buffer that is
-    compacted in place; pillar values are read through strided views of it and copied once into the
-    frame's own arrays (one [2, 9, 3] allocation per frame, ``force`` and ``disp`` being its halves).
+    compacted in place. The first frame (and any frame whose layout changes) is validated by walking its
+    structure; the frames after it that lie back to back with the same layout are checked and decoded as
+    one block per read (see ``_decode_run``): the frames of one block share their value arrays (one
+    [k, 2, 9, 3] copy; each frame's ``force`` and ``disp`` are views of its rows).
 
     Counters (cumulative): ``frames``, ``garbage_bytes``, ``bad_checksum``, ``bad_length``,
     ``bad_structure``; ``errors()`` returns the three error counters by kind.
@@ -286,9 +289,9 @@ class FrameDecoder:
         self._u8 = np.frombuffer(self._buf, dtype=np.uint8)
         self._start = 0
         self._end = 0
-        # (payload length, structural byte indices, their values, block record positions) of the last
-        # fully validated frame: the controller sends one layout, so later frames are checked against it.
-        self._layout: tuple[int, np.ndarray, np.ndarray, dict[int, int]] | None = None
+        # (frame length, payload length, fixed byte indices, their values, block record positions) of the
+        # last fully validated frame: the controller sends one layout, so later frames are checked against it.
+        self._run: tuple[int, int, np.ndarray, np.ndarray, dict[int, int]] | None = None
         self._value_ranges: list[tuple[int, int]] = []
         self.frames = 0
         self.garbage_bytes = 0
@@ -340,6 +343,8 @@ class FrameDecoder:
             if s > self._start:
                 self.garbage_bytes += s - self._start
                 self._start = s
+            if self._run is not None and self._decode_run(s, out):
+                continue
             try:
                 frame, length = self._decode_at(s)
             except _NeedMore:
@@ -353,31 +358,51 @@ class FrameDecoder:
             self.frames += 1
             self._start = s + length
 
+    # ------------------------------------------------------------ runs of frames
+    def _decode_run(self, s: int, out: list[Frame]) -> int:
+        """Decode the frames lying back to back from ``s`` that have the cached layout, all in one pass.
+
+        The controller sends one layout, so a read of k frames is k copies of one template whose value
+        bytes differ: the fixed bytes (markers and structure) of all k are compared at once, the checksums
+        summed at once, and the values copied out with strided views. Accepts exactly the frames that a
+        full decode would (same structure, end marker, checksum); the run stops before the first frame
+        that differs or is incomplete, which the full decoder then judges. Returns the frames added.
+        """
+        flen, plen, chk_idx, chk_vals, found = self._run  # type: ignore[misc]
+        k = (self._end - s) // flen
+        if k == 0:
+            return 0
+        rows = np.ndarray((k, flen), dtype=np.uint8, buffer=self._buf, offset=s, strides=(flen, 1))
+        ok = (rows[:, chk_idx] == chk_vals).all(axis=1)
+        sums = rows[:, len(START) : len(START) + plen].sum(axis=1) & 0xFFFF
+        sent = np.ndarray((k,), dtype="<u2", buffer=self._buf, offset=s + len(START) + plen, strides=(flen,))
+        ok &= sums == sent
+        n = k if ok.all() else int(np.argmin(ok))
+        if n == 0:
+            return 0
+        out.extend(self._build(s + len(START), found, n, flen))
+        self.frames += n
+        self._start = s + n * flen
+        return n
+
     # ------------------------------------------------------------ one frame
     def _decode_at(self, s: int) -> tuple[Frame, int]:
-        """Decode the frame starting at buffer index ``s`` (its start marker). Returns it and its length."""
-        p0 = s + len(START)
-        cache = self._layout
-        if cache is not None:
-            plen, idx, vals, found = cache
-            if self._end - p0 >= plen + 2 + len(END) and self._buf[p0 + plen + 2 : p0 + plen + 6] == END:
-                u8 = self._u8
-                if np.array_equal(u8[p0 + idx], vals):
-                    # Same structure as a frame already validated in full: only the values differ.
-                    if (int(u8[p0 : p0 + plen].sum()) & 0xFFFF) != _U16.unpack_from(self._buf, p0 + plen)[0]:
-                        raise _Reject("bad_checksum")
-                    return self._build(p0, found), len(START) + plen + 2 + len(END)
-        frame, total, found = self._decode_full(p0)
-        self._remember_layout(p0, total - len(START) - 2 - len(END), found)
+        """Decode the frame starting at buffer index ``s`` (its start marker), walking its structure.
+        Returns it and its length; remembers its layout for ``_decode_run``."""
+        frame, total, found = self._decode_full(s + len(START))
+        self._remember_layout(s + len(START), total - len(START) - 2 - len(END), found)
         return frame, total
 
     def _remember_layout(self, p0: int, payload_len: int, found: dict[int, int]) -> None:
-        """Cache which payload bytes are structure (everything but values) for the fast path."""
+        """Cache which frame bytes are fixed (markers and structure: everything but values and checksum)."""
         mask = np.ones(payload_len, dtype=bool)
         for a, b in self._value_ranges:
             mask[a:b] = False
-        idx = np.flatnonzero(mask)
-        self._layout = (payload_len, idx, self._u8[p0 + idx].copy(), dict(found))
+        flen = len(START) + payload_len + 2 + len(END)
+        fixed = np.concatenate([
+            np.arange(len(START)), len(START) + np.flatnonzero(mask), np.arange(flen - len(END), flen)
+        ]).astype(np.intp)
+        self._run = (flen, payload_len, fixed, self._u8[p0 - len(START) + fixed].copy(), dict(found))
 
     def _decode_full(self, p0: int) -> tuple[Frame, int, dict[int, int]]:
         """Validate and decode a frame whose payload starts at buffer index ``p0``, walking its structure."""
@@ -447,7 +472,7 @@ class FrameDecoder:
         self._check_sub_offsets(p0, offsets, isz, payload_len)
         if (int(self._u8[p0 : p0 + payload_len].sum()) & 0xFFFF) != _U16.unpack_from(buf, p0 + payload_len)[0]:
             raise _Reject("bad_checksum")
-        return self._build(p0, found), total, found
+        return self._build(p0, found, 1, total)[0], total, found
 
     def _block_extent(
         self, p0: int, typ: int, off: int, isz: int, need: Callable[[int], None]
@@ -530,33 +555,51 @@ class FrameDecoder:
                         raise _Reject("bad_structure")
                     pos += 2 + npil * isz + npil * rec
 
-    def _build(self, p0: int, found: dict[int, int]) -> Frame:
+    def _build(self, p0: int, found: dict[int, int], n: int, stride: int) -> list[Frame]:
+        """Frames from ``n`` payloads of one layout, the first at buffer index ``p0``, ``stride`` bytes apart.
+
+        Values are read through strided views of the buffer and copied once per block: ``force`` and
+        ``disp`` of all n frames share one [n, 2, 9, 3] array (each frame's are views of its rows), and
+        likewise the optional parts, so the cost per frame is the Frame object, not numpy calls.
+        """
         buf = self._buf
-        counter, t_us = _HUB.unpack_from(buf, p0 + found[TYPE_HUB])
+        hub = p0 + found[TYPE_HUB]
+        counters = np.ndarray((n,), dtype="<u4", buffer=buf, offset=hub, strides=(stride,)).tolist()
+        stamps = np.ndarray((n,), dtype="<u8", buffer=buf, offset=hub + 4, strides=(stride,)).tolist()
         rec = np.ndarray(
-            (N_PILLARS, 2, 3), dtype="<f4", buffer=buf, offset=p0 + found[TYPE_PILLARS] + 2,
-            strides=(_PILLAR_REC, 12, 4),
+            (n, N_PILLARS, 2, 3), dtype="<f4", buffer=buf, offset=p0 + found[TYPE_PILLARS] + 2,
+            strides=(stride, _PILLAR_REC, 12, 4),
         )
-        fd = np.empty((2, N_PILLARS, 3), dtype=np.float32)
-        np.copyto(fd, rec.transpose(1, 0, 2))
-        frame = Frame(counter, t_us, fd[0], fd[1])
+        fd = np.empty((n, 2, N_PILLARS, 3), dtype=np.float32)
+        np.copyto(fd, rec.transpose(0, 2, 1, 3))
+        none = itertools.repeat(None)
+        wrench: Iterable = none
+        states: Iterable = none
+        friction: Iterable = none
+        sensor: Iterable = none
+        f_est: Iterable = none
+        target: Iterable = none
         g = found.get(TYPE_GLOBAL)
         if g is not None:
-            frame.wrench = np.frombuffer(buf, dtype="<f4", count=6, offset=p0 + g + 2).astype(np.float32)
+            wrench = np.ndarray((n, 6), dtype="<f4", buffer=buf, offset=p0 + g + 2, strides=(stride, 4)).astype(
+                np.float32
+            )
         ps = found.get(TYPE_PILLAR_SLIP)
         if ps is not None:
             base = p0 + ps + 2
-            frame.slip_state = np.ndarray(
-                (N_PILLARS,), dtype="i1", buffer=buf, offset=base, strides=(_PILLAR_SLIP_REC,)
+            states = np.ndarray(
+                (n, N_PILLARS), dtype="i1", buffer=buf, offset=base, strides=(stride, _PILLAR_SLIP_REC)
             ).copy()
-            frame.friction = np.ndarray(
-                (N_PILLARS,), dtype="<f4", buffer=buf, offset=base + 1, strides=(_PILLAR_SLIP_REC,)
+            friction = np.ndarray(
+                (n, N_PILLARS), dtype="<f4", buffer=buf, offset=base + 1, strides=(stride, _PILLAR_SLIP_REC)
             ).astype(np.float32)
         ss = found.get(TYPE_SENSOR_SLIP)
         if ss is not None:
-            _tag, state, fe, tg = _SENSOR_SLIP.unpack_from(buf, p0 + ss)
-            frame.sensor_state, frame.friction_est, frame.target_grip_force = state, fe, tg
-        return frame
+            base = p0 + ss + 2
+            sensor = np.ndarray((n,), dtype="u1", buffer=buf, offset=base, strides=(stride,)).tolist()
+            f_est = np.ndarray((n,), dtype="<f4", buffer=buf, offset=base + 1, strides=(stride,)).tolist()
+            target = np.ndarray((n,), dtype="<f4", buffer=buf, offset=base + 5, strides=(stride,)).tolist()
+        return list(map(Frame, counters, stamps, fd[:, 0], fd[:, 1], wrench, states, friction, sensor, f_est, target))
 
 
 # ---------------------------------------------------------------------- commands

@@ -157,6 +157,7 @@ class SerialSensor:
         self.pauses = 0
         """Times the reader was paused by ``pause`` (frames coalesced into one later read)."""
         self._resume_handle: asyncio.TimerHandle | None = None
+        self._watching = False  # the fd is registered with the loop (add_reader)
         self.last_frame_time: float | None = None
         """time.monotonic() of the read that delivered the latest frame (None before the first)."""
         self._metrics = metrics
@@ -236,6 +237,7 @@ class SerialSensor:
             check_latency_timer(self.port, self.sysfs_root)
             assert self._loop is not None
             self._loop.add_reader(fd, self._on_readable)
+            self._watching = True
         except BaseException:
             ser.close()
             raise
@@ -260,7 +262,9 @@ class SerialSensor:
             seconds = min(seconds, (TTY_BUFFER_BYTES // 2) / (self.frame_bytes * rate_hz))
         if seconds < 1e-3 or self.pending_bytes() > 0:
             return False
-        self._loop.remove_reader(self._fd)
+        if self._watching:
+            self._loop.remove_reader(self._fd)
+            self._watching = False
         self._resume_handle = self._loop.call_later(seconds, self._resume)
         self.pauses += 1
         return True
@@ -275,9 +279,19 @@ class SerialSensor:
             return 0
 
     def _resume(self) -> None:
+        """End of a pause: read what piled up at once (no wait for the loop to report the fd readable);
+        watch the port again unless that read's consumer paused once more (then it stays unwatched,
+        which saves two epoll_ctl calls and a loop pass per coalesced read)."""
         self._resume_handle = None
-        if self._fd >= 0 and self._loop is not None:
+        if self._fd < 0 or self._loop is None:
+            return
+        # Only when bytes are known to wait: with VMIN = VTIME = 0 a read of an empty tty returns 0, which
+        # would look like EOF; an empty (or hung-up) port is left to the loop's readiness report.
+        if self.pending_bytes() > 0:
+            self._on_readable()
+        if self._fd >= 0 and self._resume_handle is None and not self._watching:
             self._loop.add_reader(self._fd, self._on_readable)
+            self._watching = True
 
     def _cancel_pause(self) -> None:
         if self._resume_handle is not None:
@@ -285,10 +299,10 @@ class SerialSensor:
             self._resume_handle = None
 
     def _close(self) -> None:
-        paused = self._resume_handle is not None
         self._cancel_pause()
-        if self._fd >= 0 and self._loop is not None and not paused:
+        if self._fd >= 0 and self._loop is not None and self._watching:
             self._loop.remove_reader(self._fd)
+        self._watching = False
         if self._serial is not None:
             with contextlib.suppress(Exception):
                 self._serial.close()
