@@ -301,3 +301,17 @@ def test_training_with_a_different_window_median_and_channels(data_dir: Path, tm
     spec = FeatureSpec.from_dict(ck["feature_spec"])
     assert (spec.window, spec.median, spec.channels) == (20, 5, ("fx", "fy", "fz"))
     assert ck["config"]["input_size"] == 20 * 3 * len(spec.pillars)
+
+
+def test_slip_span_labels_run_from_onset_to_gross_motion() -> None:
+    t = np.arange(2000) / 1000.0
+    label = np.zeros(2000, np.uint8)
+    label[900:930] = 1  # 30 ms of incipient slip, as in a gripper lift
+    span = T.slip_span_labels(label, {"gross_slip": 0.93, "gross_motion": 1.2}, t)
+    assert span[900:1200].all() and not span[:900].any() and not span[1200:].any()
+    # Hexapod scenes have no gross_motion: the span ends at gross slip.
+    span = T.slip_span_labels(label, {"gross_slip": 1.0}, t)
+    assert span[900:1000].all() and not span[1000:].any()
+    # No events: the incipient span itself; a stop trial stays silent.
+    assert np.array_equal(T.slip_span_labels(label, {}, t), label)
+    assert not T.slip_span_labels(np.zeros(2000, np.uint8), {"gross_motion": 1.0}, t).any()

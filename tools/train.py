@@ -93,11 +93,32 @@ class Item:
     labels: np.ndarray
 
 
-def load_sequences(data_dir: Path, spec: FeatureSpec, max_recordings: int = 0) -> tuple[list[Seq], list[str]]:
+def slip_span_labels(label: np.ndarray, events: dict, t_s: np.ndarray) -> np.ndarray:
+    """1 from the first incipient sample until the object has moved 2 mm / 2 deg (``gross_motion``).
+
+    The method labels incipient slip only, so its network learns to stay silent once every pillar slides;
+    yet an alarm then, before the object has moved far, is still in time for the robot (the online
+    criterion). Without a ``gross_motion`` event (hexapod scenes) the span ends at ``gross_slip``, else at
+    the last incipient sample. A stop trial (no incipient sample) stays all 0.
+    """
+    label = np.asarray(label)
+    on = np.flatnonzero(label)
+    if not len(on):
+        return label
+    out = label.copy()
+    end_t = events.get("gross_motion") or events.get("gross_slip")
+    end = int(np.searchsorted(t_s, end_t)) if end_t is not None else int(on[-1]) + 1
+    out[on[0] : max(end, int(on[-1]) + 1)] = 1
+    return out
+
+
+def load_sequences(data_dir: Path, spec: FeatureSpec, max_recordings: int = 0,
+                   label_span: str = "incipient") -> tuple[list[Seq], list[str]]:
     """Load every recording under ``data_dir`` as a tared ``Seq``; returns (sequences, file names).
 
     The offset is the recording's own ``meta["tare_samples"]`` stretch (or ``spec.tare_samples``).
     A recording without labels, or too short for one window, raises ``RecordingError`` naming it.
+    ``label_span`` "slip" extends each label with ``slip_span_labels`` (the method: "incipient").
     """
     paths = list_recordings(data_dir)
     if not paths:
@@ -118,7 +139,10 @@ def load_sequences(data_dir: Path, spec: FeatureSpec, max_recordings: int = 0) -
             raise RecordingError(f"{path}: bad meta 'tare_samples' {tare!r} ({exc})") from exc
         # Taring here equals passing the offset to batch_windows (see tools/augment.py) and lets the
         # augmentations act around the unloaded reading.
-        seqs.append(Seq(rec.force - offset, rec.label, rec.slip))
+        label = rec.label
+        if label_span == "slip":
+            label = slip_span_labels(label, rec.meta.get("events") or {}, rec.t_us / 1e6).astype(np.uint8)
+        seqs.append(Seq(rec.force - offset, label, rec.slip))
         names.append(path.name)
     return seqs, names
 
@@ -293,6 +317,36 @@ def train_epoch(net: SlipNet, opt: torch.optim.Optimizer, lanes: Lanes, chunk: i
 
 
 @torch.no_grad()
+def precise_bn(net: SlipNet, items: list[Item], n_lanes: int, chunk: int, device: str = "cpu") -> None:
+    """Recompute every BatchNorm's running statistics as exact averages over ``items`` (no gradient).
+
+    Training keeps them as an exponential average of the last batches, whose mix of quiet and moving
+    windows changes from batch to batch; eval-mode outputs then drift and the slip probability ends up
+    squeezed into a narrow band, so the alarm threshold becomes brittle. Averaging over the whole
+    un-augmented data set once at the end ("precise BN") removes that drift. The GRU state is carried
+    exactly as in training.
+    """
+    bns = [m for m in net.modules() if isinstance(m, nn.BatchNorm1d)]
+    saved = [m.momentum for m in bns]
+    for m in bns:
+        m.reset_running_stats()
+        m.momentum = None  # cumulative moving average: every batch weighs the same
+    net.train()
+    lanes = pack_lanes(items, n_lanes)
+    b, t_max, _ = lanes.x.shape
+    h = torch.zeros(b, net.hidden, device=device)
+    for t0 in range(0, t_max, chunk):
+        sl = slice(t0, t0 + chunk)
+        valid = lanes.valid[:, sl].to(device)
+        if int(valid.sum()) < 2:
+            continue
+        _, h = _chunk_logits(net, lanes.x[:, sl].to(device), lanes.keep[:, sl].to(device), valid, h)
+    for m, mom in zip(bns, saved):
+        m.momentum = mom
+    net.eval()
+
+
+@torch.no_grad()
 def evaluate(net: SlipNet, items: list[Item], device: str = "cpu") -> dict[str, float]:
     """Eval-mode window metrics, each sequence from h = 0 one window at a time (as the daemon runs)."""
     net.eval()
@@ -385,6 +439,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="loss weight of the slip class (1 = the method's unweighted cross-entropy)")
     p.add_argument("--channels", default="fx,fy",
                    help="per-pillar channels, comma list among fx,fy,fz (the method: fx,fy)")
+    p.add_argument("--label-span", choices=("incipient", "slip"), default="incipient",
+                   help="positive windows: incipient slip only (the method) or from its onset until the object "
+                        "has moved 2 mm / 2 deg")
+    p.add_argument("--precise-bn", action="store_true",
+                   help="after training, recompute BatchNorm statistics over the whole un-augmented data set")
     p.add_argument("--label-lead", type=int, default=0,
                    help="samples: also label a window positive when incipient slip starts this soon after it")
     p.add_argument("--window", type=int, default=40, help="samples per window (the method: 40)")
@@ -467,6 +526,8 @@ def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureS
         log.flush()
         if progress:
             epochs.set_postfix(loss=f"{stats['loss']:.4f}", acc=f"{stats['acc']:.3f}", rec=f"{stats['recall']:.2f}")
+    if args.precise_bn:
+        precise_bn(net, featurize(pool, spec, args.label_lead), n_lanes, args.chunk, args.device)
     result: dict[str, Any] = {"member": k, "event": "done", "seconds": round(time.perf_counter() - t_member, 2)}
     if eval_items:
         result["eval"] = evaluate(net, eval_items, args.device)
@@ -490,7 +551,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         pool, names = [], []
         for folder in args.data:
-            p, n = load_sequences(folder, spec, args.max_recordings)
+            p, n = load_sequences(folder, spec, args.max_recordings, args.label_span)
             pool += p
             names += n
     except RecordingError as exc:
