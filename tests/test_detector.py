@@ -100,3 +100,32 @@ def test_samples_to_decision_predicts_the_next_deciding_sample(ens: Ensemble, st
         if since == predicted:
             assert decided
             predicted, since = det.samples_to_decision(), 0
+
+
+@pytest.mark.parametrize("stride, tare, sizes", [(0, 100, [4]), (10, 0, [1, 7, 150]), (20, 57, [3, 40, 5])])
+def test_push_many_equals_push(ens: Ensemble, stride: int, tare: int, sizes: list[int]) -> None:
+    # Blocks (the daemon's reads) give the detections push gives sample by sample: same index, t_us,
+    # p_slip and alarm; returned with the block position of the sample that produced them. A contact
+    # release and non-finite samples happen inside blocks.
+    force = _force(900, seed=5)
+    force[200:203, 4, :] = np.nan
+    force[600:, :, 2] = 0.0
+    t_us = np.arange(900, dtype=np.int64) * 1000 + 17
+    spec = ens.feature_spec.with_(stride=stride)
+    kwargs = {"tare_samples": tare} if tare else {"offset": np.zeros((9, 3))}
+    ens.reset()
+    one = Detector(ens, Decision(), spec, **kwargs)
+    ref = [(i, d) for i in range(900) if (d := one.push(force[i], int(t_us[i]))) is not None]
+    ens.reset()
+    many = Detector(ens, Decision(), spec, **kwargs)
+    got, pos, k = [], 0, 0
+    while pos < 900:
+        size = sizes[k % len(sizes)]
+        block = many.push_many(force[pos : pos + size], t_us[pos : pos + size])
+        assert len(many.step_seconds) == len(block) and all(s is not None for s in many.step_seconds)
+        got += [(pos + i, d) for i, d in block]
+        pos, k = pos + size, k + 1
+    assert [i for i, _ in got] == [i for i, _ in ref]
+    assert [d for _, d in got] == [d for _, d in ref]  # the dataclass compares every field
+    assert (many.index, many.windows, many.resets) == (one.index, one.windows, one.resets)
+    assert many.features.nonfinite_count == one.features.nonfinite_count > 0

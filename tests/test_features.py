@@ -133,3 +133,50 @@ def test_stream_equals_batch_property(n: int, window: int, median: int, seed: in
     assert len(streamed) == len(batch)
     if streamed:
         assert np.array_equal(np.array(streamed), batch)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    n=st.integers(0, 300),
+    stride=st.sampled_from([0, 10, 20]),
+    median=st.sampled_from([1, 5, 21]),
+    blocks=st.lists(st.integers(1, 150), min_size=1, max_size=20),
+    seed=st.integers(0, 2**16),
+    glitches=st.booleans(),
+)
+def test_push_many_equals_push_and_batch(n: int, stride: int, median: int, blocks: list[int], seed: int,
+                                         glitches: bool) -> None:
+    # Blocks of any size (1 to more than the history) give the windows, at the same samples, and the
+    # counters that push gives sample by sample, and the batch windows.
+    spec = FeatureSpec(stride=stride, median=median)
+    force = _signal(n, seed) if n else np.zeros((0, 9, 3), np.float32)
+    if glitches and n > 10:
+        rng = np.random.default_rng(seed)
+        for v in (np.nan, np.inf, -np.inf, 1e6, -1e6):
+            force[rng.integers(0, n), rng.integers(0, 9), rng.integers(0, 3)] = v
+        force[: rng.integers(1, 6), 3, 1] = np.nan  # non-finite from the first sample: held at 0
+    one, many = FeatureStream(spec), FeatureStream(spec)
+    ref = [(i, w) for i, s in enumerate(force) if (w := one.push(s)) is not None]
+    got, pos, k = [], 0, 0
+    while pos < n:
+        size = blocks[k % len(blocks)]
+        got += [(pos + i, w) for i, w in many.push_many(force[pos : pos + size])]
+        pos, k = pos + size, k + 1
+    assert [i for i, _ in got] == [i for i, _ in ref]
+    assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(got, ref, strict=True))
+    assert (many.nonfinite_count, many.clipped_count, many.samples_seen) == (
+        one.nonfinite_count, one.clipped_count, one.samples_seen)
+    batch, ends = batch_windows(force, spec)
+    assert [i for i, _ in got] == ends.tolist()
+    if got:
+        assert np.array_equal(np.array([w for _, w in got]), batch)
+
+
+def test_push_many_then_push_continue_one_stream() -> None:
+    spec = FeatureSpec(stride=10)
+    force = _signal(200, seed=7)
+    fs = FeatureStream(spec)
+    got = [w for _, w in fs.push_many(force[:73])]
+    got += [w for s in force[73:] if (w := fs.push(s)) is not None]
+    assert np.array_equal(np.array(got), batch_windows(force, spec)[0])
+    assert fs.push_many(np.zeros((0, 9, 3), np.float32)) == []

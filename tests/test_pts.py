@@ -311,3 +311,40 @@ def test_short_fuzz_run() -> None:
     assert rep.exceptions == 0, rep.first_exception
     assert rep.intact_sent > 1000 and rep.intact_missed == 0 and rep.wrong_values == 0
     assert sum(rep.errors.values()) > 0  # the corruptions were really exercised
+
+
+def _fields(f: Frame) -> tuple:
+    return (f.counter, f.t_us, f.force.tobytes(), f.disp.tobytes(), f.wrench.tobytes(), f.slip_state.tobytes(),
+            f.friction.tobytes(), f.sensor_state, f.friction_est, f.target_grip_force)
+
+
+def test_block_decode_equals_frame_by_frame() -> None:
+    # A read of many frames is decoded as one block while they share a layout; corrupt frames inside a
+    # block (bad checksum, a changed structure byte, a truncated frame, garbage, a different layout)
+    # end the block there and are judged as single frames. One big read and frame-sized reads must
+    # give the same frames and the same counters.
+    parts = [encode_frame(simple_frame(i)) for i in range(40)]
+    bad = bytearray(parts[5])
+    bad[-len(END) - 2] ^= 0x01  # checksum
+    parts[5] = bytes(bad)
+    bad = bytearray(parts[12])
+    bad[len(START) + 1] ^= 0x40  # index table: a structure byte
+    parts[12] = bytes(bad)
+    parts[20] = parts[20][:200]  # truncated
+    parts[25] = b"\x00\x55\x66" + parts[25]  # garbage before
+    parts[30] = encode_frame(Frame(30, 30_000, np.ones((9, 3), np.float32), np.zeros((9, 3), np.float32)))
+    stream = b"".join(parts)
+    whole = FrameDecoder()
+    got = whole.feed(stream)
+    single = FrameDecoder()
+    ref = [f for p in parts for f in single.feed(p)]
+    assert [f.counter for f in got] == [f.counter for f in ref]
+    assert 5 not in [f.counter for f in got] and 12 not in [f.counter for f in got]
+    assert [_fields(f) for f in got if f.counter != 30] == [_fields(f) for f in ref if f.counter != 30]
+    assert (whole.frames, whole.garbage_bytes, whole.errors()) == (single.frames, single.garbage_bytes,
+                                                                    single.errors())
+    # The frames of one block own views of one array: writing to one frame's force leaves the others.
+    a, b = got[2], got[3]
+    assert a.force.base is b.force.base  # decoded as one block
+    a.force[0, 0] = 123.0
+    assert np.array_equal(b.force, simple_frame(3).force) and np.array_equal(b.disp, simple_frame(3).disp)
