@@ -183,6 +183,7 @@ class URArm(Arm):
         self._control: Any = None
         self._dashboard: Any = None
         self._was_protective = False
+        self._was_down = False
         self.last_stop = None
 
     # -- helpers ---------------------------------------------------------------------------------------------
@@ -231,8 +232,11 @@ class URArm(Arm):
         """Read pose, speed and safety state; a link that is down yields ``connected=False`` and NaNs."""
         now = time.monotonic()
         if self._receive is None or not self._receive.isConnected():
-            self._count("disconnected")
+            if not self._was_down:
+                self._count("disconnected")  # once per loss of the link, not once per health read
+            self._was_down = True
             return ArmState(False, _NAN6, _NAN6, False, False, False, 0, 0, 0, now)
+        self._was_down = False
         r = self._receive
         try:
             protective = bool(r.isProtectiveStopped())
