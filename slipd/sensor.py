@@ -56,6 +56,10 @@ _SERIAL_STRUCT_BYTES = 128  # larger than the kernel's struct on every ABI; the 
 FTDI_SYSFS = "/sys/bus/usb-serial/devices"
 TTY_BUFFER_BYTES = 4096
 """The kernel's n_tty read buffer: what a paused reader may let pile up before the device is throttled."""
+PAUSE_BUFFER_FRACTION = 0.75
+"""Share of ``TTY_BUFFER_BYTES`` a pause may fill: 7 frames of 433 bytes at 1 kHz, leaving ~2 ms of slack for a
+late timer before the kernel throttles the device (which delays frames, never drops them silently: the packet
+counter would show it). Half the buffer cost ~1.5 points more CPU (more reads per second)."""
 
 
 class SensorError(RuntimeError):
@@ -252,14 +256,14 @@ class SerialSensor:
         The control loop calls this when it knows no decision is due before then: frames wait in the
         kernel's tty buffer, nothing is lost, and the loop wakes a few times per window instead of once per
         1 ms frame. The pause is refused when bytes are already waiting (the loop is behind: read first)
-        and capped so that the frames due meanwhile fill at most half of the kernel's 4 KiB line-discipline
-        buffer: a full buffer throttles the device (USB CDC stops fetching, so frames would queue or be lost
-        on its side). Returns True when the reader was paused.
+        and capped so that the frames due meanwhile fill at most ``PAUSE_BUFFER_FRACTION`` of the kernel's
+        4 KiB line-discipline buffer: a full buffer throttles the device (USB CDC stops fetching, so frames
+        would queue, or be lost, on its side). Returns True when the reader was paused.
         """
         if self._fd < 0 or self._loop is None or self._resume_handle is not None or seconds <= 0:
             return False
         if self.frame_bytes > 0 and rate_hz > 0:
-            seconds = min(seconds, (TTY_BUFFER_BYTES // 2) / (self.frame_bytes * rate_hz))
+            seconds = min(seconds, PAUSE_BUFFER_FRACTION * TTY_BUFFER_BYTES / (self.frame_bytes * rate_hz))
         if seconds < 1e-3 or self.pending_bytes() > 0:
             return False
         if self._watching:

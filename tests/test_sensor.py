@@ -14,7 +14,14 @@ import pytest
 from slipd.metrics import Metrics
 from slipd.pts import CMD_BIAS, CMD_SLIP_ON, Frame, encode_frame, rate_command
 from slipd.recording import Recording
-from slipd.sensor import SensorError, SerialSensor, check_latency_timer, set_low_latency
+from slipd.sensor import (
+    PAUSE_BUFFER_FRACTION,
+    TTY_BUFFER_BYTES,
+    SensorError,
+    SerialSensor,
+    check_latency_timer,
+    set_low_latency,
+)
 from slipd.sim.devices.papillarray import EmulatedPapillArray
 
 BIG_QUEUE = 64 * 2**20  # tests judge the reader, not the scheduler: the emulator never discards
@@ -402,8 +409,8 @@ def test_paused_reader_loses_nothing_and_refuses_when_behind(emulator_factory) -
     assert [f.counter for f in col.frames] == list(range(800))
     assert s.pauses > 0 and s.frame_bytes > 0
     assert max(batches) > 1  # frames were coalesced
-    # The cap: a pause never lets more than half the kernel's 4 KiB buffer pile up.
-    cap_frames = (4096 // 2) / s.frame_bytes
+    # The cap: a pause never lets more than PAUSE_BUFFER_FRACTION of the kernel's 4 KiB buffer pile up.
+    cap_frames = PAUSE_BUFFER_FRACTION * TTY_BUFFER_BYTES / s.frame_bytes
     assert sum(batches) / len(batches) <= cap_frames + 2
 
 

@@ -1,6 +1,6 @@
 """Daemon benchmarks: reaction latency and CPU share at 1 kHz, against the emulated devices.
 
-    python tools/bench_daemon.py [--model models/slip_ensemble.json] [--seconds 20]
+    python tools/bench_daemon.py [--model models/slip_ensemble_int8.json] [--seconds 20]
 
 1. **Reaction latency**: the last sample of the deciding window written to the sensor pty -> the tighten
    command's bytes read from the servo pty. The daemon (`slipd.control.Daemon`, real pyserial reader,
@@ -208,7 +208,8 @@ def decode_only(port: str) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run both benchmarks and print the figures."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", type=Path, default=ROOT / "models" / "slip_ensemble.json")
+    p.add_argument("--model", type=Path, default=ROOT / "models" / "slip_ensemble_int8.json",
+                   help="model manifest (default: the one config/slipd.yaml runs)")
     p.add_argument("--seconds", type=float, default=20.0)
     p.add_argument("--shared-process", action="store_true",
                    help="latency: run the emulators in the daemon's own process (GIL shared: an upper bound)")
