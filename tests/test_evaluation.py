@@ -245,3 +245,29 @@ def test_evaluate_model_end_to_end(scenes: Path, tmp_path: Path) -> None:
     assert data["summary"]["n_scenes"] == 3
     for r, tr in zip(results, data["truth"]):
         assert r.offline_outcome == offline_outcome(SceneTruth(**tr), r.first_alarm_s)
+
+
+def test_stride_override_decides_more_often_and_tune_threshold_runs(scenes: Path, tmp_path: Path, capsys) -> None:
+    """``--stride`` runs phase-shifted streams (a decision every 2 samples here, window 8); tune_threshold
+    sweeps the same traces with either criterion."""
+    torch = pytest.importorskip("torch")
+    from slipd.features import FeatureSpec
+    from tools.evaluate import ModelRunner
+    from tools.export_onnx import export, fold_member
+    from tools.slipnet import SlipNet
+    from tools.tune_threshold import main as tune
+
+    spec = FeatureSpec(pillars=(0, 1, 2), window=8)
+    torch.manual_seed(0)
+    net = SlipNet(input_size=spec.input_size, hidden=8, enc=16, pred=(8, 8)).eval()
+    export([fold_member(net.state_dict())], spec, tmp_path / "m.onnx", "trained", {}, threshold=0.5)
+    rec = Recording.load(scenes / "a_slip.npz")
+    every = ModelRunner(str(tmp_path / "m.json")).trace(rec)
+    often = ModelRunner(str(tmp_path / "m.json"), stride=2).trace(rec)
+    # Four times the decisions (less a few inside the tare stretch, where only the last is reported).
+    assert 3.9 * len(every.t_s) <= len(often.t_s) <= 4 * len(every.t_s)
+    assert np.median(np.diff(often.t_s)) == pytest.approx(0.002)
+    assert tune(["--model", str(tmp_path / "m.json"), "--recordings", str(scenes), "--every", "1", "--workers", "1",
+                 "--stride", "4", "--criterion", "online", "--grid", "0.2:0.8:0.3"]) == 0
+    out = capsys.readouterr().out
+    assert "3 train recordings" in out and "best threshold" in out
