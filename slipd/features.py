@@ -275,7 +275,6 @@ class FeatureStream:
         filtered = causal_median_tail(hist, spec.median)
         return filtered.reshape(-1).copy()
 
-
     def push_many(self, samples: np.ndarray) -> list[tuple[int, np.ndarray]]:
         """Add a block of raw samples ([k, 9, 3] or [k, 27]) at once; ``push`` for each, in one pass.
 
