@@ -271,3 +271,15 @@ def test_stride_override_decides_more_often_and_tune_threshold_runs(scenes: Path
                  "--stride", "4", "--criterion", "online", "--grid", "0.2:0.8:0.3"]) == 0
     out = capsys.readouterr().out
     assert "3 train recordings" in out and "best threshold" in out
+
+
+def test_noisy_displacements_touch_only_the_displacements(scenes: Path, tmp_path: Path) -> None:
+    from tools.noisy_displacements import main as noisy
+
+    assert noisy(["--sigma", "0.01", "--src", str(scenes), "--out", str(tmp_path / "n")]) == 0
+    for path in sorted(scenes.glob("*.npz")):
+        a, b = Recording.load(path), Recording.load(tmp_path / "n" / path.name)
+        assert np.array_equal(a.force, b.force) and np.array_equal(a.label, b.label)
+        d = (b.disp - a.disp).ravel()
+        assert 0.008 < d.std() < 0.012 and abs(d.mean()) < 0.001
+        assert b.meta["disp_noise_mm"] == 0.01
