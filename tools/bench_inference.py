@@ -37,20 +37,44 @@ if str(ROOT) not in sys.path:
 DEFAULT_REF = ROOT.parent / "shared" / "reference" / "checkpoints" / "hexapod"
 
 
-def _windows(k: int, d: int, seed: int = 0) -> np.ndarray:
+def realistic_windows(k: int, d: int, seed: int = 0) -> np.ndarray:
     """Realistic windows: a smooth random walk of forces, clipped to +-2 N."""
     rng = np.random.default_rng(seed)
     x = np.cumsum(rng.normal(0.0, 0.01, (k, d)), axis=0)
     return np.clip(x, -2.0, 2.0).astype(np.float32)
 
 
-def _time_calls(fn: Callable[[int], object], n: int, offset: int) -> list[float]:
+def time_calls(fn: Callable[[int], object], n: int, offset: int = 0) -> list[float]:
+    """Microseconds of each of ``fn(offset)``, ..., ``fn(offset + n - 1)``."""
     out = []
     for i in range(n):
         t0 = time.perf_counter_ns()
         fn(offset + i)
         out.append((time.perf_counter_ns() - t0) / 1e3)
     return out
+
+
+def torch_eager_step(nets: list, wins: np.ndarray) -> tuple[Callable[[int], float], Callable[[], None]]:
+    """The reference implementation's decision on window ``i``: every member in eager mode, a Python loop
+    over members, one window at a time, hidden states carried. Returns (step, reset of the states)."""
+    import torch
+
+    wins_t = torch.from_numpy(wins)
+    h = [torch.zeros(1, net.hidden) for net in nets]
+
+    @torch.no_grad()
+    def step(i: int) -> float:
+        x = wins_t[i : i + 1]
+        acc = 0.0
+        for k, net in enumerate(nets):
+            p, h[k] = net(x, h[k])
+            acc += float(p[0, 1])
+        return acc / len(nets)
+
+    def reset() -> None:
+        h[:] = [torch.zeros(1, net.hidden) for net in nets]
+
+    return step, reset
 
 
 def _stats(us: list[float]) -> tuple[float, float, float]:
@@ -129,8 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     if len(nets) != z or nets[0].input_size != d:
         print(f"bench_inference: {args.reference} does not match {args.manifest}", file=sys.stderr)
         return 1
-    wins = _windows(args.steps, d)
-    wins_t = torch.from_numpy(wins)
+    wins = realistic_windows(args.steps, d)
 
     h_run = [np.zeros((z, 1, hid), np.float32)]
 
@@ -138,16 +161,7 @@ def main(argv: list[str] | None = None) -> int:
         p, _, h_run[0] = sess.run(None, {"window": wins[i][None], "h": h_run[0]})
         return float(p[0])
 
-    h_t = [torch.zeros(1, hid) for _ in nets]
-
-    @torch.no_grad()
-    def torch_loop(i: int) -> float:
-        x = wins_t[i : i + 1]
-        acc = 0.0
-        for k, net in enumerate(nets):
-            p, h_t[k] = net(x, h_t[k])
-            acc += float(p[0, 1])
-        return acc / len(nets)
+    torch_loop, torch_reset = torch_eager_step(nets, wins)
 
     def ens_step(i: int) -> float:
         return ens.step(wins[i]).p_slip
@@ -164,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     p_onnx = np.array([ens_step(i) for i in range(min(200, args.steps))])
     p_torch = np.array([torch_loop(i) for i in range(min(200, args.steps))])
     ens.reset()
-    h_t[:] = [torch.zeros(1, hid) for _ in nets]
+    torch_reset()
     print(f"parity over {len(p_onnx)} decisions: max |p_slip onnx - torch| = {np.abs(p_onnx - p_torch).max():.2e}")
     for path, e in extras.items():
         p_x = np.array([e.step(wins[i]).p_slip for i in range(len(p_onnx))])
@@ -175,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     per_round = max(1, args.steps // args.rounds)
     for r in range(args.rounds):
         for name, fn in impls.items():
-            times[name] += _time_calls(fn, per_round, r * per_round)
+            times[name] += time_calls(fn, per_round, r * per_round)
 
     n_each = per_round * args.rounds
     print(f"\nper decision (B=1, one thread, {n_each} decisions each, {args.rounds} alternating rounds)")

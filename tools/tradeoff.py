@@ -52,6 +52,7 @@ import numpy as np  # noqa: E402
 from slipd.evaluation import summarize  # noqa: E402
 from slipd.features import FeatureSpec, FeatureStream  # noqa: E402
 from slipd.recording import list_recordings  # noqa: E402
+from tools.bench_inference import realistic_windows, time_calls, torch_eager_step  # noqa: E402
 from tools.evaluate import evaluate_paths  # noqa: E402
 
 DEFAULT_REF = ROOT.parent / "shared" / "reference" / "checkpoints" / "hexapod"
@@ -145,12 +146,7 @@ def accuracy(pt: Point, paths: list[Path], workers: int) -> dict:
 
 # ------------------------------------------------------------------------------------------ time
 def _time_us(fn, n: int) -> np.ndarray:
-    out = np.empty(n)
-    for i in range(n):
-        t0 = time.perf_counter_ns()
-        fn(i)
-        out[i] = (time.perf_counter_ns() - t0) / 1e3
-    return out
+    return np.asarray(time_calls(fn, n))
 
 
 def step_time(manifest: str, n: int, reference=None, rounds: int = 4) -> tuple[np.ndarray, np.ndarray | None]:
@@ -159,8 +155,7 @@ def step_time(manifest: str, n: int, reference=None, rounds: int = 4) -> tuple[n
     from slipd.ensemble import Ensemble
 
     ens = Ensemble.load(manifest, threads=1)
-    rng = np.random.default_rng(0)
-    wins = np.clip(np.cumsum(rng.normal(0, 0.01, (n, ens.feature_spec.input_size)), 0), -2, 2).astype(np.float32)
+    wins = realistic_windows(n, ens.feature_spec.input_size)
     _time_us(lambda i: ens.step(wins[i % n]), min(50, n))  # warm caches
     per = max(1, n // rounds)
     ours, ref = [], []
@@ -180,8 +175,8 @@ def feature_time(spec: FeatureSpec, n: int = 4000) -> float:
 
 
 def torch_reference_step(ref: Path, n: int):
-    """The reference implementation's decision (authors' checkpoints, torch eager, members in a Python
-    loop, one window at a time) as a callable ``step(i)``; None without torch or checkpoints."""
+    """The reference implementation's decision (``tools.bench_inference.torch_eager_step`` on the authors'
+    checkpoints) as a callable ``step(i)`` over ``n`` windows; None without torch or checkpoints."""
     try:
         import torch
 
@@ -192,20 +187,9 @@ def torch_reference_step(ref: Path, n: int):
         return None
     torch.set_num_threads(1)
     nets = load_reference_ensemble(ref)
-    rng = np.random.default_rng(0)
-    x = torch.from_numpy(np.clip(np.cumsum(rng.normal(0, 0.01, (n, nets[0].input_size)), 0), -2, 2).astype(np.float32))
-    h = [torch.zeros(1, nets[0].hidden) for _ in nets]
-
-    @torch.no_grad()
-    def step(i: int) -> float:
-        acc = 0.0
-        for k, net in enumerate(nets):
-            p, h[k] = net(x[i % n : i % n + 1], h[k])
-            acc += float(p[0, 1])
-        return acc / len(nets)
-
+    step, _ = torch_eager_step(nets, realistic_windows(n, nets[0].input_size))
     _time_us(step, min(50, n))
-    return step
+    return lambda i: step(i % n)
 
 
 # ------------------------------------------------------------------------------------------ report
