@@ -7,11 +7,16 @@ Stages, in order, per sample:
                   the sensor's own bias command zeroed it);
     3. clip       tared forces are clipped to twice the sensor's range, so an absurd value (1e6 N)
                   becomes a short, bounded spike that the median filter removes;
-    4. select     the manifest's pillars and channels, pillar-major: [P_a fx, P_a fy, P_b fx, ...];
+    4. select     the manifest's pillars and channels, pillar-major: [P_a fx, P_a fy, P_b fx, ...]
+                  (a spec with a derived channel selects all three axes of its pillars here);
     5. median     causal median of the last ``median`` samples. At the start of a stream the history
                   is filled with copies of the first sample (edge padding), so every output is the
                   median of exactly ``median`` values: defined, exact (an element, no averaging) and
                   identical between streaming and batch;
+    5b. derive    only for specs with a derived channel (``DERIVED``): per filtered sample, the
+                  derived channels are computed from that pillar's filtered fx, fy, fz and the
+                  spec's channels are put in order (``FeatureSpec.derive``, the one function both
+                  paths call);
     6. window     ``window`` consecutive filtered samples flattened time-major ([T, C] -> [T*C]).
                   Windows end every ``stride`` samples (``stride == window``: the method's
                   non-overlapping windows); the first ends at sample ``window - 1``.
@@ -29,11 +34,40 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from slipd.geometry import FT_RANGE_N, FZ_RANGE_N, N_PILLARS, OUTER
+from slipd.geometry import CONTACT_THRESHOLD_N, FT_RANGE_N, FZ_RANGE_N, N_PILLARS, OUTER
 
 CHANNEL_INDEX = {"fx": 0, "fy": 1, "fz": 2}
+DERIVED = ("util", "lutil", "ux", "uy")
+"""Derived channels, computed from a pillar's filtered forces after the median (stage 5b):
+
+util  friction utilisation |Ft| / max(Fz, 0.5 N): the share of the friction cone a pillar uses, up to the
+      (unknown) friction coefficient. A pillar that slides carries mu_k * Fz, so while the whole contact
+      slides every in-contact pillar shows the same value, whereas a sticking contact shares its load by
+      deflection, not by normal force. The ratio is independent of grip force and object weight, which is
+      what lets one model read both a 30 N hexapod press and a light 8 N grasp. The floor is the SDK's
+      contact threshold: a pillar off the surface reads noise / 0.5 N, near 0.
+lutil ln(max(util, 0.01)): the same on a log scale, where "every pillar uses the same share of its friction
+      cone" is a difference of zero between pillars whatever the friction coefficient (0.1 or 0.9), a
+      comparison a first linear layer makes directly. The floor keeps noise on unloaded pillars at -4.6.
+ux, uy fx / max(Fz, 0.5 N) and fy / max(Fz, 0.5 N): the utilisation as a vector (util is its length), which
+      keeps the direction each pillar is loaded in (a rotation loads pillars in different directions).
+"""
+ALL_CHANNELS = (*CHANNEL_INDEX, *DERIVED)
+UTIL_FLOOR_N = CONTACT_THRESHOLD_N
+LUTIL_FLOOR = np.float32(0.01)
 CLIP_N = np.array([2 * FT_RANGE_N, 2 * FT_RANGE_N, 2 * FZ_RANGE_N], dtype=np.float32)
 """Bound on tared forces per axis (twice the sensor's range)."""
+
+
+def channel_bound(channel: str) -> float:
+    """Largest magnitude ``channel`` can take in a window (clipped forces; util from clipped forces)."""
+    if channel == "util":
+        return float(np.hypot(CLIP_N[0], CLIP_N[1]) / UTIL_FLOOR_N)
+    if channel in ("ux", "uy"):
+        return float(CLIP_N[0] / UTIL_FLOOR_N)
+    if channel == "lutil":
+        return float(max(np.log(channel_bound("util")), -np.log(LUTIL_FLOOR)))
+    return float(CLIP_N[CHANNEL_INDEX[channel]])
 TARE_GLITCH_FLOOR_N = 0.05
 """Smallest deviation from the median that ``tare_offset`` may treat as a glitch (five noise sigmas)."""
 
@@ -62,15 +96,55 @@ class FeatureSpec:
             raise ValueError(f"pillars must be SDK indices 0..8, got {self.pillars}")
         if len(set(self.pillars)) != len(self.pillars):
             raise ValueError(f"pillars repeat: {self.pillars}")
-        unknown = [c for c in self.channels if c not in CHANNEL_INDEX]
-        if unknown or not self.channels:
-            raise ValueError(f"channels must be among fx, fy, fz, got {self.channels}")
+        unknown = [c for c in self.channels if c not in ALL_CHANNELS]
+        if unknown or not self.channels or len(set(self.channels)) != len(self.channels):
+            raise ValueError(f"channels must be distinct, among {', '.join(ALL_CHANNELS)}, got {self.channels}")
         if self.window < 1 or self.median < 1 or self.median % 2 == 0:
             raise ValueError(f"window >= 1 and an odd median width are required (got {self.window}, {self.median})")
         if not 0 <= self.stride <= self.window:
             raise ValueError(f"stride must be in 0..window, got {self.stride}")
-        cols = tuple(p * 3 + CHANNEL_INDEX[c] for p in self.pillars for c in self.channels)
+        if self.derived:
+            cols = tuple(p * 3 + a for p in self.pillars for a in range(3))
+        else:
+            cols = tuple(p * 3 + CHANNEL_INDEX[c] for p in self.pillars for c in self.channels)
         object.__setattr__(self, "_cols", cols)
+
+    @property
+    def derived(self) -> bool:
+        """True when a channel is computed after the median (stage 5b) rather than selected."""
+        return any(c in DERIVED for c in self.channels)
+
+    @property
+    def n_base(self) -> int:
+        """Columns selected in stage 4 and median-filtered (equals ``n_channels`` without derived channels)."""
+        return len(self._cols)
+
+    def derive(self, filtered: np.ndarray) -> np.ndarray:
+        """Stage 5b: [T, n_base] filtered samples -> [T, n_channels]; the identity without derived channels.
+
+        Elementwise float32 arithmetic per sample, so any split of a recording into pieces gives the same
+        values bit for bit (the streaming and batch paths both call this).
+        """
+        if not self.derived:
+            return filtered
+        f = filtered.reshape(len(filtered), len(self.pillars), 3)
+        parts = []
+        util = None
+        fz = np.maximum(f[:, :, 2], np.float32(UTIL_FLOOR_N))
+        for c in self.channels:
+            if c in ("util", "lutil") and util is None:
+                util = np.hypot(f[:, :, 0], f[:, :, 1]) / fz
+            if c == "ux":
+                parts.append(f[:, :, 0] / fz)
+            elif c == "uy":
+                parts.append(f[:, :, 1] / fz)
+            elif c == "util":
+                parts.append(util)
+            elif c == "lutil":
+                parts.append(np.log(np.maximum(util, LUTIL_FLOOR)))
+            else:
+                parts.append(f[:, :, CHANNEL_INDEX[c]])
+        return np.stack(parts, axis=-1).astype(np.float32, copy=False).reshape(len(filtered), self.n_channels)
 
     @property
     def n_channels(self) -> int:
@@ -155,7 +229,7 @@ def _hold_last_finite(x: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def prepare_samples(force: np.ndarray, spec: FeatureSpec, offset: np.ndarray | None = None) -> tuple[np.ndarray, int]:
-    """Stages 1-4 on a whole recording: [N, 9, 3] raw forces -> [N, C] float32, and the non-finite count."""
+    """Stages 1-4 on a whole recording: [N, 9, 3] raw forces -> [N, n_base] float32, and the non-finite count."""
     flat = np.asarray(force, dtype=np.float32).reshape(len(force), N_PILLARS * 3)
     flat, n_bad = _hold_last_finite(flat)
     off = np.zeros(N_PILLARS * 3, np.float32) if offset is None else np.asarray(offset, np.float32).reshape(-1)
@@ -182,7 +256,7 @@ def batch_windows(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The whole pipeline on a recording: ([K, T*C] float32 windows, [K] index of each window's last sample)."""
     x, _ = prepare_samples(force, spec, offset)
-    filtered = causal_median(x, spec.median)
+    filtered = spec.derive(causal_median(x, spec.median))
     ends = window_ends(len(filtered), spec)
     if len(ends) == 0:
         return np.zeros((0, spec.input_size), np.float32), ends
@@ -211,7 +285,7 @@ class FeatureStream:
         self._hist_len = spec.median - 1 + spec.window
         # Linear buffer twice the history: writes append, and a shift happens once per history
         # length, so the window is always a contiguous slice (no per-sample allocation).
-        self._buf = np.zeros((2 * self._hist_len, spec.n_channels), np.float32)
+        self._buf = np.zeros((2 * self._hist_len, spec.n_base), np.float32)
         self._last_good = np.zeros(N_PILLARS * 3, np.float32)
         self._scratch = np.zeros(N_PILLARS * 3, np.float32)
         self._abs = np.zeros(N_PILLARS * 3, np.float32)
@@ -272,7 +346,7 @@ class FeatureStream:
         if n < spec.window or (n - spec.window) % spec.step:
             return None
         hist = self._buf[self._end - self._hist_len : self._end]
-        filtered = causal_median_tail(hist, spec.median)
+        filtered = spec.derive(causal_median_tail(hist, spec.median))
         return filtered.reshape(-1).copy()
 
     def push_many(self, samples: np.ndarray) -> list[tuple[int, np.ndarray]]:
@@ -318,7 +392,7 @@ class FeatureStream:
             self._append(rows[done : i + 1])
             done = i + 1
             hist = self._buf[self._end - self._hist_len : self._end]
-            out.append((i, causal_median_tail(hist, spec.median).reshape(-1).copy()))
+            out.append((i, spec.derive(causal_median_tail(hist, spec.median)).reshape(-1).copy()))
         self._append(rows[done:])
         self._n = n0 + k
         return out

@@ -107,6 +107,28 @@ def test_window_labels_take_last_sample() -> None:
     assert window_labels(label, ends).tolist() == [0, 1, 0, 0, 0]
 
 
+def test_util_channel_is_friction_utilisation_of_filtered_forces() -> None:
+    # util = |Ft| / max(Fz, 0.5 N) of the median-filtered forces, in the spec's channel order, pillar-major.
+    spec = FeatureSpec(pillars=(4, 0), channels=("util", "fx"), median=5, window=10)
+    n = 30
+    force = np.zeros((n, 9, 3), np.float32)
+    force[:, 4] = [0.3, 0.4, 2.0]  # |Ft| 0.5 over Fz 2: 0.25
+    force[:, 0] = [0.06, 0.08, 0.1]  # off the surface: |Ft| 0.1 over the 0.5 N floor: 0.2
+    force[17, 4, 2] = 100.0  # one glitch: the median removes it before the division
+    win, _ = batch_windows(force, spec)
+    rows = win.reshape(len(win), spec.window, 4)
+    assert np.allclose(rows[..., 0], 0.25) and np.allclose(rows[..., 1], 0.3)
+    assert np.allclose(rows[..., 2], 0.2) and np.allclose(rows[..., 3], 0.06)
+    assert spec.n_base == 6 and spec.input_size == 40
+    logs, _ = batch_windows(force, spec.with_(channels=("lutil",)))
+    assert np.allclose(logs.reshape(-1, 2), np.log([0.25, 0.2]))
+    vec, _ = batch_windows(force, spec.with_(channels=("ux", "uy")))
+    assert np.allclose(vec.reshape(-1, 2, 2), [[0.15, 0.2], [0.12, 0.16]])  # (fx, fy) / max(Fz, 0.5 N)
+    force[:, 0] = 0.0  # no load at all: the floor, not -inf
+    logs, _ = batch_windows(force, spec.with_(channels=("lutil",)))
+    assert np.allclose(logs.reshape(-1, 2), np.log([0.25, 0.01]))
+
+
 def test_spec_roundtrip_and_validation() -> None:
     spec = FeatureSpec(stride=20)
     assert FeatureSpec.from_dict(spec.to_dict()) == spec
@@ -116,6 +138,12 @@ def test_spec_roundtrip_and_validation() -> None:
         FeatureSpec(pillars=(0, 9))
     with pytest.raises(TypeError):
         FeatureSpec.from_dict({**spec.to_dict(), "bogus": 1})
+    with pytest.raises(ValueError, match="distinct"):
+        FeatureSpec(channels=("fx", "fx"))
+    with pytest.raises(ValueError):
+        FeatureSpec(channels=("dx",))
+    derived = FeatureSpec(channels=("fx", "fy", "util"))
+    assert FeatureSpec.from_dict(derived.to_dict()) == derived
 
 
 @settings(max_examples=25, deadline=None)
@@ -124,9 +152,10 @@ def test_spec_roundtrip_and_validation() -> None:
     window=st.sampled_from([10, 20, 40]),
     median=st.sampled_from([1, 5, 11, 21]),
     seed=st.integers(0, 2**16),
+    channels=st.sampled_from([("fx", "fy"), ("fx", "fy", "util"), ("util", "fz"), ("lutil",), ("ux", "uy", "util")]),
 )
-def test_stream_equals_batch_property(n: int, window: int, median: int, seed: int) -> None:
-    spec = FeatureSpec(window=window, median=median)
+def test_stream_equals_batch_property(n: int, window: int, median: int, seed: int, channels: tuple) -> None:
+    spec = FeatureSpec(window=window, median=median, channels=channels)
     force = _signal(n, seed) if n else np.zeros((0, 9, 3), np.float32)
     batch, _ = batch_windows(force, spec)
     streamed = stream_windows(force, spec)
@@ -143,12 +172,13 @@ def test_stream_equals_batch_property(n: int, window: int, median: int, seed: in
     blocks=st.lists(st.integers(1, 150), min_size=1, max_size=20),
     seed=st.integers(0, 2**16),
     glitches=st.booleans(),
+    derived=st.booleans(),
 )
 def test_push_many_equals_push_and_batch(n: int, stride: int, median: int, blocks: list[int], seed: int,
-                                         glitches: bool) -> None:
+                                         glitches: bool, derived: bool) -> None:
     # Blocks of any size (1 to more than the history) give the windows, at the same samples, and the
     # counters that push gives sample by sample, and the batch windows.
-    spec = FeatureSpec(stride=stride, median=median)
+    spec = FeatureSpec(stride=stride, median=median, channels=("fx", "fy", "util") if derived else ("fx", "fy"))
     force = _signal(n, seed) if n else np.zeros((0, 9, 3), np.float32)
     if glitches and n > 10:
         rng = np.random.default_rng(seed)

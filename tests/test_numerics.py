@@ -530,14 +530,14 @@ def test_exported_graph_cannot_make_nan_from_finite_inputs(variants, prec: str) 
 
     Catches: a naive softmax (Exp), a Div or Log added by a later edit, a missing input or state clip (then
     3e38 inputs overflow MatMul), and an fp16 graph whose activations can exceed 65504 on real windows."""
-    from slipd.features import CHANNEL_INDEX
+    from slipd.features import channel_bound
 
     model = onnx.load(str(variants[prec].manifest_path.with_name(variants[prec].manifest.onnx_file)))
     if prec == "fp32":
         dtype_max, window_bound = float(np.finfo(np.float32).max), float(np.finfo(np.float32).max)
     else:
         dtype_max = float(np.finfo(np.float16).max)
-        window_bound = float(max(CLIP_N[CHANNEL_INDEX[c]] for c in SPEC.channels))
+        window_bound = max(channel_bound(c) for c in SPEC.channels)
     bounds = interval_bounds(model, window_bound)
     worst = max(bounds.values())
     assert np.isfinite(worst) and worst < dtype_max / 2, (prec, worst)  # half: room for rounding

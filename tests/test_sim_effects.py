@@ -135,3 +135,18 @@ def test_gripper_effects_gravity_torque_and_servo_lag():
     lag = _grip([{"name": "servo_lag", "tau_s": 0.2, "max_rate_n_s": 10.0}])
     k = int(0.55 * 1000)  # grip ramp ends at 0.6 s
     assert lag.force[k, :, 2].sum() < none.force[k, :, 2].sum() - 0.5
+
+
+def test_reported_displacement_carries_the_force_measurement_error(clean):
+    # The sensor computes forces from the displacements it measures, so one error shows in both: the
+    # tangential force error over k_t is in dx, dy; the compression dz stays the true one.
+    from slipd.sim.physics import sensor_params
+
+    noisy = hexrec([{"name": "noise"}, {"name": "glitches"}, {"name": "quantisation"}])
+    kt = sensor_params("v1").kt_n_mm
+    err_f = noisy.force[..., :2].astype(np.float64) - clean.force[..., :2]
+    err_d = noisy.disp[..., :2].astype(np.float64) - clean.disp[..., :2]
+    unsaturated = np.abs(noisy.force[..., :2]) < FT_RANGE_N  # saturation clips the force, not the deflection
+    assert np.allclose(err_d[unsaturated], err_f[unsaturated] / kt, atol=1e-6)
+    assert err_d.std() > 0.001  # noise of 0.01 N over 3.5 N/mm: about 0.003 mm
+    assert np.array_equal(noisy.disp[..., 2], clean.disp[..., 2])

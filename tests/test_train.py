@@ -315,3 +315,20 @@ def test_slip_span_labels_run_from_onset_to_gross_motion() -> None:
     # No events: the incipient span itself; a stop trial stays silent.
     assert np.array_equal(T.slip_span_labels(label, {}, t), label)
     assert not T.slip_span_labels(np.zeros(2000, np.uint8), {"gross_motion": 1.0}, t).any()
+
+
+def test_only_trains_the_listed_members_and_they_equal_a_full_run(data_dir: Path, tmp_path: Path) -> None:
+    # Members depend on (--seed, index) alone, so --only splits a run across processes without changing it;
+    # the derived util channel trains through the same pipeline.
+    args = ["--data", str(data_dir), "--tiny", "--quiet", "--channels", "util", "--label-span", "slip",
+            "--threads", "1"]
+    assert T.main([*args, "--out", str(tmp_path / "full")]) == 0
+    assert T.main([*args, "--out", str(tmp_path / "part"), "--only", "1"]) == 0
+    assert sorted(p.name for p in (tmp_path / "part").glob("member_*.pt")) == ["member_1.pt"]
+    full = torch.load(tmp_path / "full" / "member_1.pt", weights_only=True)
+    part = torch.load(tmp_path / "part" / "member_1.pt", weights_only=True)
+    assert FeatureSpec.from_dict(part["feature_spec"]).channels == ("util",)
+    for key, value in full["state_dict"].items():
+        assert torch.equal(value, part["state_dict"][key]), key
+    with pytest.raises(SystemExit):
+        T.main([*args, "--out", str(tmp_path / "bad"), "--only", "2"])

@@ -343,9 +343,9 @@ def export(
     # channels (twice the sensor range), which leaves every real window unchanged.
     input_clip = INPUT_CLIP
     if precision == "fp16":
-        from slipd.features import CHANNEL_INDEX, CLIP_N
+        from slipd.features import channel_bound
 
-        input_clip = float(max(CLIP_N[CHANNEL_INDEX[c]] for c in spec.channels))
+        input_clip = max(channel_bound(c) for c in spec.channels)
     model = build_graph(members, "fp16" if precision == "fp16" else "fp32", input_clip)
     data = model.SerializeToString()
     if precision == "int8":

@@ -438,7 +438,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--pos-weight", type=float, default=1.0,
                    help="loss weight of the slip class (1 = the method's unweighted cross-entropy)")
     p.add_argument("--channels", default="fx,fy",
-                   help="per-pillar channels, comma list among fx,fy,fz (the method: fx,fy)")
+                   help="per-pillar channels, comma list among fx,fy,fz and the derived util (|Ft|/Fz) "
+                        "and lutil (its log), see slipd.features.DERIVED; the method: fx,fy")
     p.add_argument("--label-span", choices=("incipient", "slip"), default="incipient",
                    help="positive windows: incipient slip only (the method) or from its onset until the object "
                         "has moved 2 mm / 2 deg")
@@ -448,6 +449,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="samples: also label a window positive when incipient slip starts this soon after it")
     p.add_argument("--window", type=int, default=40, help="samples per window (the method: 40)")
     p.add_argument("--median", type=int, default=21, help="causal median width, odd (the method: 21)")
+    p.add_argument("--logit-norm", choices=("batch", "fixed"), default="batch",
+                   help="normalisation of the output logits: the method's BatchNorm ('batch') or a learned scale "
+                        "and shift without batch statistics ('fixed', see tools/slipnet.py)")
     p.add_argument("--clip-grad", type=float, default=0.0, help="gradient norm clip (0 = off)")
     p.add_argument("--enc", type=int)
     p.add_argument("--hidden", type=int)
@@ -457,6 +461,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-eval", action="store_true", help="skip the eval-mode pass over all data per member")
     p.add_argument("--overwrite", action="store_true", help="retrain members whose checkpoint exists")
+    p.add_argument("--only", type=int, nargs="+",
+                   help="train only these member indices (each member's randomness depends on --seed and its "
+                        "index alone, so two processes with disjoint --only lists give the checkpoints one run "
+                        "gives)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     defaults = TINY if args.tiny else FULL
@@ -473,6 +481,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args.augs = sorted(augs)
     if args.members < 1 or args.epochs < 1 or args.batch < 1 or args.chunk < 1:
         p.error("--members, --epochs, --batch and --chunk must be >= 1")
+    if args.only is not None and not all(0 <= k < args.members for k in args.only):
+        p.error(f"--only: member indices must be in 0..{args.members - 1}")
     if not 0 < args.bootstrap <= 1:
         p.error("--bootstrap must be in (0, 1]")
     return args
@@ -501,7 +511,8 @@ def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureS
     """Train member ``k`` and return its checkpoint dict (also logs one line per epoch to ``log``)."""
     rng = np.random.default_rng([args.seed, k])
     torch.manual_seed(args.seed * 1000 + k)
-    net = SlipNet(spec.input_size, hidden=args.hidden, enc=args.enc, pred=args.pred).to(args.device)
+    net = SlipNet(spec.input_size, hidden=args.hidden, enc=args.enc, pred=args.pred,
+                  logit_norm=args.logit_norm).to(args.device)
     opt = make_optimizer(net, args)
     augs = set(args.augs)
     n_lanes = max(1, args.batch // args.chunk)
@@ -565,6 +576,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{args.members} members x {args.epochs} epochs -> {args.out}", file=sys.stderr)
     with open(args.out / "train_log.jsonl", "a") as log:
         for k in range(args.members):
+            if args.only is not None and k not in args.only:
+                continue
             path = args.out / f"member_{k}.pt"
             if path.exists() and not args.overwrite:
                 log.write(json.dumps({"member": k, "event": "skipped", "reason": f"{path.name} exists"}) + "\n")

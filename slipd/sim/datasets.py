@@ -18,7 +18,15 @@ import numpy as np
 
 from slipd.geometry import CORNERS, HEIGHT_OFFSET_MM
 from slipd.sim.physics import compression_for_force, sensor_params
-from slipd.sim.scene import GripperScene, HexapodScene, ObjectModel, generate_batch, parse_scene, secure_grip_n
+from slipd.sim.scene import (
+    GENERATOR_VERSION,
+    GripperScene,
+    HexapodScene,
+    ObjectModel,
+    generate_batch,
+    parse_scene,
+    secure_grip_n,
+)
 
 SETS = ("offline", "transfer")
 SPLITS = ("train", "test")
@@ -211,7 +219,7 @@ def write_dataset(set_name: str, split: str, out: str | Path, count: int | None 
             progress(len(chunk))
     index = {
         "set": set_name, "split": split, "seed": seed, "count": len(entries),
-        "generator": "slipd.sim/1",
+        "generator": GENERATOR_VERSION,
         "slip": sum(e["kind"] == "slip" for e in entries), "stop": sum(e["kind"] == "stop" for e in entries),
         "slip_with_onset": sum("onset" in e["events"] for e in entries if e["kind"] == "slip"),
         "simulated_s": round(sim_s, 3), "physics_wall_s": round(wall, 3),

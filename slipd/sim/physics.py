@@ -217,6 +217,23 @@ def pillar_outputs(u: np.ndarray, c: np.ndarray, fz: np.ndarray, sensor: SensorP
     return force, disp
 
 
+def measured_disp(disp: np.ndarray, force_true: np.ndarray, force_measured: np.ndarray,
+                  sensor: SensorParams) -> np.ndarray:
+    """The tip deflection the sensor reports: the true one plus the measurement error of the forces.
+
+    A PapillArray measures each pillar tip's displacement optically (4 photodiodes) and computes the forces
+    from it by its factory calibration, so one measurement error shows in both outputs. The tangential
+    force error (noise, drift, glitches, filtering, quantisation: whatever the ``signal`` effects added)
+    over the tangential stiffness is therefore added to ``dx, dy``; ``dz`` stays the true compression
+    (nothing reads it). Without this, the simulator reported noise-free displacements next to noisy forces,
+    which flattered every detector that differentiates displacements.
+    """
+    out = np.array(disp, dtype=np.float64, copy=True)
+    err = np.asarray(force_measured, np.float64)[..., :2] - np.asarray(force_true, np.float64)[..., :2]
+    out[..., :2] += err / sensor.kt_n_mm
+    return out
+
+
 def saturate(force: np.ndarray, sensor: SensorParams) -> np.ndarray:
     """Clip forces to the sensor's ranges as the real sensor saturates (+-ft tangential, +-fz normal).
 

@@ -47,7 +47,7 @@ from slipd.geometry import CONTACT_THRESHOLD_N, OUTER
 from slipd.sim import effects as fx
 from slipd.sim.devices.mx28 import JawParams
 from slipd.sim.harness import EmulatedDevices
-from slipd.sim.physics import DT_S, GripperStepper, ObjectParams, saturate, sensor_params
+from slipd.sim.physics import DT_S, GripperStepper, ObjectParams, measured_disp, saturate, sensor_params
 from slipd.sim.scene import GripperScene, gripper_context, incipient_labels, load_scene
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -171,11 +171,12 @@ class RigPhysics:
         out = st.step(np.array([grip]), accel, self.load, self.com)
         force = saturate(out.force, self.sensor)[0]
         measured = self._measure(force, i)
-        self.force[i], self.disp[i] = measured, out.disp[0]
+        disp = measured_disp(out.disp[0], force, measured, self.sensor)
+        self.force[i], self.disp[i] = measured, disp
         self.slip[i], self.motion[i] = out.slip[0], out.object_motion[0]
         self.grip[i], self.arm_speed[i], self.mono[i] = grip, v_up, time.monotonic()
         self.steps = i + 1
-        return measured, out.disp[0].astype(np.float32)
+        return measured, disp.astype(np.float32)
 
     def device_inputs(self) -> tuple[float, float]:
         """(grip force N, finger speed up mm/s) from the emulated servo and UR controller."""

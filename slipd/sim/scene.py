@@ -43,6 +43,7 @@ from slipd.sim.physics import (
     ObjectParams,
     compression,
     depth_for_total_force,
+    measured_disp,
     normal_force,
     pillar_outputs,
     run_hexapod,
@@ -50,7 +51,8 @@ from slipd.sim.physics import (
     sensor_params,
 )
 
-GENERATOR_VERSION = "slipd.sim/1"
+GENERATOR_VERSION = "slipd.sim/2"
+"""2: the reported tip displacements carry the force measurement error (``physics.measured_disp``)."""
 GROSS_MM, GROSS_DEG = 2.0, 2.0
 UR_LEVELS = {"low": (4.0, 10.0), "medium": (10.0, 50.0), "high": (40.0, 100.0)}
 """UR ``movel`` speed (mm/s) and acceleration (mm/s^2) levels of the method's online trials."""
@@ -429,6 +431,7 @@ def _finish(sc: HexapodScene | GripperScene, eff: list[fx.Effect], seed: int, ct
         label, onset, gross = incipient_labels(slip, _considered(motion_type, fz0), start, gross_motion)
     ctx.force = np.array(res["force"], np.float64)
     fx.run_stage("signal", eff, ctx, seed)
+    disp = measured_disp(res["disp"], res["force"], ctx.force, sensor_params(sc.sensor))
     force = saturate(ctx.force, sensor_params(sc.sensor))
     fx.run_stage("meta", eff, ctx, seed)
     events: dict[str, float] = {"motion_start": start * DT_S}
@@ -458,7 +461,7 @@ def _finish(sc: HexapodScene | GripperScene, eff: list[fx.Effect], seed: int, ct
     return Recording(
         t_us=np.arange(n, dtype=np.int64) * 1000,
         force=force.astype(np.float32),
-        disp=res["disp"].astype(np.float32),
+        disp=disp.astype(np.float32),
         slip=slip,
         label=label,
         object_motion=motion.astype(np.float32),
