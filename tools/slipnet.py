@@ -10,37 +10,15 @@ from pathlib import Path
 
 import torch
 from torch import nn
-from torch.nn import functional as F
-
-
-class EvalModeBatchNorm1d(nn.BatchNorm1d):
-    """A BatchNorm1d that always normalises with its stored statistics (0 and 1 unless loaded), never the
-    batch's: a learned per-class scale and shift with the layer's state-dict keys, so export folds it as
-    any BatchNorm.
-
-    Why: the method's BatchNorm on the two output logits re-centres every training batch's logits to the
-    same mean and spread, so the network cannot be confident about a whole batch, and the eval-mode
-    running statistics then map logits to probabilities differently from training. Ensembles trained so
-    had their P(slip) squeezed into a few hundredths around 0.5, and some members collapsed at eval time.
-    """
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.batch_norm(x, self.running_mean, self.running_var, self.weight, self.bias, False, 0.0, self.eps)
 
 
 class SlipNet(nn.Module):
     """Encoder MLP -> GRU cell -> predictor MLP -> 2-class softmax. ``forward(x, h) -> (probs, h_next)``."""
 
-    def __init__(self, input_size: int = 640, hidden: int = 128, enc: int = 1024, pred: tuple[int, int] = (256, 128),
-                 logit_norm: str = "batch"):
-        """``logit_norm``: "batch", the method's BatchNorm on the output logits (the authors' checkpoints), or
-        "fixed" (``EvalModeBatchNorm1d``: a learned scale and shift, no batch statistics)."""
+    def __init__(self, input_size: int = 640, hidden: int = 128, enc: int = 1024, pred: tuple[int, int] = (256, 128)):
         super().__init__()
-        if logit_norm not in ("batch", "fixed"):
-            raise ValueError(f"logit_norm must be 'batch' or 'fixed', got {logit_norm!r}")
         self.input_size = input_size
         self.hidden = hidden
-        self.logit_norm = logit_norm
         self.projector = nn.Sequential(
             nn.Linear(input_size, enc), nn.BatchNorm1d(enc), nn.ReLU(),
             nn.Linear(enc, hidden), nn.BatchNorm1d(hidden), nn.ReLU(),
@@ -49,8 +27,7 @@ class SlipNet(nn.Module):
         self.predictor = nn.Sequential(
             nn.Linear(hidden, pred[0]), nn.BatchNorm1d(pred[0]), nn.ReLU(),
             nn.Linear(pred[0], pred[1]), nn.BatchNorm1d(pred[1]), nn.ReLU(),
-            nn.Linear(pred[1], 2), nn.BatchNorm1d(2) if logit_norm == "batch" else EvalModeBatchNorm1d(2),
-            nn.Softmax(dim=1),
+            nn.Linear(pred[1], 2), nn.BatchNorm1d(2), nn.Softmax(dim=1),
         )
 
     def logits(self, x: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -69,7 +46,6 @@ class SlipNet(nn.Module):
             "hidden": self.hidden,
             "enc": self.projector[0].out_features,
             "pred": (self.predictor[0].out_features, self.predictor[3].out_features),
-            "logit_norm": self.logit_norm,
         }
 
 

@@ -449,9 +449,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="samples: also label a window positive when incipient slip starts this soon after it")
     p.add_argument("--window", type=int, default=40, help="samples per window (the method: 40)")
     p.add_argument("--median", type=int, default=21, help="causal median width, odd (the method: 21)")
-    p.add_argument("--logit-norm", choices=("batch", "fixed"), default="batch",
-                   help="normalisation of the output logits: the method's BatchNorm ('batch') or a learned scale "
-                        "and shift without batch statistics ('fixed', see tools/slipnet.py)")
     p.add_argument("--clip-grad", type=float, default=0.0, help="gradient norm clip (0 = off)")
     p.add_argument("--enc", type=int)
     p.add_argument("--hidden", type=int)
@@ -511,8 +508,7 @@ def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureS
     """Train member ``k`` and return its checkpoint dict (also logs one line per epoch to ``log``)."""
     rng = np.random.default_rng([args.seed, k])
     torch.manual_seed(args.seed * 1000 + k)
-    net = SlipNet(spec.input_size, hidden=args.hidden, enc=args.enc, pred=args.pred,
-                  logit_norm=args.logit_norm).to(args.device)
+    net = SlipNet(spec.input_size, hidden=args.hidden, enc=args.enc, pred=args.pred).to(args.device)
     opt = make_optimizer(net, args)
     augs = set(args.augs)
     n_lanes = max(1, args.batch // args.chunk)
