@@ -11,8 +11,8 @@ Two groups of points, each compared within itself:
   precision fp32 / fp16 / int8 (onnxruntime dynamic quantisation, Z = 5); decision stride 40 / 20 / 10
   samples with the window fixed at 40 (``slipd.detector`` runs window/stride phase-shifted GRU streams).
 * **retrained** (one member per point, ``--retrain-epochs`` epochs on ``--train-data`` with the shipped
-  recipe: Adam 1e-3, all pillars, plus ``--train-args``; threshold 0.5): window 10 / 20 / 40 samples
-  and median width 1 / 5 / 11 / 21.
+  recipe: Adam 1e-3, all pillars, plus ``--train-args``; each point's threshold tuned on ``--tune-data``,
+  train recordings): window 10 / 20 / 40 samples and median width 1 / 5 / 11 / 21.
   Window and median change what the network sees, so each needs its own model; the point (40, 21) is
   retrained under the same budget so the group compares like with like. Checkpoints are cached in
   ``--cache`` and reused by later runs.
@@ -136,6 +136,27 @@ def build_models(points: list[Point], run: Path, args: argparse.Namespace) -> No
         if not manifest.exists():
             _export(sub, out, pt.precision, pt.threshold)
         pt.manifest = str(manifest)
+        if pt.group == "retrained":
+            pt.threshold = _tuned_threshold(pt, sub, args)
+
+
+def _tuned_threshold(pt: Point, sub: Path, args: argparse.Namespace) -> float:
+    """A retrained member's threshold, tuned on ``--tune-data`` (train recordings) at the point's stride.
+
+    Single members of a recipe with a weighted loss do not centre on 0.5, so one fixed threshold would
+    compare thresholds, not configurations. Cached in ``<sub>/threshold.json``.
+    """
+    from tools.tune_threshold import tune
+
+    cached = sub / "threshold.json"
+    if cached.exists():
+        return float(json.loads(cached.read_text())["threshold"])
+    paths = [q for folder in args.tune_data for q in list_recordings(folder)][:: args.tune_every]
+    best, _ = tune(pt.manifest, paths, np.round(np.arange(0.3, 0.951, 0.05), 2), pt.stride, args.workers)
+    cached.write_text(json.dumps({"threshold": best["threshold"], "train_success": best["success"],
+                                  "recordings": len(paths)}) + "\n")
+    print(f"  {pt.name}: threshold {best['threshold']:.2f} ({100 * best['success']:.1f} % on train)", flush=True)
+    return float(best["threshold"])
 
 
 # ------------------------------------------------------------------------------------------ accuracy
@@ -242,7 +263,8 @@ def write_report(points: list[Point], torch_us: np.ndarray | None, args: argpars
                   "uses the rounds timed beside it.", ""]
     for group, title in (("ensemble", "Trained ensemble (no retraining), threshold "
                           f"{args.threshold}"),
-                         ("retrained", f"Retrained, 1 member, {args.retrain_epochs} epochs each, threshold 0.5")):
+                         ("retrained", f"Retrained, 1 member, {args.retrain_epochs} epochs each, threshold "
+                          "tuned per point on train recordings")):
         gp = [p for p in points if p.group == group]
         if not gp:
             continue
@@ -254,7 +276,8 @@ def write_report(points: list[Point], torch_us: np.ndarray | None, args: argpars
             f = p.figures
             speed = f"{f['speedup']:.1f}" if f.get("speedup") else "-"
             fah = "-" if f.get("false_alarms_per_hour") is None else f"{f['false_alarms_per_hour']:.0f}"
-            lines.append(f"| {p.name} | {_pct(f['success'])} | {f['tp']}/{f['fn']} | {f['fp']}/{f['tn']} | {fah} | "
+            name = p.name if group == "ensemble" else f"{p.name}, threshold {p.threshold:.2f}"
+            lines.append(f"| {name} | {_pct(f['success'])} | {f['tp']}/{f['fn']} | {f['fp']}/{f['tn']} | {fah} | "
                          f"{_ms(f['latency_median_s'])} / {_ms(f['latency_p90_s'])} | {f['step_median_us']:.0f} / "
                          f"{f['step_p99_us']:.0f} | {f['feature_us']:.1f} | {100 * f['cpu_share']:.1f} % | {speed} |")
         best, kp = knee(gp)
@@ -312,6 +335,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--every", type=int, default=1, help="use every k-th scene of --data (speed)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--retrain-epochs", type=int, default=8)
+    ap.add_argument("--tune-data", type=Path, nargs="+", default=[ROOT / "out" / "datasets" / "transfer_train"],
+                    help="train recordings on which each retrained point's threshold is tuned")
+    ap.add_argument("--tune-every", type=int, default=4, help="use every k-th recording of --tune-data")
     ap.add_argument("--train-args", default="",
                     help="extra tools/train.py flags for the retrained points (the shipped recipe), one string")
     ap.add_argument("--no-retrain", action="store_true", help="only the ensemble group")
@@ -326,7 +352,7 @@ def main(argv: list[str] | None = None) -> int:
     if not list(args.run.glob("member_*.pt")):
         raise SystemExit(f"tradeoff: no member_<k>.pt in {args.run} (see models/MODEL_CARD.md to make them)")
     args.cache.mkdir(parents=True, exist_ok=True)
-    cmd = "python tools/tradeoff.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    cmd = "python tools/tradeoff.py " + shlex.join(argv if argv is not None else sys.argv[1:])
 
     points = sweep_points(args.threshold, not args.no_retrain)
     build_models(points, args.run, args)

@@ -27,6 +27,52 @@ from slipd.recording import list_recordings  # noqa: E402
 from tools.evaluate import evaluate_paths  # noqa: E402
 
 
+def sweep(runs: list, thresholds: np.ndarray, criterion: str = "auto") -> list[dict]:
+    """Re-threshold stored traces: one row per threshold with success, slip TP/N, stop FP/N, median latency.
+
+    ``runs``: ``evaluate_paths`` output; ``criterion``: "online", "offline" or "auto" (online for gripper
+    trials, the offline criterion otherwise).
+    """
+    rows = []
+    for th in thresholds:
+        outcomes, lats = [], []
+        for _, trace, truth in runs:
+            p_arr = np.asarray(trace.p_slip)
+            hit = np.flatnonzero(p_arr >= th)
+            first = trace.t_s[hit[0]] if len(hit) else None
+            online = criterion == "online" or (criterion == "auto" and truth.family == "gripper")
+            out = online_outcome(truth, first) if online else offline_outcome(truth, first)
+            out = "tp" if out == "success" else out  # the online criterion's name for a hit
+            if out is None:
+                continue
+            outcomes.append(out)
+            if out == "tp" and truth.onset_s is not None:
+                lats.append(first - truth.onset_s)
+        n = len(outcomes)
+        slips = sum(o in ("tp", "early", "late", "missed") for o in outcomes)
+        rows.append({"threshold": float(th), "success": sum(o in ("tp", "tn") for o in outcomes) / n if n else 0.0,
+                     "tp": outcomes.count("tp"), "slips": slips, "fp": outcomes.count("fp"), "stops": n - slips,
+                     "median_latency_s": float(np.median(lats)) if lats else None})
+    return rows
+
+
+def best_row(rows: list[dict]) -> dict:
+    """Highest success; ties: the lower |median latency|."""
+    def key(r: dict) -> tuple:
+        lat = r["median_latency_s"]
+        return r["success"], -abs(lat) if lat is not None else -1e9
+    return max(rows, key=key)
+
+
+def tune(model: str, paths: list[Path], grid: np.ndarray, stride: int | None = None, workers: int = 2,
+         criterion: str = "auto") -> tuple[dict, list[dict]]:
+    """Stream ``paths`` once through ``model`` and sweep ``grid``: (best row, all rows)."""
+    # The threshold passed here only sets the stored alarm flags; the sweep re-thresholds p_slip.
+    runs = evaluate_paths(paths, "model", (model, 0.0, 0.5, stride), workers=workers, progress=False)
+    rows = sweep(runs, grid, criterion)
+    return best_row(rows), rows
+
+
 def main(argv: list[str] | None = None) -> int:
     """Sweep the grid and print the table; returns 0."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -40,38 +86,15 @@ def main(argv: list[str] | None = None) -> int:
                    help="success criterion: auto = online for gripper trials, the offline one otherwise")
     args = p.parse_args(argv)
     paths = [q for folder in args.recordings for q in list_recordings(folder)][:: args.every]
-    # The threshold passed here only sets the stored alarm flags; the sweep below re-thresholds p_slip.
-    runs = evaluate_paths(paths, "model", (args.model, 0.0, 0.5, args.stride), workers=args.workers, progress=False)
     a, b, s = (float(x) for x in args.grid.split(":"))
-    best = None
+    best, rows = tune(args.model, paths, np.arange(a, b + 1e-9, s), args.stride, args.workers, args.criterion)
     print(f"{len(paths)} train recordings")
     print("threshold  success  slip TP/N  stop FP/N  median latency")
-    for th in np.arange(a, b + 1e-9, s):
-        outcomes, lats = [], []
-        for _, trace, truth in runs:
-            p_arr = np.asarray(trace.p_slip)
-            hit = np.flatnonzero(p_arr >= th)
-            first = trace.t_s[hit[0]] if len(hit) else None
-            online = args.criterion == "online" or (args.criterion == "auto" and truth.family == "gripper")
-            out = online_outcome(truth, first) if online else offline_outcome(truth, first)
-            out = "tp" if out == "success" else out  # the online criterion's name for a hit
-            if out is None:
-                continue
-            outcomes.append(out)
-            if out == "tp" and truth.onset_s is not None:
-                lats.append(first - truth.onset_s)
-        n = len(outcomes)
-        ok = sum(o in ("tp", "tn") for o in outcomes)
-        slips = sum(o in ("tp", "early", "late", "missed") for o in outcomes)
-        stops = n - slips
-        fp = sum(o == "fp" for o in outcomes)
-        med = float(np.median(lats)) if lats else float("nan")
-        print(f"{th:9.2f}  {100 * ok / n:6.1f} %  {outcomes.count('tp'):4d}/{slips:<4d}  {fp:4d}/{stops:<4d}  "
-              f"{med * 1e3:8.1f} ms")
-        key = (ok / n, -abs(med) if lats else -1e9)
-        if best is None or key > best[0]:
-            best = (key, th)
-    print(f"best threshold {best[1]:.2f} (train success {100 * best[0][0]:.1f} %)")
+    for r in rows:
+        med = float("nan") if r["median_latency_s"] is None else r["median_latency_s"]
+        print(f"{r['threshold']:9.2f}  {100 * r['success']:6.1f} %  {r['tp']:4d}/{r['slips']:<4d}  "
+              f"{r['fp']:4d}/{r['stops']:<4d}  {med * 1e3:8.1f} ms")
+    print(f"best threshold {best['threshold']:.2f} (train success {100 * best['success']:.1f} %)")
     return 0
 
 
