@@ -183,7 +183,8 @@ class ModelConfig(_Section):
         None, description="tuned heuristic parameters (JSON); null: baselines.json beside the manifest"
     )
     stride: int = Field(
-        0, ge=0, le=10_000, description="decision every N samples; 0 = the manifest's stride (the model's window when the manifest "
+        0, ge=0, le=10_000,
+        description="decision every N samples; 0 = the manifest's stride (the model's window when the manifest "
         "has none); otherwise it must divide the window"
     )
 
