@@ -304,6 +304,14 @@ def online_outcome(truth: SceneTruth, first_alarm_s: float | None) -> str | None
     return "late" if first_alarm_s > gross else "success"
 
 
+def scored_outcome(truth: SceneTruth, first_alarm_s: float | None, criterion: str = "auto") -> str | None:
+    """One sequence under the criterion the figures use: "online", "offline", or "auto" (online for gripper
+    trials, offline for hexapod scenes). A hit is "tp" under both (the online criterion calls it "success")."""
+    online = criterion == "online" or (criterion == "auto" and truth.family == "gripper")
+    out = online_outcome(truth, first_alarm_s) if online else offline_outcome(truth, first_alarm_s)
+    return "tp" if out == "success" else out
+
+
 def evaluate_scene(truth: SceneTruth, trace: Trace) -> SceneResult:
     """All per-scene figures from the truth and the decisions."""
     first = trace.first_alarm_s()

@@ -53,8 +53,7 @@ from slipd.evaluation import (  # noqa: E402
     Trace,
     confusion,
     evaluate_scene,
-    offline_outcome,
-    online_outcome,
+    scored_outcome,
     summarize,
 )
 from slipd.features import FeatureSpec, tare_offset  # noqa: E402
@@ -389,9 +388,7 @@ def tune_baseline(name: str, feats: dict, frontend: FrontEndParams, grid: dict |
             first = None
             if pos[k] < len(idx) and idx[pos[k]] < ends[k]:
                 first = float(feats["t_s"][idx[pos[k]]])
-            # The criterion the test figures use: online for gripper trials, offline for hexapod scenes.
-            o = online_outcome(truth, first) if truth.family == "gripper" else offline_outcome(truth, first)
-            o = "tp" if o == "success" else o
+            o = scored_outcome(truth, first)  # online for gripper trials, offline for hexapod scenes
             tp += o == "tp"
             tn += o == "tn"
             if o == "tp" and truth.onset_s is not None:

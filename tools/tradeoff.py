@@ -1,6 +1,6 @@
 """What accuracy costs in time: sweep the knobs of the detector and measure both sides on the same scenes.
 
-    python tools/tradeoff.py [--run out/util5] [--threshold 0.5] [--data out/datasets/transfer_test]
+    python tools/tradeoff.py [--run out/util5m5] [--threshold 0.5] [--data out/datasets/transfer_test]
                              [--train-data out/datasets/offline_train out/datasets/transfer_train]
                              [--train-args "--channels util --label-span slip ..."] [--every 1] [--workers 2]
                              [--retrain-epochs 8] [--cache out/tradeoff] [--no-retrain]
@@ -326,7 +326,7 @@ def plot(points: list[Point], path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run the sweep; prints the table and writes the report, plot and JSON."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--run", type=Path, default=ROOT / "out" / "util5", help="training run of the shipped members")
+    ap.add_argument("--run", type=Path, default=ROOT / "out" / "util5m5", help="training run of the shipped members")
     ap.add_argument("--threshold", type=float, default=0.5, help="threshold of the ensemble group")
     ap.add_argument("--data", type=Path, default=ROOT / "out" / "datasets" / "transfer_test",
                     help="test scenes; gripper trials are scored with the online criterion, hexapod scenes offline")

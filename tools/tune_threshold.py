@@ -22,7 +22,7 @@ if str(ROOT) not in sys.path:
 
 import numpy as np  # noqa: E402
 
-from slipd.evaluation import offline_outcome, online_outcome  # noqa: E402
+from slipd.evaluation import scored_outcome  # noqa: E402
 from slipd.recording import list_recordings  # noqa: E402
 from tools.evaluate import evaluate_paths  # noqa: E402
 
@@ -40,9 +40,7 @@ def sweep(runs: list, thresholds: np.ndarray, criterion: str = "auto") -> list[d
             p_arr = np.asarray(trace.p_slip)
             hit = np.flatnonzero(p_arr >= th)
             first = trace.t_s[hit[0]] if len(hit) else None
-            online = criterion == "online" or (criterion == "auto" and truth.family == "gripper")
-            out = online_outcome(truth, first) if online else offline_outcome(truth, first)
-            out = "tp" if out == "success" else out  # the online criterion's name for a hit
+            out = scored_outcome(truth, first, criterion)
             if out is None:
                 continue
             outcomes.append(out)
