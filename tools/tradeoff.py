@@ -337,7 +337,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--retrain-epochs", type=int, default=8)
     ap.add_argument("--tune-data", type=Path, nargs="+", default=[ROOT / "out" / "datasets" / "transfer_train"],
                     help="train recordings on which each retrained point's threshold is tuned")
-    ap.add_argument("--tune-every", type=int, default=4, help="use every k-th recording of --tune-data")
+    ap.add_argument("--tune-every", type=int, default=3,
+                    help="use every k-th recording of --tune-data (not a multiple of 4: the transfer design "
+                         "repeats 3 slip trials and 1 stop trial, so k = 4 would pick slips only)")
     ap.add_argument("--train-args", default="",
                     help="extra tools/train.py flags for the retrained points (the shipped recipe), one string")
     ap.add_argument("--no-retrain", action="store_true", help="only the ensemble group")

@@ -76,7 +76,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", required=True)
     p.add_argument("--recordings", type=Path, nargs="+", required=True, help="train-split folders")
-    p.add_argument("--every", type=int, default=4, help="use every k-th recording (speed)")
+    p.add_argument("--every", type=int, default=3,
+                   help="use every k-th recording (speed); not a multiple of 4 on transfer sets, whose design "
+                        "repeats 3 slip trials and 1 stop trial")
     p.add_argument("--grid", default="0.3:0.85:0.05", help="start:stop:step")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--stride", type=int, default=None, help="decision stride override (phase-shifted streams)")
