@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
@@ -10,9 +9,6 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 REFERENCE_CKPT = SHARED / "reference" / "checkpoints" / "hexapod"
-
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))  # so tests can import tools.*
 
 
 @pytest.fixture
@@ -30,9 +26,9 @@ def tiny_model_json(tmp_path_factory) -> Path:
     Random weights with non-trivial BatchNorm statistics: enough to exercise the runtime paths quickly.
     """
     torch = pytest.importorskip("torch")
-    from slipd.features import FeatureSpec
-    from tools.export_onnx import export, fold_member
-    from tools.slipnet import SlipNet
+    from slipd.detect.features import FeatureSpec
+    from slipd.lab.export import export, fold_member
+    from slipd.lab.model import SlipNet
 
     spec = FeatureSpec()
     nets = []
@@ -53,13 +49,13 @@ def tiny_model_json(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def detect_model_json(tmp_path_factory) -> Path:
     """A model that really detects slip: the shipped one, else the authors' checkpoints converted (or skip)."""
-    shipped = ROOT / "models" / "slip_ensemble.json"
+    shipped = ROOT / "slipd" / "models" / "slip_ensemble.json"
     if shipped.exists():
         return shipped
     if not (REFERENCE_CKPT / "ckpt_final_model_0.pth").exists():
         pytest.skip("no shipped model and no reference checkpoints")
     pytest.importorskip("torch")
-    from tools.export_onnx import export, load_reference
+    from slipd.lab.export import export, load_reference
 
     members, spec, prov = load_reference(REFERENCE_CKPT)
     out = tmp_path_factory.mktemp("reference") / "reference.onnx"

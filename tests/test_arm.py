@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from slipd.arm import ArmError, ArmState, URArm, URSettings
+from slipd.io.arm import ArmError, ArmState, URArm, URSettings
 from slipd.metrics import Metrics
 from slipd.sim.devices import rtde_protocol as rp
 from slipd.sim.devices.ur_controller import LinearMotion, URControllerConfig, URControllerProcess

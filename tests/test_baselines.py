@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slipd.baselines import (
+from slipd.detect.baselines import (
     DecelerationDetector,
     DecelerationParams,
     FrontEndParams,
@@ -19,8 +19,8 @@ from slipd.baselines import (
     make_baseline,
     recent_max,
 )
-from slipd.evaluation import SceneTruth, offline_outcome
 from slipd.geometry import CENTRE, CORNERS, OUTER, PILLAR_XY_MM
+from slipd.lab.metrics import SceneTruth, offline_outcome
 from slipd.recording import Recording
 
 K_T = 3.5  # N/mm
@@ -197,7 +197,7 @@ def test_parameters_are_validated_and_loaded(tmp_path: Path) -> None:
 
 
 def test_tuner_uses_the_train_split_and_writes_json(tmp_path: Path) -> None:
-    from tools.evaluate import main
+    from slipd.lab.evaluate import main
 
     train = tmp_path / "data" / "offline_train"
     for i, (kind, kw) in enumerate([("slip", {}), ("slip", {"direction_deg": 200.0, "speed": 3.0}),

@@ -207,7 +207,7 @@ def test_shipped_configs_are_valid():
     real = load_config(ROOT / "config" / "slipd.yaml")
     assert real.sensor.port == "/dev/ttyACM0" and real.gripper.enabled and real.arm.enabled
     sim = load_config(ROOT / "config" / "sim.yaml")
-    assert sim.model.manifest == ROOT / "models" / "slip_ensemble.json"
+    assert sim.model.manifest == ROOT / "slipd" / "models" / "slip_ensemble.json"
     assert sim.recorder.directory == ROOT / "out" / "sim-recordings"
 
 
@@ -232,14 +232,14 @@ def test_device_vocabularies_match_the_drivers():
 
     from slipd.config import DYNAMIXEL_BAUDRATES, ArmConfig
 
-    arm = pytest.importorskip("slipd.arm")
+    arm = pytest.importorskip("slipd.io.arm")
     assert get_args(ArmConfig.model_fields["stop_method"].annotation) == arm.STOP_METHODS
-    gripper = pytest.importorskip("slipd.gripper")
+    gripper = pytest.importorskip("slipd.io.gripper")
     assert gripper.BAUDRATES == DYNAMIXEL_BAUDRATES
 
 
 def test_fuzz_short():
-    from tools.fuzz_config import run
+    from slipd.lab.fuzz_config import run
 
     counts = run(150, seed=1)
     assert counts["total"] >= 135  # hypothesis may discard a few over-sized draws
@@ -249,12 +249,12 @@ def test_fuzz_short():
 
 # ------------------------------------------------------------------------------------------ check-config
 def tiny_model(folder: Path) -> Path:
-    """A minimal ensemble-shaped ONNX graph with a manifest that slipd.manifest accepts."""
+    """A minimal ensemble-shaped ONNX graph with a manifest that slipd.detect.manifest accepts."""
     onnx = pytest.importorskip("onnx")
     from onnx import TensorProto, helper
 
-    from slipd.features import FeatureSpec
-    from slipd.manifest import Manifest, io_infos, sha256_file, write_manifest
+    from slipd.detect.features import FeatureSpec
+    from slipd.detect.manifest import Manifest, io_infos, sha256_file, write_manifest
 
     spec = FeatureSpec()
     z, h = 2, 4
@@ -316,7 +316,7 @@ def test_check_config_exit_codes(tmp_path):
 def main_check_in_process(path: Path, capsys) -> tuple[int, str, str]:
     from argparse import Namespace
 
-    from slipd.config import main_check
+    from slipd.cli import cmd_check_config as main_check
 
     code = main_check(Namespace(config=str(path)))
     out = capsys.readouterr()

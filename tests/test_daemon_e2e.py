@@ -13,10 +13,11 @@ import pytest
 from conftest import ROOT
 
 from slipd.config import load_config, override
-from slipd.control import Daemon, build_devices
-from slipd.ensemble import Ensemble
+from slipd.daemon.devices import build_devices
+from slipd.daemon.loop import Daemon
+from slipd.detect.ensemble import Ensemble
+from slipd.detect.replay import replay
 from slipd.metrics import Metrics
-from slipd.replay import replay
 from slipd.sim.datasets import dataset_scenes
 from slipd.sim.harness import EmulatedDevices
 from slipd.sim.scene import generate, parse_scene

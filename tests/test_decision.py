@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from slipd.decision import Decision
+from slipd.detect.decision import Decision
 
 
 def _alarms(d: Decision, ps: list[float]) -> list[bool]:
@@ -81,7 +81,7 @@ def test_bad_values_are_refused_without_changing_state() -> None:
 
 
 def test_min_consecutive_needs_a_run_above_threshold() -> None:
-    from slipd.decision import Decision
+    from slipd.detect.decision import Decision
 
     d = Decision(threshold=0.5, min_consecutive=3)
     got = [d.update(p).alarm for p in (0.6, 0.7, 0.4, 0.6, 0.6, 0.6, 0.7)]

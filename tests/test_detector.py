@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from slipd.__main__ import main
-from slipd.decision import Decision
-from slipd.detector import Detector, run_recording
-from slipd.ensemble import Ensemble
-from slipd.features import batch_windows, tare_offset
+from slipd.cli import main
+from slipd.detect.decision import Decision
+from slipd.detect.detector import Detector, run_recording
+from slipd.detect.ensemble import Ensemble
+from slipd.detect.features import batch_windows, tare_offset
 from slipd.recording import Recording
 
 

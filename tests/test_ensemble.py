@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from slipd.ensemble import Ensemble, NonFiniteInput, NonFiniteOutput
-from slipd.features import FeatureSpec
-from slipd.manifest import ModelError, load_manifest, sha256_file
-from tools.export_onnx import export, fold_member
-from tools.slipnet import SlipNet, run_sequence
+from slipd.detect.ensemble import Ensemble, NonFiniteInput, NonFiniteOutput
+from slipd.detect.features import FeatureSpec
+from slipd.detect.manifest import ModelError, load_manifest, sha256_file
+from slipd.lab.export import export, fold_member
+from slipd.lab.model import SlipNet, run_sequence
 
 SPEC = FeatureSpec(pillars=(0, 1, 2), window=8)  # 48 inputs: a small, fast model
 Z = 3
@@ -223,7 +223,7 @@ def test_manifest_for_another_model_or_feature_layout(model_copy: Path, tmp_path
 
 
 def test_update_metrics_keeps_the_model_valid(model_copy: Path) -> None:
-    from slipd.manifest import update_metrics
+    from slipd.detect.manifest import update_metrics
 
     update_metrics(model_copy, {"offline_success": 0.95})
     update_metrics(model_copy, {"step_median_us": 830.0})

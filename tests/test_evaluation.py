@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slipd.detector import Detection
-from slipd.evaluation import (
+from slipd.detect.decision import Detection
+from slipd.lab.metrics import (
     SceneResult,
     SceneTruth,
     Trace,
@@ -188,7 +188,7 @@ def scenes(tmp_path_factory) -> Path:
 
 
 def test_evaluate_baseline_end_to_end(scenes: Path, tmp_path: Path) -> None:
-    from tools.evaluate import main
+    from slipd.lab.evaluate import main
 
     out = tmp_path / "eval.json"
     assert main(["--baseline", "deceleration", "--baseline-params", str(_defaults(tmp_path)), "--recordings",
@@ -219,10 +219,10 @@ def _defaults(tmp_path: Path) -> Path:
 def test_evaluate_model_end_to_end(scenes: Path, tmp_path: Path) -> None:
     """A tiny real ONNX ensemble (random weights) through the daemon's Detector: the figures are consistent."""
     torch = pytest.importorskip("torch")
-    from slipd.features import FeatureSpec
-    from tools.evaluate import main
-    from tools.export_onnx import export, fold_member
-    from tools.slipnet import SlipNet
+    from slipd.detect.features import FeatureSpec
+    from slipd.lab.evaluate import main
+    from slipd.lab.export import export, fold_member
+    from slipd.lab.model import SlipNet
 
     spec = FeatureSpec(pillars=(0, 1, 2), window=8)
     nets = []
@@ -235,7 +235,7 @@ def test_evaluate_model_end_to_end(scenes: Path, tmp_path: Path) -> None:
                  "--record-manifest"]) == 0
     data = json.loads(out.read_text())
     # The figures went into the manifest, which still loads (hash of the ONNX file unchanged).
-    from slipd.manifest import load_manifest
+    from slipd.detect.manifest import load_manifest
 
     recorded = load_manifest(tmp_path / "tiny.json").metrics[f"eval_{scenes.name}"]
     assert recorded["offline"] == data["summary"]["offline"]
@@ -251,11 +251,11 @@ def test_stride_override_decides_more_often_and_tune_threshold_runs(scenes: Path
     """``--stride`` runs phase-shifted streams (a decision every 2 samples here, window 8); tune_threshold
     sweeps the same traces with either criterion."""
     torch = pytest.importorskip("torch")
-    from slipd.features import FeatureSpec
-    from tools.evaluate import ModelRunner
-    from tools.export_onnx import export, fold_member
-    from tools.slipnet import SlipNet
-    from tools.tune_threshold import main as tune
+    from slipd.detect.features import FeatureSpec
+    from slipd.lab.evaluate import ModelRunner
+    from slipd.lab.export import export, fold_member
+    from slipd.lab.model import SlipNet
+    from slipd.lab.tune import main as tune
 
     spec = FeatureSpec(pillars=(0, 1, 2), window=8)
     torch.manual_seed(0)
@@ -274,7 +274,7 @@ def test_stride_override_decides_more_often_and_tune_threshold_runs(scenes: Path
 
 
 def test_noisy_displacements_touch_only_the_displacements(scenes: Path, tmp_path: Path) -> None:
-    from tools.noisy_displacements import main as noisy
+    from slipd.lab.noisy_displacements import main as noisy
 
     assert noisy(["--sigma", "0.01", "--src", str(scenes), "--out", str(tmp_path / "n")]) == 0
     for path in sorted(scenes.glob("*.npz")):

@@ -19,10 +19,11 @@ import pytest
 from conftest import ROOT
 
 from slipd.config import load_config, override
-from slipd.control import Daemon, build_devices
-from slipd.ensemble import Ensemble
+from slipd.daemon.devices import build_devices
+from slipd.daemon.loop import Daemon
+from slipd.detect.ensemble import Ensemble
+from slipd.io.pts import Frame
 from slipd.metrics import Metrics
-from slipd.pts import Frame
 from slipd.recording import Recording
 from slipd.sim.devices.ur_controller import URControllerProcess
 from slipd.sim.harness import EmulatedDevices
@@ -275,7 +276,7 @@ def test_servo_hardware_error_seen_by_the_health_poll_fails_safe(controller, bas
 # ------------------------------------------------------------------------------------------------- arm
 def test_arm_protective_stop_and_link_loss_are_noticed_and_the_link_comes_back(controller, base_cfg,
                                                                               caplog) -> None:
-    caplog.set_level(logging.WARNING, logger="slipd.control")
+    caplog.set_level(logging.WARNING, logger="slipd.daemon.loop")
 
     async def scenario(d: Daemon, dev: EmulatedDevices, ur: URControllerProcess) -> None:
         await until(lambda: d.health.get("arm") == "ok", what="first arm poll")
@@ -303,7 +304,7 @@ def test_arm_protective_stop_and_link_loss_are_noticed_and_the_link_comes_back(c
 # ------------------------------------------------------------------------------------------------ soak
 @pytest.mark.slow
 def test_soak_30_s_at_1_khz_loses_no_frame(controller, tiny_model_json) -> None:
-    from tools.soak_live import soak
+    from slipd.lab.soak_live import soak
 
     rep = soak(30.0, tiny_model_json, controller=controller, threshold=0.999)
     print("\n" + "\n".join(rep.lines()))
@@ -314,7 +315,7 @@ def test_soak_30_s_at_1_khz_loses_no_frame(controller, tiny_model_json) -> None:
 
 
 def test_reliability_report_cites_only_existing_tests() -> None:
-    from tools.reliability_report import FAULTS, missing_tests, table
+    from slipd.lab.reliability import FAULTS, missing_tests, table
 
     assert missing_tests() == []
     assert len(table()) == len(FAULTS) + 2

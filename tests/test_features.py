@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from slipd.features import (
+from slipd.detect.features import (
     FeatureSpec,
     FeatureStream,
     batch_windows,

@@ -15,7 +15,7 @@ from dynamixel_sdk import COMM_SUCCESS, GroupSyncWrite, PacketHandler
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from slipd.gripper import DynamixelGripper, DynamixelSettings, GripperError, _TimedPortHandler, decode_hardware_error
+from slipd.io.gripper import DynamixelGripper, DynamixelSettings, GripperError, _TimedPortHandler, decode_hardware_error
 from slipd.metrics import Metrics
 from slipd.sim.devices import mx28
 from slipd.sim.devices.mx28 import EmulatedMX28, JawModel, JawParams
@@ -398,7 +398,7 @@ def test_emulator_reboot_resets_ram(emu, gripper, clock):
 
 
 def test_gripper_calls_run_on_a_device_worker(emu, gripper):
-    from slipd.worker import DeviceWorker
+    from slipd.daemon.worker import DeviceWorker
 
     w = DeviceWorker("gripper")
     try:

@@ -1,8 +1,8 @@
 """Hard cases stay numerically sound (slipd issue 7): faults, saturation, long runs, resets, precision, extremes.
 
 Each test names in its docstring the naive behaviour it would catch. Documented policy under test
-(``slipd.features`` and ``slipd.ensemble``): a non-finite sample value is replaced by the channel's last finite
-value (0 before any) and counted; tared forces are clipped to twice the sensor range; the causal median of 21
+(``slipd.detect.features`` and ``slipd.detect.ensemble``): a non-finite sample value is replaced by the channel's
+last finite value (0 before any) and counted; tared forces are clipped to twice the sensor range; the causal median of 21
 removes any run of up to 10 bad samples; a window whose median history (the last ``median - 1 + window``
 samples) holds no faulty sample is bit-identical to the clean stream's window, i.e. the features recover
 within one window (plus the median's 20-sample memory) after clean data returns.
@@ -19,10 +19,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from onnx import numpy_helper
 
-from slipd.decision import Decision
-from slipd.detector import Detector, run_recording
-from slipd.ensemble import Ensemble
-from slipd.features import (
+from slipd.detect.decision import Decision
+from slipd.detect.detector import Detector, run_recording
+from slipd.detect.ensemble import Ensemble
+from slipd.detect.features import (
     CLIP_N,
     FeatureSpec,
     FeatureStream,
@@ -274,7 +274,7 @@ def test_soak_short_hidden_state_bounded_probability_does_not_drift(ens) -> None
 
     Catches: an unclipped or unstable recurrence (|h| growing, NaN after hours), a state shared between the
     batched sequences, and a bias that accumulates window after window."""
-    from tools.soak import CASES, soak
+    from slipd.lab.soak import CASES, soak
 
     res = {r.name: r for r in soak(ens, 20_000, pool_windows=500)}
     assert set(res) == set(CASES)
@@ -339,8 +339,8 @@ def test_ensemble_reset_mid_stream_equals_batch_from_zero(ens) -> None:
 @pytest.fixture(scope="module")
 def variants(tmp_path_factory) -> dict[str, Ensemble]:
     torch = pytest.importorskip("torch")
-    from tools.export_onnx import export, fold_member
-    from tools.slipnet import SlipNet
+    from slipd.lab.export import export, fold_member
+    from slipd.lab.model import SlipNet
 
     nets = []
     for seed in range(3):
@@ -526,11 +526,11 @@ def test_exported_graph_cannot_make_nan_from_finite_inputs(variants, prec: str) 
     """Walk the exported graph: only audited ops, and per-element interval bounds show that no intermediate
     can overflow the compute type, so no inf (and no inf - inf or 0 * inf = NaN) can arise. fp32: for ANY
     finite window and state. fp16: for any window the feature pipeline can produce (tared forces clipped to
-    twice the sensor range, ``slipd.features.CLIP_N``) and any state.
+    twice the sensor range, ``slipd.detect.features.CLIP_N``) and any state.
 
     Catches: a naive softmax (Exp), a Div or Log added by a later edit, a missing input or state clip (then
     3e38 inputs overflow MatMul), and an fp16 graph whose activations can exceed 65504 on real windows."""
-    from slipd.features import channel_bound
+    from slipd.detect.features import channel_bound
 
     model = onnx.load(str(variants[prec].manifest_path.with_name(variants[prec].manifest.onnx_file)))
     if prec == "fp32":
@@ -591,8 +591,8 @@ def test_parity_with_torch_at_10x_and_100x_and_overflowing_logits(tmp_path: Path
     torch = pytest.importorskip("torch")
     import onnxruntime as ort
 
-    from tools.export_onnx import export, fold_member
-    from tools.slipnet import SlipNet, run_sequence
+    from slipd.lab.export import export, fold_member
+    from slipd.lab.model import SlipNet, run_sequence
 
     torch.manual_seed(7)
     nets = [SlipNet(input_size=SPEC.input_size, hidden=32, enc=64, pred=(32, 16)).eval() for _ in range(2)]

@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from slipd.pts import (
+from slipd.io.pts import (
     CMD_BIAS,
     CMD_SLIP_OFF,
     CMD_SLIP_ON,
@@ -305,7 +305,7 @@ def test_commands() -> None:
 
 # ---------------------------------------------------------------------- fuzz (short)
 def test_short_fuzz_run() -> None:
-    from tools.fuzz_pts import fuzz
+    from slipd.lab.fuzz_pts import fuzz
 
     rep = fuzz(1500, seed=1)
     assert rep.exceptions == 0, rep.first_exception

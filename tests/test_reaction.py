@@ -2,9 +2,9 @@
 
 import threading
 
+from slipd.daemon.reaction import Reaction
+from slipd.daemon.worker import DeviceWorker
 from slipd.metrics import Metrics
-from slipd.reaction import Reaction
-from slipd.worker import DeviceWorker
 
 
 class _Dev:

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slipd.recorder import DIR_MODE, FILE_MODE, Recorder
+from slipd.daemon.recorder import DIR_MODE, FILE_MODE, Recorder
 from slipd.recording import Recording, list_recordings
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -159,9 +159,8 @@ CHILD = textwrap.dedent(
     """
     import sys, time
     import numpy as np
-    sys.path.insert(0, {root!r})
     import slipd.recording as recording
-    from slipd.recorder import Recorder
+    from slipd.daemon.recorder import Recorder
 
     fmt = {fmt!r}
 
@@ -225,7 +224,7 @@ def test_crash_mid_write_leaves_no_valid_looking_file(tmp_path, fmt):
 def test_slow_disk_drops_recordings_instead_of_queueing_without_bound(tmp_path):
     import threading
 
-    from slipd.worker import DeviceWorker
+    from slipd.daemon.worker import DeviceWorker
 
     worker = DeviceWorker("recorder-test")
     gate = threading.Event()

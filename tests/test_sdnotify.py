@@ -8,7 +8,7 @@ import uuid
 
 import pytest
 
-from slipd.sdnotify import Notifier, notify, watchdog_interval
+from slipd.daemon.sdnotify import Notifier, notify, watchdog_interval
 
 
 def _receiver(address: str | bytes) -> socket.socket:

@@ -11,10 +11,8 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import pytest
 
-from slipd.metrics import Metrics
-from slipd.pts import CMD_BIAS, CMD_SLIP_ON, Frame, encode_frame, rate_command
-from slipd.recording import Recording
-from slipd.sensor import (
+from slipd.io.pts import CMD_BIAS, CMD_SLIP_ON, Frame, encode_frame, rate_command
+from slipd.io.sensor import (
     PAUSE_BUFFER_FRACTION,
     TTY_BUFFER_BYTES,
     SensorError,
@@ -22,6 +20,8 @@ from slipd.sensor import (
     check_latency_timer,
     set_low_latency,
 )
+from slipd.metrics import Metrics
+from slipd.recording import Recording
 from slipd.sim.devices.papillarray import EmulatedPapillArray
 
 BIG_QUEUE = 64 * 2**20  # tests judge the reader, not the scheduler: the emulator never discards
@@ -347,12 +347,12 @@ def test_latency_timer_warning(tmp_path, caplog) -> None:
     (sysfs / "ttyUSB7" / "latency_timer").write_text("16\n")
     link = tmp_path / "by-id"
     link.symlink_to(port)  # /dev/serial/by-id style: resolved to the tty name
-    with caplog.at_level(logging.WARNING, logger="slipd.sensor"):
+    with caplog.at_level(logging.WARNING, logger="slipd.io.sensor"):
         assert check_latency_timer(str(link), sysfs) == 16
     assert "latency timer is 16 ms" in caplog.text
     caplog.clear()
     (sysfs / "ttyUSB7" / "latency_timer").write_text("1\n")
-    with caplog.at_level(logging.WARNING, logger="slipd.sensor"):
+    with caplog.at_level(logging.WARNING, logger="slipd.io.sensor"):
         assert check_latency_timer(str(port), sysfs) == 1
     assert caplog.text == ""
     assert check_latency_timer("/dev/ttyACM0", sysfs) is None  # CDC ACM: no timer

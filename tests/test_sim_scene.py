@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slipd.features import tare_offset
+from slipd.detect.features import tare_offset
 from slipd.geometry import CENTRE
 from slipd.sim import SceneError, generate, load_scene, parse_scene
 from slipd.sim.scene import incipient_labels

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from slipd.features import FeatureSpec, batch_windows, tare_offset
+from slipd.detect.features import FeatureSpec, batch_windows, tare_offset
 from slipd.geometry import N_PILLARS, OUTER
+from slipd.lab import augment as A
+from slipd.lab import train as T
+from slipd.lab.model import SlipNet
 from slipd.recording import Recording, RecordingError
-from tools import augment as A
-from tools import train as T
-from tools.slipnet import SlipNet
 
 TARE = (0, 100)
 

@@ -1,9 +1,9 @@
 """Daemon benchmarks: reaction latency and CPU share at 1 kHz, against the emulated devices.
 
-    python tools/bench_daemon.py [--model models/slip_ensemble_int8.json] [--seconds 20]
+    python tools/bench_daemon.py [--model slipd/models/slip_ensemble_int8.json] [--seconds 20]
 
 1. **Reaction latency**: the last sample of the deciding window written to the sensor pty -> the tighten
-   command's bytes read from the servo pty. The daemon (`slipd.control.Daemon`, real pyserial reader,
+   command's bytes read from the servo pty. The daemon (`slipd.daemon.loop.Daemon`, real pyserial reader,
    real ONNX session, real dynamixel-sdk driver) runs in this process; the emulated PapillArray and
    MX-28 run in a child process, as real devices would (``--shared-process`` puts them in the daemon's
    interpreter instead: their GIL contention then inflates the figures). To get many samples, the
@@ -28,14 +28,12 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+import yaml
+
+from slipd.recording import Recording
+
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-import numpy as np  # noqa: E402
-import yaml  # noqa: E402
-
-from slipd.recording import Recording  # noqa: E402
 
 TARGET_P99_MS = 5.0
 TARGET_CPU = 0.15
@@ -105,8 +103,9 @@ def reaction_latency(model: Path, seconds: float, separate: bool = True, coalesc
     import multiprocessing
 
     from slipd.config import load_config
-    from slipd.control import Daemon, build_devices
-    from slipd.ensemble import Ensemble
+    from slipd.daemon.devices import build_devices
+    from slipd.daemon.loop import Daemon
+    from slipd.detect.ensemble import Ensemble
     from slipd.metrics import Metrics
 
     n = int(seconds * 1000) + 1000
@@ -195,7 +194,7 @@ def _cpu_seconds(pid: int) -> float:
 
 def decode_only(port: str) -> None:
     """Baseline process: the same serial reader and decoder, no model."""
-    from slipd.sensor import SerialSensor
+    from slipd.io.sensor import SerialSensor
 
     async def main():
         s = SerialSensor(port, lambda frames: None)
@@ -208,7 +207,7 @@ def decode_only(port: str) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run both benchmarks and print the figures."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", type=Path, default=ROOT / "models" / "slip_ensemble_int8.json",
+    p.add_argument("--model", type=Path, default=ROOT / "slipd" / "models" / "slip_ensemble_int8.json",
                    help="model manifest (default: the one config/slipd.yaml runs)")
     p.add_argument("--seconds", type=float, default=20.0)
     p.add_argument("--shared-process", action="store_true",

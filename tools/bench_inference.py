@@ -22,59 +22,19 @@ import os
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")  # must precede the numpy/torch imports
 
-import argparse  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from collections.abc import Callable  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
 
-import numpy as np  # noqa: E402
+import numpy as np
+
+from slipd.lab.timing import realistic_windows, time_calls, torch_eager_step
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
 
 DEFAULT_REF = ROOT.parent / "shared" / "reference" / "checkpoints" / "hexapod"
-
-
-def realistic_windows(k: int, d: int, seed: int = 0) -> np.ndarray:
-    """Realistic windows: a smooth random walk of forces, clipped to +-2 N."""
-    rng = np.random.default_rng(seed)
-    x = np.cumsum(rng.normal(0.0, 0.01, (k, d)), axis=0)
-    return np.clip(x, -2.0, 2.0).astype(np.float32)
-
-
-def time_calls(fn: Callable[[int], object], n: int, offset: int = 0) -> list[float]:
-    """Microseconds of each of ``fn(offset)``, ..., ``fn(offset + n - 1)``."""
-    out = []
-    for i in range(n):
-        t0 = time.perf_counter_ns()
-        fn(offset + i)
-        out.append((time.perf_counter_ns() - t0) / 1e3)
-    return out
-
-
-def torch_eager_step(nets: list, wins: np.ndarray) -> tuple[Callable[[int], float], Callable[[], None]]:
-    """The reference implementation's decision on window ``i``: every member in eager mode, a Python loop
-    over members, one window at a time, hidden states carried. Returns (step, reset of the states)."""
-    import torch
-
-    wins_t = torch.from_numpy(wins)
-    h = [torch.zeros(1, net.hidden) for net in nets]
-
-    @torch.no_grad()
-    def step(i: int) -> float:
-        x = wins_t[i : i + 1]
-        acc = 0.0
-        for k, net in enumerate(nets):
-            p, h[k] = net(x, h[k])
-            acc += float(p[0, 1])
-        return acc / len(nets)
-
-    def reset() -> None:
-        h[:] = [torch.zeros(1, net.hidden) for net in nets]
-
-    return step, reset
 
 
 def _stats(us: list[float]) -> tuple[float, float, float]:
@@ -140,9 +100,9 @@ def main(argv: list[str] | None = None) -> int:
     import onnxruntime as ort
     import torch
 
-    from slipd.ensemble import Ensemble, session_options
-    from slipd.manifest import onnx_path_of
-    from tools.slipnet import load_reference_ensemble
+    from slipd.detect.ensemble import Ensemble, session_options
+    from slipd.detect.manifest import onnx_path_of
+    from slipd.lab.model import load_reference_ensemble
 
     torch.set_num_threads(1)
     ens = Ensemble.load(args.manifest, threads=1)

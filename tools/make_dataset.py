@@ -1,45 +1,9 @@
 """Write a simulated data set: ``python tools/make_dataset.py --set offline --split test --out DIR``.
 
-Prints the physics speed relative to real time (simulated seconds / wall seconds of simulation).
+A launcher: the code lives in ``slipd.lab.make_dataset`` (the offline lab; ``pip install -e '.[train]'``).
 """
 
-from __future__ import annotations
-
-import argparse
-import sys
-import time
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from tqdm import tqdm
-
-from slipd.sim.datasets import SETS, SPLITS, dataset_scenes, write_dataset
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Command-line entry point."""
-    p = argparse.ArgumentParser(description=__doc__)
-    p.add_argument("--set", dest="set_name", choices=SETS, required=True)
-    p.add_argument("--split", choices=SPLITS, required=True)
-    p.add_argument("--out", required=True, help="output folder (created)")
-    p.add_argument("--count", type=int, default=None, help="number of scenes (default: 200 offline, 216 transfer)")
-    p.add_argument("--seed", type=int, default=0, help="data-set seed 0..999")
-    p.add_argument("--batch", type=int, default=16, help="scenes simulated together in one time loop")
-    args = p.parse_args(argv)
-    if args.count is not None and args.count < 1:
-        p.error("--count must be >= 1")
-    total = len(dataset_scenes(args.set_name, args.split, args.count, args.seed))
-    t0 = time.perf_counter()
-    with tqdm(total=total, unit="scene", desc=f"{args.set_name}/{args.split}") as bar:
-        index = write_dataset(args.set_name, args.split, args.out, args.count, args.seed, args.batch, bar.update)
-    wall = time.perf_counter() - t0
-    print(f"{index['count']} recordings ({index['slip']} slip, {index['stop']} stop; "
-          f"{index['slip_with_onset']} slip scenes with an onset) -> {args.out}")
-    print(f"simulated {index['simulated_s']:.1f} s in {index['physics_wall_s']:.2f} s of physics: "
-          f"{index['speed_ratio']}x real time (total with file writing {wall:.1f} s)")
-    return 0
-
+from slipd.lab.make_dataset import main
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

@@ -17,16 +17,16 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 ROWS = [
-    ("slipd (shipped model)", ["--model", "models/slip_ensemble.json"]),
+    ("slipd (shipped model)", ["--model", "slipd/models/slip_ensemble.json"]),
     ("authors' checkpoints (ONNX)", ["--model", "out/reference.json"]),
     ("ablation: no advanced augmentation (2 members, seed 7)", ["--model", "out/ablation/ablation.json"]),
     ("its matched pair: same recipe, all augmentations", ["--model", "out/train_b/with_aug.json"]),
     ("heuristic: deceleration, tuned on offline train", ["--baseline", "deceleration"]),
     ("heuristic: reference pillar, tuned on offline train", ["--baseline", "reference_pillar"]),
     ("heuristic: deceleration, tuned on transfer train",
-     ["--baseline", "deceleration", "--baseline-params", "models/baselines_transfer.json"]),
+     ["--baseline", "deceleration", "--baseline-params", "slipd/models/baselines_transfer.json"]),
     ("heuristic: reference pillar, tuned on transfer train",
-     ["--baseline", "reference_pillar", "--baseline-params", "models/baselines_transfer.json"]),
+     ["--baseline", "reference_pillar", "--baseline-params", "slipd/models/baselines_transfer.json"]),
 ]
 
 

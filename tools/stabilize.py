@@ -18,13 +18,11 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
+
+from slipd.sim.rig import DEFAULT_CONFIG, run_rig
+
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-import numpy as np  # noqa: E402
-
-from slipd.sim.rig import DEFAULT_CONFIG, run_rig  # noqa: E402
 
 OBJECTS = ("hard_paper_box", "wooden_box", "shampoo_bottle", "coffee_jar", "pringles_can", "thermos_flask")
 SCENARIOS = ("undergrip", "offcentre")

@@ -9,7 +9,7 @@ Two groups of points, each compared within itself:
 
 * **ensemble** (the trained members of ``--run``, no retraining): ensemble size Z = 1, 2, 3, 5; numeric
   precision fp32 / fp16 / int8 (onnxruntime dynamic quantisation, Z = 5); decision stride 40 / 20 / 10
-  samples with the window fixed at 40 (``slipd.detector`` runs window/stride phase-shifted GRU streams).
+  samples with the window fixed at 40 (``slipd.detect.detector`` runs window/stride phase-shifted GRU streams).
 * **retrained** (one member per point, ``--retrain-epochs`` epochs on ``--train-data`` with the shipped
   recipe: Adam 1e-3, all pillars, plus ``--train-args``; each point's threshold tuned on ``--tune-data``,
   train recordings): window 10 / 20 / 40 samples and median width 1 / 5 / 11 / 21.
@@ -38,26 +38,24 @@ import os
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")  # timing is per thread; must precede the numpy/torch imports
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import shlex  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from dataclasses import asdict, dataclass, field  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import json
+import shlex
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from slipd.detect.features import FeatureSpec, FeatureStream
+from slipd.lab.evaluate import evaluate_paths
+from slipd.lab.metrics import summarize
+from slipd.lab.timing import realistic_windows, time_calls, torch_eager_step
+from slipd.recording import list_recordings
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-import numpy as np  # noqa: E402
-
-from slipd.evaluation import summarize  # noqa: E402
-from slipd.features import FeatureSpec, FeatureStream  # noqa: E402
-from slipd.recording import list_recordings  # noqa: E402
-from tools.bench_inference import realistic_windows, time_calls, torch_eager_step  # noqa: E402
-from tools.evaluate import evaluate_paths  # noqa: E402
 
 DEFAULT_REF = ROOT.parent / "shared" / "reference" / "checkpoints" / "hexapod"
 RATE_HZ = 1000
@@ -96,7 +94,7 @@ def sweep_points(threshold: float, retrain: bool) -> list[Point]:
 
 # ------------------------------------------------------------------------------------------ models
 def _export(run_dir: Path, out: Path, precision: str, threshold: float) -> Path:
-    from tools.export_onnx import main as export_main
+    from slipd.lab.export import main as export_main
 
     args = ["--run", str(run_dir), "--out", str(out), "--threshold", str(threshold)]
     if precision != "fp32":
@@ -146,7 +144,7 @@ def _tuned_threshold(pt: Point, sub: Path, args: argparse.Namespace) -> float:
     Single members of a recipe with a weighted loss do not centre on 0.5, so one fixed threshold would
     compare thresholds, not configurations. Cached in ``<sub>/threshold.json``.
     """
-    from tools.tune_threshold import tune
+    from slipd.lab.tune import tune
 
     cached = sub / "threshold.json"
     if cached.exists():
@@ -180,7 +178,7 @@ def _time_us(fn, n: int) -> np.ndarray:
 def step_time(manifest: str, n: int, reference=None, rounds: int = 4) -> tuple[np.ndarray, np.ndarray | None]:
     """Microseconds per ``Ensemble.step`` (one thread, B = 1, hidden state carried), and per decision of
     ``reference`` (a callable step) timed in alternating rounds, so a noisy machine disturbs both alike."""
-    from slipd.ensemble import Ensemble
+    from slipd.detect.ensemble import Ensemble
 
     ens = Ensemble.load(manifest, threads=1)
     wins = realistic_windows(n, ens.feature_spec.input_size)
@@ -203,12 +201,12 @@ def feature_time(spec: FeatureSpec, n: int = 4000) -> float:
 
 
 def torch_reference_step(ref: Path, n: int):
-    """The reference implementation's decision (``tools.bench_inference.torch_eager_step`` on the authors'
+    """The reference implementation's decision (``slipd.lab.timing.torch_eager_step`` on the authors'
     checkpoints) as a callable ``step(i)`` over ``n`` windows; None without torch or checkpoints."""
     try:
         import torch
 
-        from tools.slipnet import load_reference_ensemble
+        from slipd.lab.model import load_reference_ensemble
     except ImportError:
         return None
     if not ref.is_dir():

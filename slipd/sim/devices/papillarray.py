@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from slipd.geometry import CONTACT_THRESHOLD_N, N_PILLARS
-from slipd.pts import (
+from slipd.io.pts import (
     END,
     RATES_HZ,
     SLIP_CONTACT_AT_START,
@@ -57,6 +57,10 @@ from slipd.recording import Recording, global_wrench
 log = logging.getLogger(__name__)
 
 SampleSource = Callable[[int], "tuple[np.ndarray, np.ndarray] | None"]
+
+
+MAX_BURST = 5
+"""Frames generated in one go before they are flushed to the pty (5 ms at 1 kHz)."""
 
 
 class EmulatedPapillArray:
@@ -350,7 +354,11 @@ class EmulatedPapillArray:
                 time.sleep(min(self._stall_until - now, 0.005))
                 next_t = time.monotonic()
                 continue
-            while next_t <= now and not self.finished.is_set():
+            burst = 0
+            # Catch up on due frames, but flush at least every MAX_BURST frames: a source slower than real
+            # time (a busy machine) must give a slower stream, not a long silence followed by a burst.
+            while next_t <= now and not self.finished.is_set() and burst < MAX_BURST:
+                burst += 1
                 if self.plugged:
                     data = self._make_frame(i, t_dev)
                     if data is None:

@@ -3,7 +3,7 @@
 slipd's only business with the arm is to *halt it fast* when the grasp starts to slip, and to know
 whether it can: connected, program running, not protective-stopped. Every call here blocks (socket
 round-trips inside ur_rtde), so the control loop runs them on the arm's own
-:class:`slipd.worker.DeviceWorker` thread; an ``Arm`` is not thread-safe and expects that one thread.
+:class:`slipd.daemon.worker.DeviceWorker` thread; an ``Arm`` is not thread-safe and expects that one thread.
 
 How to stop a motion the *user's* program commands -- the trade-off
 -------------------------------------------------------------------

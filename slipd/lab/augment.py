@@ -2,7 +2,7 @@
 
 Every function here takes and returns a ``Seq``: tared forces [N, 9, 3] (offset already removed,
 so an unloaded pillar reads ~0 N), the [N] window-label source and the optional [N, 9] per-pillar
-slip truth. Filtering and windowing are always left to ``slipd.features`` afterwards, so augmented
+slip truth. Filtering and windowing are always left to ``slipd.detect.features`` afterwards, so augmented
 training data passes through exactly the code the daemon runs.
 
 Why tared forces: removing the offset commutes with the pipeline's first stages (holding the last
@@ -140,7 +140,7 @@ def shift_start(seq: Seq, max_shift: int, rng: np.random.Generator) -> Seq:
     """Drop the first r ~ U{0, ..., max_shift - 1} samples so windows fall at a random phase.
 
     At run time the daemon can decide every ``window / k`` samples with k phase-shifted GRU streams
-    (``slipd.detector``); each stream sees windows cut at a different phase of the same motion. Without
+    (``slipd.detect.detector``); each stream sees windows cut at a different phase of the same motion. Without
     this, every training window starts at a multiple of the window length from the recording start.
     """
     if max_shift <= 1 or len(seq) <= max_shift:

@@ -5,7 +5,7 @@ Wang et al., section I) with every parameter exposed, and tuned by ``tune_*`` on
 
 Shared front end (``SpeedFrontEnd``): per pillar, the tangential tip deflection ``(dx, dy)`` in mm
 (from the sensor's displacement output; or ``(fx, fy) / k_t`` when no displacement is given) and the
-normal force ``fz`` go through the daemon's own feature pipeline (``slipd.features``: sanitise, tare,
+normal force ``fz`` go through the daemon's own feature pipeline (``slipd.detect.features``: sanitise, tare,
 clip, causal median of 21 samples). Every ``stride`` samples the tangential *deflection speed* of each
 pillar is the filtered deflection change over the last ``lag`` samples. While a pillar's tip sticks to
 the object its deflection follows the object, so its deflection speed is the object's speed there; once
@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from slipd.detector import Detection
-from slipd.features import FeatureSpec, FeatureStream, batch_windows, tare_offset
+from slipd.detect.decision import Detection
+from slipd.detect.features import FeatureSpec, FeatureStream, batch_windows, tare_offset
 from slipd.geometry import CONTACT_THRESHOLD_N, N_PILLARS
 
 TANGENTIAL_STIFFNESS_N_PER_MM = 3.5
@@ -203,7 +203,7 @@ def _memory_decisions(p: DecelerationParams, fe: FrontEndParams) -> int:
 
 # --------------------------------------------------------------------------- detectors
 class _HeuristicDetector:
-    """Common streaming machinery: same interface as ``slipd.detector.Detector``."""
+    """Common streaming machinery: same interface as ``slipd.detect.detector.Detector``."""
 
     name = "heuristic"
 

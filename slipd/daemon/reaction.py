@@ -1,6 +1,6 @@
 """What slipd does on an alarm: stop the arm, tighten the gripper (configurable order and grading).
 
-Each device has its own worker thread (``slipd.worker.DeviceWorker``): the reaction hands the
+Each device has its own worker thread (``slipd.daemon.worker.DeviceWorker``): the reaction hands the
 vendor calls to them and returns at once, so the arm stop and the gripper tighten run in parallel
 and the control loop never waits on a serial or TCP round trip. Within one device, calls run in the
 order submitted.
@@ -22,7 +22,7 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 
-log = logging.getLogger("slipd.reaction")
+log = logging.getLogger("slipd.daemon.reaction")
 
 ACTIONS = ("stop_arm", "tighten_gripper")
 

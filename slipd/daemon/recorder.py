@@ -35,11 +35,11 @@ from typing import Any
 
 import numpy as np
 
+from slipd.daemon.worker import DeviceWorker
 from slipd.geometry import N_PILLARS
 from slipd.recording import Recording, write_sdk_csv
-from slipd.worker import DeviceWorker
 
-log = logging.getLogger("slipd.recorder")
+log = logging.getLogger("slipd.daemon.recorder")
 
 FILE_MODE = 0o640
 DIR_MODE = 0o750

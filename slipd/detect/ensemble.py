@@ -1,6 +1,6 @@
 """The slip-detection ensemble at run time: one onnxruntime session of the fused ONNX graph.
 
-``Ensemble.load(manifest_path)`` validates the manifest and its model (``slipd.manifest``), opens a
+``Ensemble.load(manifest_path)`` validates the manifest and its model (``slipd.detect.manifest``), opens a
 session tuned for a latency-bound 25 Hz step on a shared machine (one intra-op thread, no spinning,
 sequential execution, full graph optimisation), checks the session's I/O against the manifest and
 runs a warm-up step before it returns, so the first real decision does not pay for lazy
@@ -12,7 +12,7 @@ stream) and carries that stream's GRU state to the next call. Each stream owns p
 (input, two hidden-state buffers used in turn, outputs) bound once to the session with IOBinding, so a
 step allocates nothing but the small result it returns.
 
-Non-finite policy (the second line of defence; ``slipd.features`` already replaces non-finite samples).
+Non-finite policy (the second line of defence; ``slipd.detect.features`` already replaces non-finite samples).
 ``step`` does not raise for these; it returns an invalid ``StepResult`` (``valid`` False, ``p_slip`` NaN,
 ``status`` saying why) so a 25 Hz loop needs no try/except, and a NaN used by mistake is refused by
 ``Decision.update``:
@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from slipd.features import FeatureSpec
-from slipd.manifest import Manifest, check_session_io, load_manifest, onnx_path_of, open_session
+from slipd.detect.features import FeatureSpec
+from slipd.detect.manifest import Manifest, check_session_io, load_manifest, onnx_path_of, open_session
 
 
 class StepError(Exception):

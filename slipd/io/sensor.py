@@ -41,8 +41,8 @@ from pathlib import Path
 
 import serial
 
+from slipd.io.pts import Frame, FrameDecoder
 from slipd.metrics import Metrics
-from slipd.pts import Frame, FrameDecoder
 
 log = logging.getLogger(__name__)
 
@@ -211,7 +211,7 @@ class SerialSensor:
         self._close()
 
     def send_command(self, data: bytes) -> None:
-        """Write a controller command (see slipd.pts: CMD_BIAS, rate_command(...)). SensorError if not open."""
+        """Write a controller command (see slipd.io.pts: CMD_BIAS, rate_command(...)). SensorError if not open."""
         if self._fd < 0:
             raise SensorError(f"{self.port}: cannot send {data!r}: sensor not connected")
         view = memoryview(data)

@@ -6,7 +6,7 @@ under 1.0 it is Torque Limit + Goal Position. The jaw's force grows with how far
 the object's surface, capped by the PWM / torque limit, so both are raised together.
 
 Every call blocks (the vendor library polls the serial port). The control loop runs them on the
-gripper's own :class:`slipd.worker.DeviceWorker` thread; a lock makes each call atomic anyway, so a
+gripper's own :class:`slipd.daemon.worker.DeviceWorker` thread; a lock makes each call atomic anyway, so a
 status read from another thread can never interleave with a tighten on the bus.
 """
 

@@ -3,7 +3,7 @@
     sample [9, 3] -> tare (startup or given) -> FeatureStream -> Ensemble.step -> Decision.update
 
 Tare: with ``tare_samples > 0`` the first ``tare_samples`` samples after a (re)start are averaged
-(``slipd.features.tare_offset``) while the sensor is unloaded; they are held back and then pushed
+(``slipd.detect.features.tare_offset``) while the sensor is unloaded; they are held back and then pushed
 through the pipeline, so the windows are cut exactly as ``batch_windows`` cuts a recording whose
 offset comes from the same stretch. With an explicit ``offset`` (or the sensor's own bias command,
 offset 0) decisions start at once.
@@ -24,26 +24,46 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from slipd.ensemble import StepError
-from slipd.features import FeatureSpec, FeatureStream, tare_offset
+from slipd.detect.decision import Detection
+from slipd.detect.ensemble import StepError
+from slipd.detect.features import FeatureSpec, FeatureStream, tare_offset
 from slipd.geometry import CONTACT_THRESHOLD_N
 
+if TYPE_CHECKING:
+    from slipd.config import SlipdConfig
+    from slipd.detect.ensemble import Ensemble
 
-@dataclass(frozen=True, slots=True)
-class Detection:
-    """One decision: made after sample ``index`` (counted since the detector started)."""
 
-    index: int
-    t_us: int
-    p_slip: float
-    risk: float
-    alarm: bool
-    rising_edge: bool
-    valid: bool = True
+class SlipDetector(Protocol):
+    """What the loop, replay and evaluation need of a detector: the ensemble and the heuristics alike."""
+
+    windows: int
+    resets: int
+    last_step_s: float | None
+    step_seconds: list[float | None]
+
+    def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
+        """Feed one raw sample [9, 3]; a Detection when a decision is made."""
+        ...
+
+    def push_many(
+        self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: Sequence[np.ndarray] | None = None
+    ) -> list[tuple[int, Detection]]:
+        """Feed a block [k, 9, 3]; ``(i, detection)`` for each sample that decided."""
+        ...
+
+    def samples_to_decision(self) -> int:
+        """Samples still to push until the next decision (1: the very next one)."""
+        ...
+
+    def restart(self, retare: bool = False) -> None:
+        """Forget history and state (reconnect, counter discontinuity)."""
+        ...
 
 
 class Detector:
@@ -206,10 +226,10 @@ class Detector:
 
 
 class HeuristicDetector:
-    """A published heuristic (``slipd.baselines``) behind the Detector interface the loop uses."""
+    """A published heuristic (``slipd.detect.baselines``) behind the Detector interface the loop uses."""
 
-    def __init__(self, name: str, params_path: str, offset: np.ndarray | None = None) -> None:
-        from slipd.baselines import load_params, make_baseline
+    def __init__(self, name: str, params_path: str | Path, offset: np.ndarray | None = None) -> None:
+        from slipd.detect.baselines import load_params, make_baseline
 
         params, frontend = load_params(params_path, name)
         self.name = name
@@ -258,3 +278,37 @@ def run_recording(detector: Detector, force: np.ndarray, t_us: np.ndarray | None
         if det is not None:
             out.append(det)
     return out
+
+
+def build_detector(
+    cfg: SlipdConfig | None, ensemble: Ensemble, *, offset: np.ndarray | None = None, tare_samples: int | None = None
+) -> SlipDetector:
+    """The one place a detector is built from a config: the daemon, replay and the rig all call it.
+
+    ``cfg`` None means the model's own settings (stride, threshold, no hysteresis). The tare: an explicit
+    ``offset`` wins; else ``tare_samples`` (a start-up tare of that many samples; 0 means the sensor
+    zeroes itself, offset 0); else the config's ``sensor.tare``.
+    """
+    from slipd.detect.decision import Decision
+
+    spec = ensemble.feature_spec
+    threshold, hysteresis, consecutive = ensemble.threshold, 0.0, 1
+    if cfg is not None:
+        if cfg.model.stride:
+            spec = spec.with_(stride=cfg.model.stride)
+        threshold = cfg.decision.effective_threshold(ensemble.threshold)
+        hysteresis = cfg.decision.hysteresis
+        consecutive = cfg.decision.min_consecutive
+    if offset is None:
+        if tare_samples is None:
+            startup = cfg is not None and cfg.sensor.tare == "startup"
+            tare_samples = cfg.sensor.tare_samples if cfg is not None and startup else 0
+        if tare_samples == 0:
+            offset = np.zeros((9, 3), np.float32)
+    if cfg is not None and cfg.model.detector != "onnx":
+        # A published heuristic instead of the ensemble (comparisons on the rig); it has no start-up tare of
+        # its own, so it expects a zeroed sensor (tare: bias_command).
+        params = cfg.model.baseline_params or cfg.model.manifest.parent / "baselines.json"
+        return HeuristicDetector(cfg.model.detector, params, offset)
+    decision = Decision(threshold=threshold, hysteresis=hysteresis, min_consecutive=consecutive)
+    return Detector(ensemble, decision, spec, offset=offset, tare_samples=tare_samples or 0)

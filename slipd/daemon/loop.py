@@ -2,9 +2,9 @@
 
 Start-up order is fail-safe: the configuration and the model (manifest, hash, shapes, feature
 layout) are checked, the session warmed up, and only then are devices opened. A broken config or
-model therefore never touches hardware (exit codes in ``slipd.__main__``).
+model therefore never touches hardware (exit codes in ``slipd.cli``).
 
-The hot path is event-driven: the sensor reader (``slipd.sensor``) calls ``_on_frames`` on the loop
+The hot path is event-driven: the sensor reader (``slipd.io.sensor``) calls ``_on_frames`` on the loop
 thread as soon as bytes arrive; each frame goes through the shared ``Detector`` (features ->
 ensemble -> decision) and, on a rising alarm edge, ``Reaction`` hands the arm stop and the gripper
 tighten to their device threads at once. Nothing on this path blocks.
@@ -28,21 +28,18 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import signal
-import sys
 import time
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from slipd.decision import Decision
-from slipd.detector import Detector
+from slipd.daemon.reaction import Reaction
+from slipd.daemon.worker import DeviceWorker
+from slipd.detect.detector import SlipDetector, build_detector
 from slipd.metrics import Metrics
-from slipd.reaction import Reaction
-from slipd.worker import DeviceWorker
 
-log = logging.getLogger("slipd.control")
+log = logging.getLogger("slipd.daemon.loop")
 
 SUPERVISION_PERIOD_S = 0.005
 """Supervision tick for short stall timeouts (up to 25 ms); longer ones allow up to SUPERVISION_MAX_PERIOD_S."""
@@ -102,23 +99,7 @@ class Daemon:
         "gripper": "ok" | reason}``; filled by the health poll."""
         self.metrics = metrics or Metrics()
         self.ensemble = ensemble
-        spec = ensemble.feature_spec
-        if cfg.model.stride:
-            spec = spec.with_(stride=cfg.model.stride)
-        threshold = cfg.decision.effective_threshold(ensemble.threshold)
-        self.decision = Decision(threshold=threshold, hysteresis=cfg.decision.hysteresis,
-                                 min_consecutive=cfg.decision.min_consecutive)
-        tare_n = cfg.sensor.tare_samples if cfg.sensor.tare == "startup" else 0
-        if cfg.model.detector == "onnx":
-            self.detector = Detector(ensemble, self.decision, spec, offset=None if tare_n else np.zeros((9, 3)),
-                                     tare_samples=tare_n)
-        else:
-            # A published heuristic instead of the ensemble (comparisons on the rig); it has no start-up
-            # tare of its own, so it expects a zeroed sensor (tare: bias_command).
-            from slipd.detector import HeuristicDetector
-
-            params = cfg.model.baseline_params or cfg.model.manifest.parent / "baselines.json"
-            self.detector = HeuristicDetector(cfg.model.detector, str(params))
+        self.detector: SlipDetector = build_detector(cfg, ensemble)
         self.arm, self.gripper = arm, gripper
         self.arm_worker = DeviceWorker("arm") if arm is not None else None
         self.gripper_worker = DeviceWorker("gripper") if gripper is not None else None
@@ -252,7 +233,7 @@ class Daemon:
         last_ping = 0.0
         ping_every = None
         if self.notifier is not None and self.cfg.control.watchdog:
-            from slipd.sdnotify import watchdog_interval
+            from slipd.daemon.sdnotify import watchdog_interval
 
             wd = watchdog_interval()
             ping_every = wd / 2 if wd else None
@@ -382,8 +363,8 @@ class Daemon:
     # ---------------------------------------------------------------- lifecycle
     async def run(self, sensor_port: str | None = None, duration_s: float | None = None) -> LoopStats:
         """Open the sensor, run until ``stop()`` (or ``duration_s``), then close everything."""
-        from slipd.pts import CMD_BIAS, rate_command
-        from slipd.sensor import SerialSensor
+        from slipd.io.pts import CMD_BIAS, rate_command
+        from slipd.io.sensor import SerialSensor
 
         cfg = self.cfg.sensor
         self.sensor = SerialSensor(
@@ -443,88 +424,3 @@ class Daemon:
                     dev.close()
         if self.recorder is not None:
             self.recorder.close()
-
-
-# -------------------------------------------------------------------- building
-def build_devices(cfg: Any, metrics: Metrics) -> tuple[Any, Any]:
-    """Open and connect the configured arm and gripper (blocking; before the loop starts)."""
-    arm = gripper = None
-    if cfg.gripper.enabled:
-        from slipd.gripper import DynamixelGripper, DynamixelSettings
-
-        g = cfg.gripper
-        gripper = DynamixelGripper(
-            DynamixelSettings(
-                port=g.port, baudrate=g.baudrate, dxl_id=g.id, protocol=float(g.protocol),
-                hold_position=g.hold_position, secure_position=g.secure_position,
-                hold_pwm=g.hold_effort, secure_pwm=g.secure_effort,
-                retries=g.retries, packet_timeout_ms=g.packet_timeout_ms,
-            ),
-            metrics=metrics,
-        )
-        gripper.connect()
-        # slipd owns the grip: it holds at the hold setting from the start and tightens on an alarm.
-        gripper.hold()
-    if cfg.arm.enabled:
-        from slipd.arm import URArm, URSettings
-
-        a = cfg.arm
-        arm = URArm(
-            URSettings(host=a.host, frequency=a.rtde_frequency, stop_deceleration=a.stop_deceleration,
-                       stop_method=a.stop_method),
-            metrics=metrics,
-        )
-        arm.connect()
-    return arm, gripper
-
-
-def main_run(args: Any) -> int:
-    """``slipd run --config FILE``."""
-    from slipd.__main__ import EXIT_CONFIG, EXIT_DEVICE, EXIT_MODEL, EXIT_OK, EXIT_RUNTIME
-    from slipd.config import ConfigError, load_config
-    from slipd.ensemble import Ensemble
-    from slipd.manifest import ModelError
-
-    try:
-        cfg = load_config(args.config)
-    except ConfigError as exc:
-        print(exc, file=sys.stderr)
-        return EXIT_CONFIG
-    logging.basicConfig(level=cfg.control.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    try:
-        ensemble = Ensemble.load(cfg.model.manifest, threads=cfg.model.threads)
-    except ModelError as exc:
-        print(f"{args.config}: model.manifest: {exc}", file=sys.stderr)
-        return EXIT_MODEL
-    metrics = Metrics()
-    try:
-        arm, gripper = build_devices(cfg, metrics)
-    except Exception as exc:  # any driver failure at start-up: refuse to run, say which device
-        print(f"slipd: device start-up failed: {exc}", file=sys.stderr)
-        return EXIT_DEVICE
-    from slipd.sdnotify import Notifier
-
-    daemon = Daemon(cfg, ensemble, metrics=metrics, arm=arm, gripper=gripper, notifier=Notifier())
-    if cfg.recorder.enabled:
-        from slipd.recorder import Recorder
-
-        daemon.recorder = Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz,
-                                               meta={"model_sha256": ensemble.manifest.sha256})
-    server = metrics.serve(cfg.metrics.host, cfg.metrics.port) if cfg.metrics.enabled else None
-
-    async def _main() -> None:
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, daemon.stop)
-        await daemon.run()
-
-    try:
-        asyncio.run(_main())
-    except Exception:
-        log.exception("daemon failed")
-        return EXIT_RUNTIME
-    finally:
-        daemon.close()
-        if server is not None:
-            server.shutdown()
-    return EXIT_OK

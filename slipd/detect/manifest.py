@@ -22,7 +22,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from slipd.features import FeatureSpec
+from slipd.detect.features import FeatureSpec
 
 FORMAT_VERSION = 1
 INPUT_NAMES = ("window", "h")

@@ -77,3 +77,16 @@ class Decision:
             pm = np.asarray(p_members, dtype=np.float64).reshape(-1)
             frac = float(np.mean(pm >= self.threshold)) if pm.size else 0.0
         return DecisionResult(alarm, rising, min(1.0, p / self.threshold), frac)
+
+
+@dataclass(frozen=True, slots=True)
+class Detection:
+    """One decision: made after sample ``index`` (counted since the detector started)."""
+
+    index: int
+    t_us: int
+    p_slip: float
+    risk: float
+    alarm: bool
+    rising_edge: bool
+    valid: bool = True

@@ -1,52 +1,40 @@
-"""The daemon's configuration: one YAML file, validated by pydantic models.
+"""The daemon's configuration schema: one pydantic model per section, one section per device.
 
 Every section rejects unknown keys (a misspelt key is an error, never a silently ignored setting) and
-every field carries a description and bounds. ``load_config`` raises ``ConfigError`` whose message
-has one line per problem, each naming the file, the line where the YAML has one, the key path and the
-reason::
-
-    /etc/slipd/slipd.yaml:42: gripper.secure_pwm: Input should be less than or equal to 885 (got 900)
-
-Relative paths (``model.manifest``, ``recorder.directory``) resolve against the config file's folder.
-``recorder.directory`` left out means ``$STATE_DIRECTORY/recordings`` under systemd
-(``StateDirectory=slipd``), else ``/var/lib/slipd/recordings``.
+every field carries a description and bounds; ``docs/configuration.md`` is generated from these
+descriptions (``python tools/config_reference.py``). Relative paths (``model.manifest``,
+``recorder.directory``) resolve against the config file's folder; ``model.manifest`` may also name a
+packaged model (``slip_ensemble_int8``). ``recorder.directory`` left out means
+``$STATE_DIRECTORY/recordings`` under systemd (``StateDirectory=slipd``), else ``/var/lib/slipd/recordings``.
 
 The models are frozen. A caller that must change a loaded config (the simulated rig fills in the
-ports of its emulated devices) uses ``override(cfg, {"sensor.port": "/dev/pts/3"})``, which validates
-the result again, or pydantic's ``cfg.model_copy(update=...)`` when it knows the values are valid.
-
-``slipd check-config FILE`` (``main_check``) validates the file and the model manifest it points to
-without touching any hardware.
+ports of its emulated devices) uses ``slipd.config.override``, which validates the result again.
 """
 
 from __future__ import annotations
 
-import difflib
 import ipaddress
 import os
 import re
 import reprlib
-import stat
-import sys
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
-    ValidationError,
     ValidationInfo,
     field_validator,
     model_validator,
 )
 
+from slipd import models
+
 DEFAULT_STATE_DIR = Path("/var/lib/slipd")
 DYNAMIXEL_BAUDRATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600, 1000000, 1152000,
                        2000000, 2500000, 3000000, 3500000, 4000000)
-"""Baud rates dynamixel-sdk's PortHandler accepts (the same list as ``slipd.gripper.BAUDRATES``, which is not
+"""Baud rates dynamixel-sdk's PortHandler accepts (the same list as ``slipd.io.gripper.BAUDRATES``, which is not
 imported here so that ``check-config`` does not load the vendor SDK; a test keeps the two equal)."""
 MAX_CONFIG_BYTES = 1 << 20
 """A config larger than this is refused before parsing."""
@@ -172,12 +160,13 @@ class ModelConfig(_Section):
     """The ONNX ensemble, named by its manifest."""
 
     manifest: Path = Field(
-        description="model manifest (.json beside the .onnx); a relative path resolves against this file's folder"
+        description="the model: a packaged model's name (slip_ensemble_int8; `slipd models` lists them) or a "
+        "manifest path (.json beside the .onnx); a relative path resolves against this file's folder"
     )
     threads: int = Field(1, ge=1, le=64, description="onnxruntime intra-op threads (1: lowest jitter)")
     detector: Literal["onnx", "deceleration", "reference_pillar"] = Field(
         "onnx", description="onnx: the ensemble of the manifest; deceleration / reference_pillar: a published "
-        "heuristic (slipd.baselines) with the tuned parameters of baseline_params, for comparison on the rig"
+        "heuristic (slipd.detect.baselines) with the tuned parameters of baseline_params, for comparison on the rig"
     )
     baseline_params: Path | None = Field(
         None, description="tuned heuristic parameters (JSON); null: baselines.json beside the manifest"
@@ -190,8 +179,16 @@ class ModelConfig(_Section):
 
     @field_validator("manifest", "baseline_params", mode="before")
     @classmethod
-    def _manifest_text(cls, v: Any) -> Any:
-        return v if v is None else _path_text(v)
+    def _manifest_text(cls, v: Any, info: ValidationInfo) -> Any:
+        if v is None:
+            return v
+        v = _path_text(v)
+        if info.field_name == "manifest" and isinstance(v, str) and models.is_name(v):
+            try:
+                return models.packaged(v)
+            except FileNotFoundError as exc:
+                raise ValueError(str(exc)) from None
+        return v
 
     @field_validator("manifest", "baseline_params")
     @classmethod
@@ -464,265 +461,3 @@ class _SectionProblem(FieldProblem):
     def __init__(self, loc: tuple[str, ...], reason: str) -> None:
         super().__init__(".".join(loc), reason)
         self.loc = loc
-
-
-# ---------------------------------------------------------------------------------------------- loading
-class _Loader(yaml.SafeLoader):
-    """SafeLoader that rejects duplicate keys (YAML would silently keep the last one)."""
-
-
-def _construct_mapping(loader: _Loader, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
-    seen: dict[Any, yaml.Node] = {}
-    for key_node, _ in node.value:
-        key = loader.construct_object(key_node, deep=True)
-        try:
-            if key in seen:
-                raise yaml.constructor.ConstructorError(
-                    "while constructing a mapping", node.start_mark, f"found duplicate key {key!r}", key_node.start_mark
-                )
-            seen[key] = key_node
-        except TypeError:
-            pass  # unhashable key: construct_mapping below reports it with its position
-    return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
-
-
-_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
-
-
-def _key_lines(node: yaml.Node | None, prefix: tuple[Any, ...] = ()) -> dict[tuple[Any, ...], int]:
-    """Map key paths to 1-based line numbers, so validation errors can point into the file."""
-    lines: dict[tuple[Any, ...], int] = {}
-    if isinstance(node, yaml.MappingNode):
-        for k, v in node.value:
-            if isinstance(k, yaml.ScalarNode):
-                path = (*prefix, k.value)
-                lines[path] = k.start_mark.line + 1
-                lines.update(_key_lines(v, path))
-    elif isinstance(node, yaml.SequenceNode):
-        for i, v in enumerate(node.value):
-            path = (*prefix, i)
-            lines[path] = v.start_mark.line + 1
-            lines.update(_key_lines(v, path))
-    return lines
-
-
-def _allowed_keys(loc: tuple[Any, ...]) -> list[str] | None:
-    """Field names of the section that ``loc`` (ending at an unknown key) sits in."""
-    model: Any = SlipdConfig
-    for part in loc[:-1]:
-        field = model.model_fields.get(part) if isinstance(part, str) else None
-        if field is None or not (isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel)):
-            return None
-        model = field.annotation
-    return list(model.model_fields)
-
-
-def _fmt_loc(loc: tuple[Any, ...]) -> str:
-    out = ""
-    for part in loc:
-        if isinstance(part, int) and not isinstance(part, bool):
-            out += f"[{part}]"
-        else:
-            out += ("." if out else "") + str(part)
-    return out or "(top level)"
-
-
-def _short(value: Any) -> str:
-    return _REPR.repr(value)
-
-
-def _problems(exc: ValidationError, source: str, lines: Mapping[tuple[Any, ...], int]) -> list[str]:
-    """One line per pydantic error: ``file:line: key.path: reason (got value)``."""
-    out = []
-    for err in exc.errors():
-        loc = tuple(err["loc"])
-        reason = err["msg"]
-        cause = (err.get("ctx") or {}).get("error")
-        if isinstance(cause, _SectionProblem):
-            loc, reason = cause.loc, cause.reason
-        elif isinstance(cause, FieldProblem):
-            loc, reason = (*loc, cause.field), cause.reason
-        elif err["type"] == "extra_forbidden":
-            allowed = _allowed_keys(loc)
-            reason = "unknown key"
-            if allowed:
-                close = difflib.get_close_matches(str(loc[-1]), allowed, n=1)
-                reason += f" (did you mean {close[0]!r}?)" if close else f" (allowed: {', '.join(allowed)})"
-        elif err["type"] == "missing":
-            reason = "required key is missing"
-        elif err["type"] == "value_error" and reason.startswith("Value error, "):
-            reason = reason[len("Value error, ") :]
-        if err["type"] not in ("missing", "extra_forbidden") and not isinstance(cause, FieldProblem):
-            reason += f" (got {_short(err.get('input'))})"
-        line = None
-        for n in range(len(loc), 0, -1):  # the deepest key of the path that the file has
-            if loc[:n] in lines:
-                line = lines[loc[:n]]
-                break
-        where = f"{source}:{line}" if line else source
-        out.append(f"{where}: {_fmt_loc(loc)}: {reason}")
-    return out
-
-
-def parse_config(text: str, source: str = "<config>", base_dir: str | os.PathLike | None = None) -> SlipdConfig:
-    """Validate YAML text; ``source`` names it in errors, ``base_dir`` anchors relative paths."""
-    try:
-        loader = _Loader(text)
-        try:
-            node = loader.get_single_node()
-            data = loader.construct_document(node) if node is not None else None
-        finally:
-            loader.dispose()
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        where = f"{source}:{mark.line + 1}:{mark.column + 1}" if mark else source
-        problem = " ".join(str(p) for p in (exc.context, exc.problem) if p)
-        raise ConfigError([f"{where}: YAML syntax error: {problem}"]) from None
-    except yaml.YAMLError as exc:  # reader errors (control characters) carry a position, not a mark
-        raise ConfigError([f"{source}: YAML error: {exc}".replace("\n", " ")]) from None
-    except RecursionError:
-        raise ConfigError([f"{source}: YAML nested too deeply"]) from None
-    if data is None:
-        raise ConfigError([f"{source}: the file is empty; expected a mapping with sensor, model, gripper, arm, ..."])
-    if not isinstance(data, dict):
-        raise ConfigError([f"{source}: top level must be a mapping of sections, got {type(data).__name__}"])
-    return _validate(data, source, base_dir, _key_lines(node))
-
-
-def _validate(
-    data: Mapping[str, Any],
-    source: str,
-    base_dir: str | os.PathLike | None,
-    lines: Mapping[tuple[Any, ...], int] | None = None,
-) -> SlipdConfig:
-    try:
-        return SlipdConfig.model_validate(data, context={"base_dir": base_dir})
-    except ValidationError as exc:
-        raise ConfigError(_problems(exc, source, lines or {})) from None
-    except RecursionError:
-        raise ConfigError([f"{source}: values nested too deeply"]) from None
-
-
-def config_from_dict(
-    data: Mapping[str, Any], source: str = "<dict>", base_dir: str | os.PathLike | None = None
-) -> SlipdConfig:
-    """Validate an already-parsed mapping (tests, the simulated rig)."""
-    return _validate(data, source, base_dir)
-
-
-def load_config(path: str | os.PathLike) -> SlipdConfig:
-    """Read and validate a YAML config file; raise ``ConfigError`` naming the file, key path and reason."""
-    path = Path(path)
-    try:
-        size = path.stat().st_size
-        if size > MAX_CONFIG_BYTES:
-            raise ConfigError([f"{path}: {size} bytes is too large for a config file (limit {MAX_CONFIG_BYTES})"])
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise ConfigError([f"{path}: cannot read ({exc.strerror or exc})"]) from None
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ConfigError([f"{path}: not UTF-8 text (byte {exc.start})"]) from None
-    return parse_config(text, str(path), path.resolve().parent)
-
-
-def override(cfg: SlipdConfig, updates: Mapping[str, Any]) -> SlipdConfig:
-    """A copy of ``cfg`` with dotted keys replaced (``{"sensor.port": "/dev/pts/3"}``), validated again.
-
-    Paths in ``cfg`` are already absolute; a relative path in ``updates`` resolves against the
-    current directory.
-    """
-    data = cfg.model_dump()
-    for dotted, value in updates.items():
-        parts = dotted.split(".")
-        node = data
-        for part in parts[:-1]:
-            if not isinstance(node.get(part), dict):
-                raise ConfigError([f"<override>: {dotted}: no such section {part!r}"])
-            node = node[part]
-        node[parts[-1]] = value
-    return _validate(data, "<override>", Path.cwd())
-
-
-# ---------------------------------------------------------------------------------------------- check-config
-def summary(cfg: SlipdConfig, manifest: Any = None) -> str:
-    """One line saying what this config will drive."""
-    thr = cfg.decision.threshold
-    if thr is None and manifest is not None:
-        thr = manifest.threshold
-    parts = [
-        f"sensor {cfg.sensor.port} @ {cfg.sensor.rate_hz} Hz (tare {cfg.sensor.tare})",
-        f"model {cfg.model.manifest.name}" + (f" ({manifest.sha256[:12]})" if manifest is not None else ""),
-        f"threshold {thr:.3g}" if thr is not None else "threshold from manifest",
-        f"actions {'+'.join(cfg.reaction.actions) or 'none'}" + (" graded" if cfg.reaction.graded else ""),
-    ]
-    g = cfg.gripper
-    parts.append(f"gripper id {g.id} p{g.protocol:g} on {g.port}" if g.enabled else "gripper off")
-    parts.append(f"arm {cfg.arm.host} ({cfg.arm.stop_method})" if cfg.arm.enabled else "arm off")
-    parts.append(f"metrics {cfg.metrics.host}:{cfg.metrics.port}" if cfg.metrics.enabled else "metrics off")
-    parts.append(f"recorder {cfg.recorder.directory}" if cfg.recorder.enabled else "recorder off")
-    return "; ".join(parts)
-
-
-def check_against_manifest(cfg: SlipdConfig, manifest: Any, source: str) -> list[str]:
-    """Problems between the config and a loaded model manifest (rate, stride, threshold)."""
-    problems = []
-    if cfg.sensor.rate_hz != manifest.sample_rate_hz:
-        problems.append(
-            f"{source}: sensor.rate_hz: {cfg.sensor.rate_hz} Hz, but the model was trained at "
-            f"{manifest.sample_rate_hz} Hz"
-        )
-    stride = cfg.model.stride
-    if stride and (stride > manifest.window or manifest.window % stride):
-        problems.append(f"{source}: model.stride: must divide the model's window ({manifest.window}), got {stride}")
-    thr = cfg.decision.effective_threshold(manifest.threshold)
-    if thr - cfg.decision.hysteresis <= 0:
-        problems.append(
-            f"{source}: decision.hysteresis: must be smaller than the threshold ({thr}), got {cfg.decision.hysteresis}"
-        )
-    return problems
-
-
-def permission_warnings(path: str | os.PathLike) -> list[str]:
-    """Warnings about who may change the config (it decides what the robot does)."""
-    mode = Path(path).stat().st_mode
-    warnings = []
-    if mode & stat.S_IWOTH:
-        warnings.append(f"warning: {path} is world-writable; anyone on this machine can change what the robot does "
-                        f"(chmod o-w)")
-    return warnings
-
-
-def main_check(args: Any) -> int:
-    """``slipd check-config FILE``: 0 valid, 3 invalid config, 4 invalid model. Touches no hardware."""
-    from slipd.__main__ import EXIT_CONFIG, EXIT_MODEL, EXIT_OK
-
-    path = Path(args.config)
-    try:
-        cfg = load_config(path)
-    except ConfigError as exc:
-        print(exc, file=sys.stderr)
-        return EXIT_CONFIG
-    for w in permission_warnings(path):
-        print(w, file=sys.stderr)
-    manifest = None
-    try:
-        from slipd.manifest import ModelError, load_manifest
-    except ImportError:  # the model module is optional for a config-only check
-        if not cfg.model.manifest.is_file():
-            print(f"{path}: model.manifest: {cfg.model.manifest}: file not found", file=sys.stderr)
-            return EXIT_MODEL
-        print("warning: slipd.manifest unavailable; the model was not checked", file=sys.stderr)
-    else:
-        try:
-            manifest = load_manifest(cfg.model.manifest)
-        except ModelError as exc:
-            print(f"{path}: model.manifest: {exc}", file=sys.stderr)
-            return EXIT_MODEL
-        problems = check_against_manifest(cfg, manifest, str(path))
-        if problems:
-            print("\n".join(problems), file=sys.stderr)
-            return EXIT_CONFIG
-    print(f"OK {path}: {summary(cfg, manifest)}")
-    return EXIT_OK

@@ -1,0 +1,215 @@
+"""Command line: ``slipd run | sim | replay | check-config | models | version`` (also ``python -m slipd``).
+
+Every subcommand and every exit code lives here; the wings below raise typed errors
+(``ConfigError``, ``ModelError``, ``RecordingError``, ``DeviceError``) and this module turns them into
+one line on stderr and an exit code. Each subcommand imports its wing only when it runs, so
+``slipd check-config`` stays fast and ``slipd run`` never imports the simulator, torch or matplotlib.
+
+Exit codes (docs/configuration.md):
+    0 success; 1 runtime failure; 2 usage error; 3 invalid configuration; 4 invalid model;
+    5 device failure at start-up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from slipd import __version__
+
+EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, EXIT_CONFIG, EXIT_MODEL, EXIT_DEVICE = 0, 1, 2, 3, 4, 5
+
+
+def _err(text: object) -> None:
+    print(text, file=sys.stderr)
+
+
+# ---------------------------------------------------------------------------------------------- run
+def cmd_run(args: argparse.Namespace) -> int:
+    """``slipd run --config FILE``: config, model, devices, then the loop (the daemon's own order)."""
+    import logging
+
+    from slipd.config import ConfigError
+    from slipd.daemon.service import DeviceError, prepare
+    from slipd.detect.manifest import ModelError
+
+    try:
+        service = prepare(args.config)
+    except ConfigError as exc:
+        _err(exc)
+        return EXIT_CONFIG
+    except ModelError as exc:
+        _err(f"{args.config}: model.manifest: {exc}")
+        return EXIT_MODEL
+    except DeviceError as exc:
+        _err(f"slipd: {exc}")
+        return EXIT_DEVICE
+    try:
+        service.run()
+    except Exception:
+        logging.getLogger("slipd").exception("daemon failed")
+        return EXIT_RUNTIME
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------------------------- check-config
+def cmd_check_config(args: argparse.Namespace) -> int:
+    """``slipd check-config FILE``: 0 valid, 3 invalid config, 4 invalid model. Touches no hardware."""
+    from slipd.config import ConfigError, check_against_manifest, load_config, permission_warnings, summary
+    from slipd.detect.manifest import ModelError, load_manifest
+
+    path = Path(args.config)
+    try:
+        cfg = load_config(path)
+    except ConfigError as exc:
+        _err(exc)
+        return EXIT_CONFIG
+    for w in permission_warnings(path):
+        _err(w)
+    try:
+        manifest = load_manifest(cfg.model.manifest)
+    except ModelError as exc:
+        _err(f"{path}: model.manifest: {exc}")
+        return EXIT_MODEL
+    problems = check_against_manifest(cfg, manifest, str(path))
+    if problems:
+        _err("\n".join(problems))
+        return EXIT_CONFIG
+    print(f"OK {path}: {summary(cfg, manifest)}")
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------------------------- replay
+def cmd_replay(args: argparse.Namespace) -> int:
+    """Print the alarms (rising edges) with their times; optional JSON of every decision."""
+    from slipd import models
+    from slipd.config import ConfigError, load_config
+    from slipd.detect.ensemble import Ensemble
+    from slipd.detect.manifest import ModelError
+    from slipd.detect.replay import replay
+    from slipd.recording import Recording, RecordingError
+
+    cfg = None
+    if args.config:
+        try:
+            cfg = load_config(args.config)
+        except ConfigError as exc:
+            _err(exc)
+            return EXIT_CONFIG
+    if args.model:
+        model = models.packaged(args.model) if models.is_name(args.model) else Path(args.model)
+    else:
+        model = cfg.model.manifest if cfg is not None else models.packaged(models.DEFAULT_MODEL)
+    try:
+        ensemble = Ensemble.load(model)
+    except (ModelError, FileNotFoundError) as exc:
+        _err(f"slipd replay: {exc}")
+        return EXIT_MODEL
+    try:
+        rec = Recording.load(args.recording)
+    except RecordingError as exc:
+        _err(f"slipd replay: {exc}")
+        return EXIT_RUNTIME
+    dets = replay(rec, ensemble, cfg)
+    alarms = [d for d in dets if d.rising_edge]
+    t0 = int(rec.t_us[0]) if len(rec) else 0
+    print(f"{args.recording}: {len(rec)} samples, {len(dets)} decisions, {len(alarms)} alarm(s)")
+    for d in alarms:
+        print(f"  alarm at sample {d.index}  t={(d.t_us - t0) / 1e6:.3f} s  p_slip={d.p_slip:.3f}  risk={d.risk:.2f}")
+    onset = rec.onset_index()
+    if onset is not None:
+        print(f"  labelled onset at sample {onset}  t={(int(rec.t_us[onset]) - t0) / 1e6:.3f} s")
+    if args.json:
+        out = {
+            "recording": str(args.recording),
+            "model": str(model),
+            "alarms": [d.index for d in alarms],
+            "decisions": [{"index": d.index, "t_us": d.t_us, "p_slip": d.p_slip, "alarm": d.alarm} for d in dets],
+        }
+        Path(args.json).write_text(json.dumps(out, indent=1))
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------------------------- models
+def cmd_models(args: argparse.Namespace) -> int:
+    """List the packaged models: name, sha256 of the graph, and the figures their manifest records."""
+    from slipd import models
+    from slipd.detect.manifest import ModelError, load_manifest
+
+    status = EXIT_OK
+    for name in models.names():
+        try:
+            m = load_manifest(models.packaged(name))
+        except ModelError as exc:
+            _err(f"{name}: {exc}")
+            status = EXIT_MODEL
+            continue
+        scalars = {k: v for k, v in m.metrics.items() if isinstance(v, (int, float, str))}
+        figures = ", ".join(f"{k} {v}" for k, v in sorted(scalars.items())) or "no figures recorded"
+        print(f"{name}  sha256 {m.sha256[:16]}  {m.members} members, window {m.window}, stride {m.stride}, "
+              f"threshold {m.threshold:g}  [{figures}]")
+    return status
+
+
+# ---------------------------------------------------------------------------------------------- sim
+def cmd_sim(args: argparse.Namespace) -> int:
+    """The closed-loop simulated rig (needs the ``sim`` extra)."""
+    try:
+        from slipd.sim.rig import main_sim
+    except ImportError as exc:
+        _err(f"slipd sim needs the simulator's extra: pip install 'slipd[sim]' ({exc})")
+        return EXIT_USAGE
+    return main_sim(args)
+
+
+def cmd_version(args: argparse.Namespace) -> int:
+    """Print the version."""
+    print(f"slipd {__version__}")
+    return EXIT_OK
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="slipd", description="Incipient-slip detection daemon for the PapillArray")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def add(name: str, handler: Callable[[argparse.Namespace], int], help_: str) -> argparse.ArgumentParser:
+        sp = sub.add_parser(name, help=help_)
+        sp.set_defaults(handler=handler)
+        return sp
+
+    run = add("run", cmd_run, "run the daemon (sensor -> model -> arm/gripper)")
+    run.add_argument("--config", "-c", required=True, help="YAML configuration file")
+
+    chk = add("check-config", cmd_check_config, "validate a configuration file and its model; touches no hardware")
+    chk.add_argument("config", help="YAML configuration file")
+
+    rep = add("replay", cmd_replay, "run a recording through the daemon's decision path offline and print alarms")
+    rep.add_argument("recording", help=".npz recording or Contactile SDK CSV log")
+    rep.add_argument("--model", "-m", default=None,
+                     help="packaged model name or manifest path (.json); default: the config's, else the shipped one")
+    rep.add_argument("--config", "-c", default=None, help="optional YAML config (decision settings)")
+    rep.add_argument("--json", default=None, help="write the alarms and probabilities as JSON")
+
+    add("models", cmd_models, "list the packaged models (name, sha256, figures)")
+
+    sim = add("sim", cmd_sim, "closed-loop simulated rig: physics + emulated devices + the daemon")
+    sim.add_argument("--scene", default=None, help="scene YAML (default: config/scenes/default.yaml)")
+    sim.add_argument("--config", "-c", default=None, help="daemon config for the rig (default: config/sim.yaml)")
+    sim.add_argument("--duration", type=float, default=None, help="seconds to run (default: the scene's)")
+    sim.add_argument("--plot", default="out/sim.png", help="where to write the plot ('' for none)")
+    sim.add_argument("--no-reaction", action="store_true", help="detect but do not react (control run)")
+    sim.add_argument("--detector", choices=["onnx", "deceleration", "reference_pillar"], default=None,
+                     help="override the config's model.detector (the ensemble or a published heuristic)")
+
+    add("version", cmd_version, "print the version")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``slipd`` console script."""
+    args = _parser().parse_args(argv)
+    handler: Callable[[argparse.Namespace], int] = args.handler
+    return int(handler(args) or 0)

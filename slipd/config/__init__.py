@@ -1,0 +1,53 @@
+"""The daemon's configuration: the schema (one section per device) and the loader (YAML, line numbers, errors)."""
+
+from slipd.config.load import (
+    check_against_manifest,
+    config_from_dict,
+    load_config,
+    override,
+    parse_config,
+    permission_warnings,
+    summary,
+)
+from slipd.config.schema import (
+    DEFAULT_STATE_DIR,
+    DYNAMIXEL_BAUDRATES,
+    MAX_CONFIG_BYTES,
+    ArmConfig,
+    ConfigError,
+    ControlConfig,
+    DecisionConfig,
+    FieldProblem,
+    GripperConfig,
+    MetricsConfig,
+    ModelConfig,
+    ReactionConfig,
+    RecorderConfig,
+    SensorConfig,
+    SlipdConfig,
+)
+
+__all__ = [
+    "DEFAULT_STATE_DIR",
+    "DYNAMIXEL_BAUDRATES",
+    "MAX_CONFIG_BYTES",
+    "ArmConfig",
+    "ConfigError",
+    "ControlConfig",
+    "DecisionConfig",
+    "FieldProblem",
+    "GripperConfig",
+    "MetricsConfig",
+    "ModelConfig",
+    "ReactionConfig",
+    "RecorderConfig",
+    "SensorConfig",
+    "SlipdConfig",
+    "check_against_manifest",
+    "config_from_dict",
+    "load_config",
+    "override",
+    "parse_config",
+    "permission_warnings",
+    "summary",
+]

@@ -1,0 +1,69 @@
+"""``slipd run``: the daemon's start-up order, its run and its shutdown.
+
+Order (fail-safe): the config, then the model (manifest, hash, shapes, feature layout, warm-up), and only
+then the devices. A broken config or model therefore never touches hardware. Each step raises its own
+typed error (``ConfigError``, ``ModelError``, ``DeviceError``); ``slipd.cli`` turns them into exit codes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import signal
+from dataclasses import dataclass
+
+from slipd.config import SlipdConfig, load_config
+from slipd.daemon.devices import DeviceError, build_devices
+from slipd.daemon.loop import Daemon
+from slipd.daemon.sdnotify import Notifier
+from slipd.detect.ensemble import Ensemble
+from slipd.metrics import Metrics
+
+log = logging.getLogger("slipd.service")
+
+
+@dataclass
+class Service:
+    """A configured daemon with its model loaded and devices open, ready to ``run``."""
+
+    cfg: SlipdConfig
+    daemon: Daemon
+    metrics: Metrics
+
+    def run(self) -> None:
+        """Serve metrics and run the loop until SIGINT/SIGTERM; always releases the devices."""
+        server = self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.port) if self.cfg.metrics.enabled else None
+
+        async def _main() -> None:
+            loop = asyncio.get_running_loop()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.add_signal_handler(sig, self.daemon.stop)
+            await self.daemon.run()
+
+        try:
+            asyncio.run(_main())
+        finally:
+            self.daemon.close()
+            if server is not None:
+                server.shutdown()
+
+
+def prepare(config_path: str | os.PathLike) -> Service:
+    """Load and check everything, then open the devices (in that order). Raises ConfigError, ModelError or
+    DeviceError; nothing is opened when the config or the model is refused."""
+    cfg = load_config(config_path)
+    logging.basicConfig(level=cfg.control.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    ensemble = Ensemble.load(cfg.model.manifest, threads=cfg.model.threads)
+    metrics = Metrics()
+    arm, gripper = build_devices(cfg, metrics)
+    daemon = Daemon(cfg, ensemble, metrics=metrics, arm=arm, gripper=gripper, notifier=Notifier())
+    if cfg.recorder.enabled:
+        from slipd.daemon.recorder import Recorder
+
+        daemon.recorder = Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz,
+                                               meta={"model_sha256": ensemble.manifest.sha256})
+    return Service(cfg, daemon, metrics)
+
+
+__all__ = ["DeviceError", "Service", "prepare"]

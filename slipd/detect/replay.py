@@ -1,0 +1,43 @@
+"""``slipd replay RECORDING``: run a recording through the daemon's own decision path, offline.
+
+The recording's samples go through the same ``Detector`` (features -> ensemble -> decision) that
+the live loop feeds from the serial reader, as fast as possible, so the alarms printed here are the
+alarms the daemon raises on the same frames (a test checks it against the live loop on a pty).
+
+Tare, in order of precedence: the offset the daemon used (``meta["tare_offset"]``, written by the
+recorder), the configuration's tare (``--config``), the recording's unloaded stretch
+(``meta["tare_samples"]``), the model's default stretch.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from slipd.detect.decision import Detection
+from slipd.detect.detector import SlipDetector, build_detector, run_recording
+from slipd.detect.features import tare_offset
+from slipd.recording import Recording
+
+if TYPE_CHECKING:
+    from slipd.config import SlipdConfig
+    from slipd.detect.ensemble import Ensemble
+
+
+def detector_for(rec: Recording, ensemble: Ensemble, cfg: SlipdConfig | None = None) -> SlipDetector:
+    """The detector the daemon would build for this recording (see the module docstring for the tare)."""
+    if "tare_offset" in rec.meta:
+        return build_detector(cfg, ensemble, offset=np.asarray(rec.meta["tare_offset"], np.float32))
+    if cfg is not None:
+        return build_detector(cfg, ensemble)
+    a, b = rec.meta.get("tare_samples", ensemble.feature_spec.tare_samples)
+    if a == 0:
+        return build_detector(None, ensemble, tare_samples=int(b))
+    return build_detector(None, ensemble, offset=tare_offset(rec.force, int(a), int(b)))
+
+
+def replay(rec: Recording, ensemble: Ensemble, cfg: SlipdConfig | None = None) -> list[Detection]:
+    """Every decision the daemon makes on ``rec``."""
+    ensemble.reset()
+    return run_recording(detector_for(rec, ensemble, cfg), rec.force, rec.t_us)

@@ -1,0 +1,231 @@
+"""Soak the live daemon: 1 kHz frames for N seconds against the emulated devices; nothing may be lost.
+
+    python tools/soak_live.py                          # 600 s, slipd/models/slip_ensemble.json
+    python tools/soak_live.py --seconds 30 --model M.json
+    python tools/soak_live.py --random-model           # no trained model yet: random weights, full size
+
+The real ``Daemon`` (pyserial reader, ONNX ensemble, dynamixel-sdk, ur_rtde, device health poll) runs
+in this process against the emulated PapillArray (pty, quiet hold looped), MX-28 (pty) and UR
+controller (own process on ``--host``). At the end the sensor emulator stops, the daemon drains the
+pty, and the counts are compared: frames sent (written to the pty, plus any the emulator had to
+discard because the reader fell behind) against frames the daemon processed.
+
+Prints frames sent, processed, lost (must be 0), loop overruns, frames dropped by the packet counter,
+reconnects, fail-safes, alarms, health polls, and CPU: the loop thread's own CPU seconds per wall
+second (reader, decoder, features, model), and the whole process's (which also carries the emulated
+sensor and servo threads). Exit status 1 when a frame was lost or a decode error occurred.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from slipd.lab.paths import ROOT
+from slipd.recording import Recording
+
+DEFAULT_HOST = "127.0.0.6"  # tests use .2 .. .5
+TARE = 300
+
+
+@dataclass
+class SoakReport:
+    """Counts of one soak run."""
+
+    seconds: float
+    model: str
+    frames_sent: int = 0
+    frames_processed: int = 0
+    frames_lost: int = 0
+    emulator_discarded: int = 0
+    overruns: int = 0
+    dropped: int = 0
+    decode_errors: int = 0
+    reconnects: int = 0
+    failsafes: int = 0
+    alarms: int = 0
+    decisions: int = 0
+    step_errors: int = 0
+    health_polls: int = 0
+    loop_cpu_share: float = 0.0
+    process_cpu_share: float = 0.0
+    wall_s: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        """No frame lost, no corrupt frame, no model step error."""
+        return self.frames_lost == 0 and self.decode_errors == 0 and self.step_errors == 0
+
+    def lines(self) -> list[str]:
+        """Human-readable summary."""
+        return [
+            f"soak            {self.wall_s:.1f} s at 1 kHz, model {self.model}",
+            f"frames sent     {self.frames_sent} (emulator discarded {self.emulator_discarded})",
+            f"frames processed {self.frames_processed}",
+            f"frames lost     {self.frames_lost}",
+            f"overruns        {self.overruns}",
+            f"dropped         {self.dropped} (packet counter gaps)   decode errors {self.decode_errors}",
+            f"reconnects      {self.reconnects}",
+            f"fail-safes      {self.failsafes}   alarms {self.alarms}   decisions {self.decisions}"
+            f"   step errors {self.step_errors}   health polls {self.health_polls}",
+            f"CPU share       loop thread {self.loop_cpu_share * 100:.1f} %   "
+            f"whole process (with the sensor and servo emulators) {self.process_cpu_share * 100:.1f} %",
+        ]
+
+
+def quiet_hold(seconds: float = 10.0, seed: int = 0) -> Recording:
+    """A still grasp with sensor noise; looped by the emulator for as long as the soak runs."""
+    n = int(seconds * 1000)
+    rng = np.random.default_rng(seed)
+    force = rng.normal(0.0, 0.01, (n, 9, 3)).astype(np.float32)
+    force[:, :, 2] += 1.5
+    return Recording(t_us=np.arange(n, dtype=np.int64) * 1000, force=force, disp=np.zeros((n, 9, 3), np.float32))
+
+
+def random_model(out_dir: Path, members: int = 5, seed: int = 0) -> Path:
+    """A full-size ensemble with random weights (the default SlipNet layout), exported to ONNX.
+
+    For soaking before a trained model exists: the compute per step equals a trained model's of the same
+    size; its probabilities mean nothing (the soak then sets the threshold out of reach)."""
+    import torch
+
+    from slipd.detect.features import FeatureSpec
+    from slipd.lab.export import export, fold_member
+    from slipd.lab.model import SlipNet
+
+    spec = FeatureSpec()
+    folded = []
+    for k in range(members):
+        torch.manual_seed(seed + k)
+        net = SlipNet(input_size=spec.input_size).eval()
+        folded.append(fold_member(net.state_dict()))
+    out = out_dir / "random_ensemble.onnx"
+    export(folded, spec, out, "trained", {"note": "random weights for tools/soak_live.py"})
+    return out.with_suffix(".json")
+
+
+def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=None,
+         threshold: float | None = None) -> SoakReport:
+    """Run the daemon live for ``seconds`` and count; ``controller`` reuses a running URControllerProcess."""
+    from slipd.config import load_config, override
+    from slipd.daemon.devices import build_devices
+    from slipd.daemon.loop import Daemon
+    from slipd.detect.ensemble import Ensemble
+    from slipd.metrics import Metrics
+    from slipd.sim.devices.ur_controller import URControllerProcess
+    from slipd.sim.harness import EmulatedDevices
+
+    own_ur = controller is None
+    if own_ur:
+        controller = URControllerProcess(host).start()
+    host = controller.host
+    rep = SoakReport(seconds=seconds, model=str(model))
+    dev = EmulatedDevices(quiet_hold(), ur=False)
+    dev.sensor.loop = True
+    daemon = None
+    try:
+        updates = {**dev.overrides(), "arm.enabled": True, "arm.host": host, "model.manifest": str(model),
+                   "model.detector": "onnx",
+                   "sensor.tare": "startup", "sensor.tare_samples": TARE, "recorder.enabled": False}
+        if threshold is not None:
+            updates["decision.threshold"] = threshold
+        cfg = override(load_config(ROOT / "config" / "sim.yaml"), updates)
+        metrics = Metrics()
+        ens = Ensemble.load(cfg.model.manifest, threads=cfg.model.threads)
+        arm, gripper = build_devices(cfg, metrics)
+        daemon = Daemon(cfg, ens, metrics=metrics, arm=arm, gripper=gripper)
+        d = daemon
+
+        async def main() -> None:
+            task = asyncio.create_task(d.run())
+            await d.ready.wait()
+            dev.start_sensor()
+            t0, c0, p0 = time.monotonic(), time.thread_time(), time.process_time()
+            try:
+                while time.monotonic() - t0 < seconds and not task.done():
+                    await asyncio.sleep(0.2)
+                dev.sensor.stop()  # stop sending, then let the reader drain what is in flight
+                await asyncio.to_thread(dev.sensor.write_frames, [], 5.0)  # push out bytes still queued
+                rep.frames_sent = dev.sensor.frames_written + dev.sensor.frames_discarded
+                deadline = time.monotonic() + 5.0
+                while d.sensor.decoder.frames < dev.sensor.frames_written and time.monotonic() < deadline:
+                    await asyncio.sleep(0.01)
+                await asyncio.sleep(0.05)
+                t1, c1, p1 = time.monotonic(), time.thread_time(), time.process_time()
+                rep.wall_s = t1 - t0
+                rep.loop_cpu_share = (c1 - c0) / rep.wall_s
+                rep.process_cpu_share = (p1 - p0) / rep.wall_s
+            finally:
+                d.stop()
+                await task
+
+        asyncio.run(main())
+    finally:
+        if daemon is not None:
+            daemon.close()
+        dev.close()
+        if own_ur:
+            controller.stop()
+    m, st = daemon.metrics, daemon.stats
+
+    def val(name: str, **labels: str) -> float:
+        v = m.registry.get_sample_value(name, labels or None)
+        return 0.0 if v is None else v
+
+    rep.emulator_discarded = dev.sensor.frames_discarded
+    rep.frames_processed = st.frames
+    rep.frames_lost = rep.frames_sent - st.frames
+    rep.overruns = st.overruns
+    rep.dropped = int(val("slipd_dropped_frames_total"))
+    rep.decode_errors = int(sum(val("slipd_frame_errors_total", kind=k)
+                                for k in ("bad_checksum", "bad_length", "bad_structure", "discontinuity")))
+    rep.reconnects = int(val("slipd_reconnects_total", device="sensor") + val("slipd_reconnects_total", device="arm"))
+    rep.failsafes = st.failsafes
+    rep.alarms = len(st.alarms)
+    rep.decisions = st.decisions
+    rep.step_errors = st.step_errors
+    rep.health_polls = st.health_polls
+    return rep
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line entry point."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seconds", type=float, default=600.0, help="soak duration (default 600)")
+    p.add_argument("--model", type=Path, default=ROOT / "slipd" / "models" / "slip_ensemble.json", help="model manifest")
+    p.add_argument("--random-model", action="store_true", help="soak a random-weight full-size ensemble instead")
+    p.add_argument("--host", default=DEFAULT_HOST, help=f"loopback address of the emulated UR ({DEFAULT_HOST})")
+    p.add_argument("--json", action="store_true", help="also print the counts as one JSON line")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    with tempfile.TemporaryDirectory(prefix="slipd-soak-") as tmp:
+        threshold = None
+        model = args.model
+        if args.random_model:
+            model, threshold = random_model(Path(tmp)), 0.999
+        elif not model.exists():
+            print(f"{model}: no such model manifest (pass --model, or --random-model before one is trained)",
+                  file=sys.stderr)
+            return 2
+        rep = soak(args.seconds, model, host=args.host, threshold=threshold)
+    if args.random_model:
+        rep.model = "random weights, full-size SlipNet x5 (threshold 0.999)"
+    print("\n".join(rep.lines()))
+    if args.json:
+        import json
+
+        print(json.dumps({**asdict(rep), "ok": rep.ok}))
+    print("OK: no frame lost" if rep.ok else "FAIL: frames lost or corrupted", file=sys.stderr)
+    return 0 if rep.ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
