@@ -2,8 +2,8 @@
 
 Each test names in its docstring the naive behaviour it would catch. Documented policy under test
 (``slipd.detect.features`` and ``slipd.detect.ensemble``): a non-finite sample value is replaced by the channel's
-last finite value (0 before any) and counted; tared forces are clipped to twice the sensor range; the causal median of 21
-removes any run of up to 10 bad samples; a window whose median history (the last ``median - 1 + window``
+last finite value (0 before any) and counted; tared forces are clipped to twice the sensor range; the causal median
+of 21 removes any run of up to 10 bad samples; a window whose median history (the last ``median - 1 + window``
 samples) holds no faulty sample is bit-identical to the clean stream's window, i.e. the features recover
 within one window (plus the median's 20-sample memory) after clean data returns.
 """

@@ -14,7 +14,8 @@ from slipd.sim.rig import run_rig
 SCENE = ROOT / "config" / "scenes" / "default.yaml"
 CONFIG = ROOT / "config" / "sim.yaml"
 
-pytestmark = pytest.mark.skipif(not (ROOT / "slipd" / "models" / "slip_ensemble.json").exists(), reason="no shipped model")
+pytestmark = pytest.mark.skipif(not (ROOT / "slipd" / "models" / "slip_ensemble.json").exists(),
+                                reason="no shipped model")
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,8 @@
 
     python tools/evaluate.py --model out/reference.json --set offline --split test
     python tools/evaluate.py --baseline deceleration --baseline-params slipd/models/baselines.json --set transfer
-    python tools/evaluate.py --model slipd/models/slip_ensemble.json --recordings DIR --json out/eval.json --plots out/eval
+    python tools/evaluate.py --model slipd/models/slip_ensemble.json --recordings DIR \
+        --json out/eval.json --plots out/eval
     python tools/evaluate.py --tune-baselines --set offline          # grid search on <set>_train only
 
 Every recording is streamed sample by sample through the daemon's own decision path

@@ -186,7 +186,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fuzz-pts", type=int, default=100_000, help="inputs for tools/fuzz_pts.py (default 100000)")
     p.add_argument("--fuzz-config", type=int, default=100_000, help="documents for tools/fuzz_config.py")
     p.add_argument("--soak-seconds", type=float, default=600.0, help="tools/soak_live.py duration (default 600)")
-    p.add_argument("--model", type=Path, default=ROOT / "slipd" / "models" / "slip_ensemble.json", help="model for the soak")
+    p.add_argument("--model", type=Path, default=ROOT / "slipd" / "models" / "slip_ensemble.json",
+                   help="model for the soak")
     p.add_argument("--random-model", action="store_true", help="soak a random-weight full-size ensemble")
     p.add_argument("--note", default="", help="a line added to the report (e.g. why sizes are reduced)")
     p.add_argument("--out", type=Path, default=ROOT / "reports" / "reliability.md")

@@ -200,7 +200,8 @@ def main(argv: list[str] | None = None) -> int:
     """Command line entry point."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seconds", type=float, default=600.0, help="soak duration (default 600)")
-    p.add_argument("--model", type=Path, default=ROOT / "slipd" / "models" / "slip_ensemble.json", help="model manifest")
+    p.add_argument("--model", type=Path, default=ROOT / "slipd" / "models" / "slip_ensemble.json",
+                   help="model manifest")
     p.add_argument("--random-model", action="store_true", help="soak a random-weight full-size ensemble instead")
     p.add_argument("--host", default=DEFAULT_HOST, help=f"loopback address of the emulated UR ({DEFAULT_HOST})")
     p.add_argument("--json", action="store_true", help="also print the counts as one JSON line")
