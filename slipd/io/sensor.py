@@ -13,7 +13,11 @@ which has none).
 Packet counter accounting, per frame:
     counter + 1                  normal
     counter + 2 .. + max_gap     ``dropped_before`` = missing frames, counted in ``dropped_frames``
-    equal, backwards, or a jump larger than ``max_gap``
+    equal                        a repeated sample, not a new one: dropped before ``on_frames`` and
+                                 counted in ``repeated_frames`` (``frame_errors{kind="repeated_counter"}``);
+                                 a counter that never advances therefore starves the daemon's liveness
+                                 check instead of restarting the detector on every frame
+    backwards, or a jump larger than ``max_gap``
                                  ``discontinuity`` = True (the consumer resets its state), counted in
                                  ``discontinuities``; nothing counted as dropped
 The first frame after a reconnect is flagged as a discontinuity too (the link was down; how many frames
@@ -152,6 +156,9 @@ class SerialSensor:
         self.frames = 0
         self.dropped_frames = 0
         self.discontinuities = 0
+        self.repeated_frames = 0
+        self.last_repeat_time: float | None = None
+        """time.monotonic() of the read that delivered the latest repeated-counter frame."""
         self.reconnects = 0
         self.disconnects = 0
         self.want_low_latency = low_latency
@@ -168,7 +175,7 @@ class SerialSensor:
         self._seen_errors = dict.fromkeys(FrameDecoder.ERROR_KINDS, 0)
         self._seen_garbage = 0
         if metrics is not None:
-            kinds = (*FrameDecoder.ERROR_KINDS, "discontinuity")
+            kinds = (*FrameDecoder.ERROR_KINDS, "discontinuity", "repeated_counter")
             self._m_errors = {k: metrics.frame_errors.labels(kind=k) for k in kinds}
             self._m_reconnects = metrics.reconnects.labels(device="sensor")
 
@@ -365,18 +372,22 @@ class SerialSensor:
             return
         self.last_frame_time = time.monotonic()
         self.frame_bytes = n // len(frames)
-        self._account(frames)
+        frames = self._account(frames)
+        if not frames:
+            return
         try:
             self.on_frames(frames)
         except Exception:
             log.exception("on_frames callback failed")
 
-    def _account(self, frames: list[Frame]) -> None:
-        """Gap and discontinuity detection from the packet counter."""
+    def _account(self, frames: list[Frame]) -> list[Frame]:
+        """Gap and discontinuity detection from the packet counter; returns the frames without repeats."""
         last = self._last_counter
         dropped = 0
         breaks = 0
-        for f in frames:
+        repeats = 0
+        kept = frames
+        for k, f in enumerate(frames):
             c = f.counter
             if last is None:
                 pass
@@ -385,6 +396,11 @@ class SerialSensor:
                 breaks += 1
             else:
                 diff = (c - last) & 0xFFFFFFFF
+                if diff == 0:
+                    if not repeats:  # rare outside a fault: only then is the list copied
+                        kept = frames[:k]
+                    repeats += 1
+                    continue
                 if diff != 1:
                     if 1 < diff <= self.max_gap:
                         f.dropped_before = diff - 1
@@ -394,6 +410,8 @@ class SerialSensor:
                         breaks += 1
             self._after_reconnect = False
             last = c
+            if repeats:
+                kept.append(f)
         self._last_counter = last
         self.frames += len(frames)
         self.dropped_frames += dropped
@@ -405,6 +423,12 @@ class SerialSensor:
                 m.dropped_frames.inc(dropped)
             if breaks:
                 self._m_errors["discontinuity"].inc(breaks)
+            if repeats:
+                self._m_errors["repeated_counter"].inc(repeats)
+        if repeats:
+            self.repeated_frames += repeats
+            self.last_repeat_time = self.last_frame_time
+        return kept
 
     def _update_error_metrics(self) -> None:
         d = self.decoder
