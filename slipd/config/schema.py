@@ -332,6 +332,13 @@ class ArmConfig(_Section):
         description="stopl / speed_stop: decelerate over RTDE control (replaces the running program); "
         "dashboard_pause / dashboard_stop: pause or stop the user's program through the dashboard server",
     )
+    watchdog_s: float = Field(
+        0.5, ge=0.02, le=10.0,
+        description="controller-side watchdog (ur_rtde setWatchdog, stopl / speed_stop only): the controller "
+        "halts the arm and ends the control script when slipd has not kicked it for this long (slipd dead, "
+        "frozen or blind); kicked only while decisions are live. Dashboard modes have none: a dead slipd "
+        "leaves the user's program running",
+    )
 
     @field_validator("rtde_frequency")
     @classmethod
