@@ -27,7 +27,7 @@ def ens(tiny_model_json) -> Ensemble:
 def test_startup_tare_gives_exactly_the_batch_windows(ens: Ensemble) -> None:
     force = _force(1000)
     ens.reset()
-    dets = run_recording(Detector(ens, Decision(), tare_samples=100), force)
+    dets = run_recording(Detector(ens, Decision(), tare_samples=100, contact_gate=False), force)
     windows, ends = batch_windows(force, ens.feature_spec, tare_offset(force, 0, 100))
     ref = ens.step_batch([windows])[0].p_slip
     got = np.array([d.p_slip for d in dets])
@@ -41,7 +41,7 @@ def test_phase_shifted_streams_make_a_decision_every_stride(ens: Ensemble) -> No
     force = _force(800, seed=1)
     spec = ens.feature_spec.with_(stride=10)
     ens.reset()
-    dets = run_recording(Detector(ens, Decision(), spec, offset=np.zeros((9, 3))), force)
+    dets = run_recording(Detector(ens, Decision(), spec, offset=np.zeros((9, 3)), contact_gate=False), force)
     assert np.all(np.diff([d.index for d in dets]) == 10)
     # Stream j sees every fourth window: the same sequence the single-stream model sees, shifted.
     windows, _ = batch_windows(force, spec)
@@ -114,10 +114,10 @@ def test_push_many_equals_push(ens: Ensemble, stride: int, tare: int, sizes: lis
     spec = ens.feature_spec.with_(stride=stride)
     kwargs = {"tare_samples": tare} if tare else {"offset": np.zeros((9, 3))}
     ens.reset()
-    one = Detector(ens, Decision(), spec, **kwargs)
+    one = Detector(ens, Decision(), spec, contact_gate=False, **kwargs)
     ref = [(i, d) for i in range(900) if (d := one.push(force[i], int(t_us[i]))) is not None]
     ens.reset()
-    many = Detector(ens, Decision(), spec, **kwargs)
+    many = Detector(ens, Decision(), spec, contact_gate=False, **kwargs)
     got, pos, k = [], 0, 0
     while pos < 900:
         size = sizes[k % len(sizes)]
@@ -129,3 +129,31 @@ def test_push_many_equals_push(ens: Ensemble, stride: int, tare: int, sizes: lis
     assert [d for _, d in got] == [d for _, d in ref]  # the dataclass compares every field
     assert (many.index, many.windows, many.resets) == (one.index, one.windows, one.resets)
     assert many.features.nonfinite_count == one.features.nonfinite_count > 0
+
+
+def test_free_air_for_minutes_stays_quiet_and_a_new_contact_starts_from_h0(ens: Ensemble) -> None:
+    """No contact, no slip: three minutes of sensor noise (with slow drift and single-sample spikes above the
+    contact threshold) give p_slip 0 and no alarm, the GRU states stay at h0, and the grasp that follows
+    is decided exactly as by a detector that only ever saw that grasp."""
+    rng = np.random.default_rng(11)
+    n_air = 180_000
+    air = rng.normal(0.0, 1.0, (n_air, 9, 3)).astype(np.float32) * np.array([0.01, 0.01, 0.02], np.float32)
+    air[:, :, 2] += np.linspace(0.0, 0.3, n_air, dtype=np.float32)[:, None]  # drift, below the threshold
+    air[rng.integers(0, n_air, 200), 4, 2] = 5.0  # glitches: one sample each
+    grasp = _force(2000, seed=12) - np.float32(0.7)
+    grasp[:50] = 0.0  # the grasp starts unloaded
+    spec = ens.feature_spec.with_(stride=10)
+    ens.reset()
+    det = Detector(ens, Decision(), spec, offset=np.zeros((9, 3)))
+    dets = [d for _, d in det.push_many(air, np.arange(n_air))]
+    assert len(dets) > 17_000 and all(d.p_slip == 0.0 and not d.alarm for d in dets)
+    assert all(np.all(ens.hidden_state(z) == 0) for z in range(4))
+    after = [d.p_slip for _, d in det.push_many(grasp, np.arange(len(grasp)))]
+    ens.reset()
+    fresh = Detector(ens, Decision(), spec, offset=np.zeros((9, 3)))
+    # The fresh detector sees the grasp at the same phase of its windows as the long one.
+    lead = np.zeros(((n_air - spec.window) % spec.step + spec.window, 9, 3), np.float32)
+    fresh.push_many(lead, np.arange(len(lead)))
+    ref = [d.p_slip for _, d in fresh.push_many(grasp, np.arange(len(grasp)))]
+    assert max(after) > 0
+    np.testing.assert_allclose(after, ref, atol=1e-6)

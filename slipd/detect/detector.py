@@ -14,10 +14,14 @@ streams, window ``j`` stepping stream ``j mod k``; each stream sees exactly the 
 window sequence the model was trained on, shifted in phase, and a decision is made every ``stride``
 samples.
 
-Contact: when every pillar's normal force falls below the SDK contact threshold after having been in
-contact, the GRU states are reset, so a new grasp starts from the trained initial state (h0 = 0). The loss
-must persist beyond ``median // 2`` samples (a run the median filter would remove), so a dropout frame or a
-short glitch does not reset the state in the middle of a grasp.
+Contact gate: no contact, no slip. While no pillar's (tared) normal force exceeds the SDK contact
+threshold, the model is not stepped: the detector reports p_slip 0 and the GRU states stay at the trained
+initial state (h0 = 0), so a daemon started with the gripper open, or an arm moving towards an object,
+cannot alarm on sensor noise, and every new contact starts from h0. A change of contact (made or lost)
+counts only once it persists beyond ``median // 2`` samples (a run the median filter would remove), so a
+dropout frame or a short glitch neither wipes the state in the middle of a grasp nor wakes the model in
+free air. ``ContactGate`` is that rule; training (``slipd.lab.train``) runs the same class over each
+recording's windows, so the model learns exactly the sequences the gate lets through.
 """
 
 from __future__ import annotations
@@ -66,6 +70,54 @@ class SlipDetector(Protocol):
         ...
 
 
+class ContactGate:
+    """Whether the model may run: contact made and held, with glitch tolerance (see the module docstring).
+
+    ``update`` is called once per completed window with that window's last (tared) sample; it returns
+    (open, changed): the gate's state after this check, and whether it just flipped.
+    """
+
+    def __init__(self, tolerance: int) -> None:
+        self.tolerance = int(tolerance)
+        self.open = False
+        self._since: int | None = None  # sample index of the first check that disagreed with ``open``
+
+    @staticmethod
+    def touching(fz_tared: np.ndarray) -> bool | None:
+        """Raw contact of one sample: some pillar above the SDK threshold (None: no finite value)."""
+        fz = np.asarray(fz_tared, np.float32)
+        if not np.isfinite(fz).any():
+            return None
+        return bool(np.nanmax(fz) > CONTACT_THRESHOLD_N)
+
+    def update(self, touching: bool | None, index: int) -> tuple[bool, bool]:
+        """Feed one check's raw contact (None keeps the state) at sample ``index``."""
+        if touching is None or touching == self.open:
+            self._since = None
+            return self.open, False
+        if self._since is None:
+            self._since = index
+        if index - self._since > self.tolerance:
+            self.open, self._since = touching, None
+            return self.open, True
+        return self.open, False
+
+    def reset(self) -> None:
+        """No contact known (a restart)."""
+        self.open, self._since = False, None
+
+
+def gate_windows(force_tared: np.ndarray, spec: FeatureSpec) -> np.ndarray:
+    """The gate's state at every window ``batch_windows`` cuts from a tared recording [N, 9, 3] (bool [K]).
+
+    The batch twin of the streaming check: the same ``ContactGate`` fed the same window-end samples.
+    """
+    step = spec.step
+    ends = np.arange(spec.window - 1, len(force_tared), step)
+    gate = ContactGate(spec.median // 2)
+    return np.array([gate.update(gate.touching(force_tared[i, :, 2]), int(i))[0] for i in ends], bool)
+
+
 class Detector:
     """Streams samples through the shared feature pipeline, the ensemble and the decision rule."""
 
@@ -76,7 +128,7 @@ class Detector:
         spec: FeatureSpec | None = None,
         offset: np.ndarray | None = None,
         tare_samples: int = 0,
-        contact_reset: bool = True,
+        contact_gate: bool = True,
     ) -> None:
         self.ensemble = ensemble
         self.decision = decision
@@ -88,7 +140,8 @@ class Detector:
         self.tare_samples = 0 if offset is not None else int(tare_samples)
         self._tare_buf = np.zeros((max(self.tare_samples, 1), 9, 3), np.float32)
         self._tare_t = np.zeros(max(self.tare_samples, 1), np.int64)
-        self.contact_reset = contact_reset
+        self.contact_gate = contact_gate
+        self.gate = ContactGate(self.spec.median // 2)
         self.index = -1
         self.windows = 0
         self.resets = 0
@@ -98,8 +151,6 @@ class Detector:
         """Model step time behind each detection the latest ``push_many`` returned (same order)."""
         self._tared = self.tare_samples == 0
         self._n_tare = 0
-        self._in_contact = False
-        self._loss_since: int | None = None  # sample index of the first check that saw no contact
 
     @property
     def offset(self) -> np.ndarray:
@@ -112,6 +163,7 @@ class Detector:
         self.ensemble.reset()
         self.decision.reset()
         self.windows = 0
+        self.gate.reset()
         self.resets += 1
         if retare and self.tare_samples:
             self._tared = False
@@ -190,24 +242,22 @@ class Detector:
         return self._decide(window, force, t_us, index)
 
     def _decide(self, window: np.ndarray, force: np.ndarray, t_us: int, index: int) -> Detection:
-        """A completed window (its last sample ``force``, ``index``): contact check, model step, decision."""
-        if self.contact_reset:
-            # Checked once per window (on its last sample); a release is acted on at the first check past
-            # median // 2 samples of no contact (one window later at stride = window).
+        """A completed window (its last sample ``force``, ``index``): contact gate, model step, decision."""
+        if self.contact_gate:
+            # Checked once per window, on its last sample (tared, as the model sees it).
             fz = np.asarray(force, np.float32).reshape(9, 3)[:, 2] - self.features._offset[2::3]
-            in_contact = bool(np.nanmax(fz) > CONTACT_THRESHOLD_N) if np.isfinite(fz).any() else self._in_contact
-            if in_contact:
-                self._in_contact, self._loss_since = True, None
-            elif self._in_contact:
-                # A release must last longer than a glitch the median filter removes (median // 2 samples):
-                # one dropout frame on a check's sample must not wipe the GRU state in the middle of a grasp.
-                if self._loss_since is None:
-                    self._loss_since = index
-                if index - self._loss_since > self.spec.median // 2:
-                    self.ensemble.reset()
-                    self.decision.reset()
+            was_open = self.gate.open
+            is_open, changed = self.gate.update(self.gate.touching(fz), index)
+            if changed:
+                # Made or lost: either way the next contact's first window meets h0, as in training.
+                self.ensemble.reset()
+                self.windows = 0
+                if was_open:
                     self.resets += 1
-                    self._in_contact, self._loss_since = False, None
+            if not is_open:
+                d = self.decision.update(0.0)
+                self.last_step_s = None
+                return Detection(index, t_us, 0.0, float(d.risk), bool(d.alarm), bool(d.rising_edge))
         stream = self.windows % self.n_streams
         self.windows += 1
         t0 = time.perf_counter()
