@@ -10,9 +10,19 @@ ensemble -> decision) and, on a rising alarm edge, ``Reaction`` hands the arm st
 tighten to their device threads at once. Nothing on this path blocks.
 
 A supervision task runs on absolute deadlines (``next = start + k * period``; a late tick is counted
-as an overrun and the schedule is not shifted): it detects a stalled sensor (no frame for
-``sensor.stall_timeout_ms``) and fails safe (stop the arm, keep the grip), and pings the systemd
-watchdog only while frames keep arriving, so a wedged loop or a dead sensor lets systemd act.
+as an overrun and the schedule is not shifted). It owns **liveness**, defined once here
+(``Daemon._blind_cause``): a valid decision on a window of fresh samples within the stall timeout
+(``sensor.stall_timeout_ms``). A sample is fresh when its packet counter advanced (repeats are dropped by
+the reader), every value is finite and it is not bit-identical to the one before (a real sensor is
+never noise-free). Blind causes, each failing safe (stop the arm, keep the grip) once per episode with
+one log line and ``slipd_failsafe_stops_total{reason=...}``: ``sensor_lost`` (port gone),
+``sensor_silent`` (no frame since start-up), ``sensor_stall`` (frames stopped), ``sensor_counter_stuck``,
+``sensor_frozen`` (frames arrive, none fresh), ``sensor_nonfinite`` (non-finite samples for longer than
+``NONFINITE_BRIDGE_S``, what the feature stage may bridge by holding the last value) and
+``no_decisions`` (fresh frames, but no valid decision when one was due). An episode ends with the first
+valid decision on fresh data; a loss followed by a stall is one episode, one stop. Only while live is
+the systemd watchdog pinged and the arm's controller-side watchdog (ur_rtde ``kickWatchdog``) kicked, so
+a wedged or dead loop, or a blind one, halts the arm; ``READY=1`` goes out with the first live decision.
 
 A device health task polls the arm (``read_state``, every 150 ms) and the gripper
 (``read_status``, every 500 ms) on their own worker threads; the loop only looks at finished futures, so a slow or
@@ -26,11 +36,13 @@ fails safe (stop the arm) once per occurrence and is counted as
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -38,6 +50,13 @@ from slipd.daemon.reaction import Reaction
 from slipd.daemon.worker import DeviceWorker
 from slipd.detect.detector import SlipDetector, build_detector
 from slipd.metrics import Metrics
+
+if TYPE_CHECKING:
+    from slipd.config import SlipdConfig
+    from slipd.daemon.sdnotify import Notifier
+    from slipd.detect.ensemble import Ensemble
+    from slipd.io.arm import Arm
+    from slipd.io.gripper import DynamixelGripper
 
 log = logging.getLogger("slipd.daemon.loop")
 
@@ -59,6 +78,14 @@ GRIPPER_HEALTH_PERIOD_S = 0.5
 while a status read is on the wire waits for it; 0.5 s keeps that chance small."""
 ARM_RECONNECT_INITIAL_S = 0.25
 ARM_RECONNECT_MAX_S = 5.0
+NONFINITE_BRIDGE_S = 0.005
+"""Non-finite samples the feature stage may bridge (it holds the last finite value): a few ms. Longer
+runs make every decision one on a frozen picture of the grasp, so liveness fails."""
+KICKS_PER_WATCHDOG = 4
+"""The arm's controller-side watchdog is kicked this many times per ``arm.watchdog_s`` while live: a
+late kick or two (a busy arm thread, a slow machine) must not halt the arm."""
+MAX_KEPT = 1000
+"""Alarms kept in ``LoopStats.alarms`` (the oldest are dropped): the daemon's state stays bounded."""
 
 
 @dataclass
@@ -67,8 +94,9 @@ class LoopStats:
 
     frames: int = 0
     decisions: int = 0
-    alarms: list[tuple[int, int, float]] = field(default_factory=list)
-    """(sample index since start, sensor t_us, monotonic time of the decision) per rising edge."""
+    alarms: deque[tuple[int, int, float]] = field(default_factory=lambda: deque(maxlen=MAX_KEPT))
+    """(sample index since start, sensor t_us, monotonic time of the decision) per rising edge; the latest
+    ``MAX_KEPT`` (``slipd_alarms_total`` counts them all)."""
     overruns: int = 0
     failsafes: int = 0
     restarts: int = 0
@@ -81,13 +109,13 @@ class Daemon:
 
     def __init__(
         self,
-        cfg: Any,
-        ensemble: Any,
+        cfg: SlipdConfig,
+        ensemble: Ensemble,
         *,
         metrics: Metrics | None = None,
-        arm: Any = None,
-        gripper: Any = None,
-        notifier: Any = None,
+        arm: Arm | None = None,
+        gripper: DynamixelGripper | None = None,
+        notifier: Notifier | None = None,
         health_period_s: float = HEALTH_PERIOD_S,
         gripper_health_period_s: float = GRIPPER_HEALTH_PERIOD_S,
     ) -> None:
@@ -117,12 +145,25 @@ class Daemon:
         self.notifier = notifier
         self.recorder = None
         self.stats = LoopStats()
-        self.sensor = None
+        self.sensor: Any = None
         self._stop = asyncio.Event()
-        self._stalled = False
-        self._progress = 0
-        self._pinged_progress = -1
         self.ready = asyncio.Event()
+        """Set once the sensor is open and supervision runs (tests start streaming then)."""
+        self.started_live = False
+        """True once the first valid decision was made (``READY=1`` sent)."""
+        self.live = False
+        """Liveness (module docstring): a valid decision on fresh data within the stall timeout."""
+        self.blind: str | None = None
+        """The cause of the current blind episode (one fail-safe each), None while live or starting."""
+        self._stall_s = cfg.sensor.stall_timeout_ms / 1e3
+        self._nonfinite_bridge = max(1, round(NONFINITE_BRIDGE_S * cfg.sensor.rate_hz))
+        self._nonfinite_run = 0  # consecutive non-finite samples up to the latest frame
+        self._nonfinite_burst = False  # a run beyond the bridge since the supervisor last looked
+        self._prev_sample: np.ndarray | None = None  # the latest frame's force and disp, flattened
+        now = time.monotonic()
+        self._fresh_t = now  # when the latest fresh sample was handled (re-based when the loop starts)
+        self._decided_t: float | None = None  # latest valid decision on fresh data (None: none this episode)
+        self._decision_due = now  # a valid decision is overdue after this (re-based on every restart)
         self._nonfinite_seen = 0
         m = self.metrics
         m.model.info({"name": str(cfg.model.manifest.name), "sha256": ensemble.manifest.sha256})
@@ -139,11 +180,9 @@ class Daemon:
             while end < n and not getattr(frames[end], "discontinuity", False):
                 end += 1
             if getattr(frames[start], "discontinuity", False):
-                self.detector.restart()
-                self.stats.restarts += 1
+                self._restart()
             self._on_block(frames[start:end] if start or end < n else frames)
             start = end
-        self._progress += n
         self.metrics.loop_seconds.observe(time.perf_counter() - t0)
         self._coalesce()
 
@@ -157,8 +196,10 @@ class Daemon:
         rec = self.recorder
         det_ = self.detector
         force = np.stack([f.force for f in frames])
+        self._check_samples(force, frames)
         dets = det_.push_many(force, [f.t_us for f in frames], [f.disp for f in frames])
         self.stats.frames += len(frames)
+        decided = False
         recorded = 0
         for (i, det), step_s in zip(dets, det_.step_seconds):
             f = frames[i]
@@ -173,6 +214,7 @@ class Daemon:
                 m.step_errors.inc()
                 continue
             self.stats.decisions += 1
+            decided = True
             m.decisions.inc()
             m.p_slip.set(det.p_slip)
             m.risk.set(det.risk)
@@ -190,11 +232,42 @@ class Daemon:
         if rec is not None:
             for g in frames[recorded:]:
                 rec.push_frame(g.t_us, g.force, g.disp)
+        if decided and not self._nonfinite_burst:
+            # A decision on held values beyond the bridge is no sign of life.
+            now = time.monotonic()
+            self._decided_t = now
+            self._decision_due = now + self._stall_s + det_.samples_to_decision() / self.cfg.sensor.rate_hz
         feats = det_.features
         bad = feats.nonfinite_count + feats.clipped_count if feats is not None else 0
         if bad != self._nonfinite_seen:  # counted once per block, not per sample
             m.nonfinite.inc(bad - self._nonfinite_seen)
             self._nonfinite_seen = bad
+
+    def _check_samples(self, force: np.ndarray, frames: list) -> None:
+        """Freshness of a block (vectorised, once per block): finite, and not bit-identical to the sample
+        before. Updates ``_fresh_t`` and the run of non-finite samples up to the block's end."""
+        n = len(frames)
+        vals = np.concatenate([force.reshape(n, -1), np.stack([f.disp for f in frames]).reshape(n, -1)], axis=1)
+        finite = np.isfinite(vals).all(axis=1)
+        prev = self._prev_sample
+        changed = np.empty(n, bool)
+        changed[0] = prev is None or bool((vals[0] != prev).any())
+        if n > 1:
+            changed[1:] = (vals[1:] != vals[:-1]).any(axis=1)
+        self._prev_sample = vals[-1].copy()
+        if (finite & changed).any():
+            self._fresh_t = time.monotonic()
+        if finite.all():
+            self._nonfinite_run = 0
+            return
+        # Rare (a fault): follow the run of non-finite samples across blocks; a run longer than the
+        # bridge is remembered until the supervisor has seen it, even when it ended inside this block.
+        run = self._nonfinite_run
+        for ok in finite:
+            run = 0 if ok else run + 1
+            if run > self._nonfinite_bridge:
+                self._nonfinite_burst = True
+        self._nonfinite_run = run
 
     def _coalesce(self) -> None:
         """Pause the sensor reader until shortly before the next decision's last sample is due.
@@ -214,21 +287,66 @@ class Daemon:
             sensor.pause(wait_s, self.cfg.sensor.rate_hz)
 
     def _on_disconnect(self, reason: str) -> None:
-        log.error("sensor lost: %s", reason)
+        self._restart()
+        self._go_blind("sensor_lost", f"sensor lost: {reason}")
+
+    def _restart(self) -> None:
+        """The history is broken (discontinuity, reconnect): restart the detector; the next valid decision
+        is due once it has its samples again (tare, window) plus the stall timeout."""
         self.detector.restart()
         self.stats.restarts += 1
-        self._fail_safe("sensor_lost")
+        self._prev_sample = None
+        self._decision_due = (time.monotonic() + self._stall_s
+                              + self.detector.samples_to_decision() / self.cfg.sensor.rate_hz)
 
     def _fail_safe(self, reason: str) -> None:
         self.stats.failsafes += 1
         self.reaction.failsafe(reason)
 
+    def _go_blind(self, cause: str, detail: str) -> None:
+        """Liveness lost: one log line and one fail-safe per episode, whatever follows inside it."""
+        self.live = False
+        self.metrics.ready.set(0)
+        self._decided_t = None  # live again only after a new valid decision on fresh data
+        if self.blind is not None:
+            return
+        self.blind = cause
+        log.error("blind: %s; fail-safe", detail)
+        self._fail_safe(cause)
+
+    def _blind_cause(self, now: float) -> tuple[str, str] | None:
+        """Liveness, defined once: (cause, detail) when the daemon cannot see, else None. Live means no
+        cause and a valid decision on fresh data since the last episode (``_decided_t``)."""
+        stall = self._stall_s
+        sensor = self.sensor
+        if sensor is not None and not sensor.connected:
+            return "sensor_lost", "sensor port closed"
+        if self._nonfinite_burst or self._nonfinite_run > self._nonfinite_bridge:
+            return "sensor_nonfinite", f"non-finite samples for more than {self._nonfinite_bridge} frames"
+        if now - self._fresh_t > stall:
+            ms = (now - self._fresh_t) * 1e3
+            last = sensor.last_frame_time if sensor is not None else None
+            if last is None:
+                return "sensor_silent", f"no frame for {ms:.0f} ms since start-up"
+            if now - last > stall:
+                return "sensor_stall", f"no frame for {(now - last) * 1e3:.0f} ms"
+            repeat = sensor.last_repeat_time
+            if repeat is not None and repeat >= self._fresh_t:
+                return "sensor_counter_stuck", f"packet counter not advancing for {ms:.0f} ms"
+            return "sensor_frozen", f"bit-identical frames for {ms:.0f} ms"
+        if now > self._decision_due:
+            return "no_decisions", "frames arrive but no valid decision came when due"
+        return None
+
     # -------------------------------------------------------------- supervision
     async def _supervise(self) -> None:
-        stall_s = self.cfg.sensor.stall_timeout_ms / 1e3
+        stall_s = self._stall_s
         period = supervision_period(stall_s)
         max_late = self.cfg.control.max_overrun_ms / 1e3
         start = time.monotonic()
+        # The first frame, and the first decision, are due from now on (the tare wait is over).
+        self._fresh_t = start
+        self._decision_due = start + stall_s + self.detector.samples_to_decision() / self.cfg.sensor.rate_hz
         k = 0
         last_ping = 0.0
         ping_every = None
@@ -237,6 +355,10 @@ class Daemon:
 
             wd = watchdog_interval()
             ping_every = wd / 2 if wd else None
+        kick = self.arm if self.arm_worker is not None and self.arm is not None else None
+        kick_every = self.cfg.arm.watchdog_s / KICKS_PER_WATCHDOG
+        kicking: concurrent.futures.Future | None = None
+        last_kick = 0.0
         while not self._stop.is_set():
             k += 1
             deadline = start + k * period
@@ -249,18 +371,34 @@ class Daemon:
                 self.metrics.overruns.inc()
                 # Absolute schedule: skip the ticks that are already past instead of bunching them.
                 k = int((now - start) / period)
-            last = self.sensor.last_frame_time if self.sensor is not None else None
-            if last is not None and now - last > stall_s:
-                if not self._stalled:
-                    self._stalled = True
-                    log.error("sensor stalled: no frame for %.0f ms", (now - last) * 1e3)
-                    self._fail_safe("sensor_stall")
-            elif last is not None:
-                self._stalled = False
-            if ping_every and now - last_ping >= ping_every and self._progress != self._pinged_progress:
-                self.notifier.watchdog()
-                self._pinged_progress = self._progress
+            fault = self._blind_cause(now)
+            self._nonfinite_burst = False
+            if fault is not None:
+                self._go_blind(*fault)
+                continue
+            if self._decided_t is None:
+                continue  # starting, or an episode not over: no valid decision on fresh data yet
+            if not self.live:
+                self._on_live()
+            if ping_every and now - last_ping >= ping_every:
+                self.notifier.watchdog()  # type: ignore[union-attr]
                 last_ping = now
+            if kick is not None and now - last_kick >= kick_every and (kicking is None or kicking.done()):
+                assert self.arm_worker is not None
+                kicking = self.arm_worker.submit(kick.kick_watchdog)
+                last_kick = now
+
+    def _on_live(self) -> None:
+        """The first valid decision on fresh data: at start-up READY=1, after an episode one log line."""
+        self.live = True
+        self.metrics.ready.set(1)
+        if self.blind is not None:
+            log.warning("live again after %s", self.blind)
+            self.blind = None
+        elif not self.started_live:
+            self.started_live = True
+            if self.notifier is not None:
+                self.notifier.ready(f"running: model {self.cfg.model.manifest.name}")
 
     # ------------------------------------------------------------ device health
     async def _health(self) -> None:
@@ -297,7 +435,11 @@ class Daemon:
                     else:
                         next_reconnect = now + reconnect_delay
                         reconnect_delay = min(2 * reconnect_delay, ARM_RECONNECT_MAX_S)
-                if self.health.get("arm") == "disconnected" and arm_reconnect is None and now >= next_reconnect:
+                # A control script the watchdog ended (blind, frozen) is re-uploaded only while live: a blind
+                # daemon would let it expire again at once.
+                state = self.health.get("arm")
+                lost = state == "disconnected" or (self.live and state == "script_stopped")
+                if lost and arm_reconnect is None and now >= next_reconnect:
                     assert self.arm_worker is not None
                     arm_reconnect = self.arm_worker.submit(arm.reconnect)
                 elif arm_poll is None and arm_reconnect is None:
@@ -316,11 +458,16 @@ class Daemon:
                 await asyncio.wait_for(self._stop.wait(), self.health_period_s)
 
     def _probe_arm(self) -> str:
-        """On the arm thread: ``ok``, ``disconnected`` or ``protective_stop`` (read_state counts the metrics)."""
-        st = self.arm.read_state()
-        if not st.connected or not self.arm.is_connected():
+        """On the arm thread: ``ok``, ``disconnected``, ``protective_stop`` or ``script_stopped`` (read_state
+        counts the metrics)."""
+        arm = self.arm
+        assert arm is not None
+        st = arm.read_state()
+        if not st.connected or not arm.is_connected():
             return "disconnected"
-        return "protective_stop" if st.protective_stop else "ok"
+        if st.protective_stop:
+            return "protective_stop"
+        return "ok" if arm.control_script_running() else "script_stopped"
 
     def _on_arm_health(self, fut: Any) -> None:
         exc = fut.exception()
@@ -336,6 +483,9 @@ class Daemon:
             log.error("arm: RTDE link lost; reconnecting (slipd cannot stop the arm until the link is back)")
         elif state == "protective_stop":
             log.error("arm: protective stop; slipd does not unlock it: inspect the cell, unlock from the pendant")
+        elif state == "script_stopped":
+            log.error("arm: control script ended (watchdog expired or stopped from the pendant); "
+                      "re-uploading it once decisions are live")
         elif before is not None:
             log.warning("arm: healthy again (was %s)", before)
 
@@ -385,10 +535,7 @@ class Daemon:
             self.detector.restart()
         supervisor = asyncio.create_task(self._supervise())
         health = asyncio.create_task(self._health()) if self.health_period_s > 0 else None
-        self.metrics.ready.set(1)
         self.ready.set()
-        if self.notifier is not None:
-            self.notifier.ready(f"running: model {self.cfg.model.manifest.name}")
         try:
             if duration_s is None:
                 await self._stop.wait()

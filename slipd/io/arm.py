@@ -25,6 +25,17 @@ the user was running. Two deployments follow:
 
 Neither path triggers a protective stop (``triggerProtectiveStop`` would, and needs a manual unlock).
 ``fallback_to_dashboard`` makes a failed RTDE stop fall back to the dashboard ``stop``.
+
+When slipd dies
+---------------
+With the control interface, :meth:`URArm.kick_watchdog` arms ur_rtde's controller-side watchdog
+(``setWatchdog(1 / watchdog_s)``: the control script calls ``rtde_set_watchdog("input_int_register_0",
+f, "stop")``) on its first call and kicks it (``kickWatchdog``) on every call. The daemon kicks only while
+its decisions are live, so when slipd is killed (SIGKILL, OOM, systemd's watchdog abort), frozen
+(SIGSTOP, a wedged loop) or blind, the controller stops the program and the arm within ``watchdog_s``.
+The watchdog is armed at the first kick, not at connect: the sensor's tare and the first decision take
+longer than the period. The dashboard modes upload nothing, so there is no watchdog: a dead slipd leaves
+the user's program running, unwatched.
 """
 
 from __future__ import annotations
@@ -38,6 +49,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from slipd.config import ArmConfig
 from slipd.metrics import Metrics
 
 STOP_METHODS = ("stopl", "speed_stop", "dashboard_pause", "dashboard_stop")
@@ -111,6 +123,13 @@ class Arm(ABC):
     def stop(self, reason: str) -> StopResult:
         """Decelerate and halt any motion now; never raises for a refused stop (see ``StopResult.ok``)."""
 
+    def kick_watchdog(self) -> None:  # noqa: B027 -- optional: an arm without a watchdog has nothing to kick
+        """Tell the controller-side watchdog that slipd is alive (no-op for arms without one)."""
+
+    def control_script_running(self) -> bool:
+        """False when slipd's control program on the controller has ended (watchdog, pendant)."""
+        return True
+
     @abstractmethod
     def reconnect(self) -> bool:
         """Re-open lost connections; True on success."""
@@ -139,6 +158,15 @@ class URSettings:
     fallback_to_dashboard: bool = True
     dashboard_port: int = 29999
     script_start_timeout: float = 2.0  # seconds to wait for the control script after a re-upload
+    watchdog_s: float = 0.5  # controller-side watchdog period (control interface only)
+
+    @classmethod
+    def from_config(cls, cfg: ArmConfig) -> URSettings:
+        """The settings of the config's ``arm`` section (the other fields keep their defaults)."""
+        if cfg.host is None:
+            raise ValueError("arm.host: required when the arm is enabled")
+        return cls(host=cfg.host, frequency=cfg.rtde_frequency, stop_method=cfg.stop_method,
+                   stop_deceleration=cfg.stop_deceleration, watchdog_s=cfg.watchdog_s)
 
     def __post_init__(self) -> None:
         if not self.host:
@@ -150,6 +178,8 @@ class URSettings:
                              "(use 'dashboard_pause' or 'dashboard_stop' to leave the user's program in place)")
         if not (0.0 < self.stop_deceleration <= 40.0):
             raise ValueError(f"URSettings.stop_deceleration={self.stop_deceleration}: expected 0 < a <= 40 m/s^2")
+        if not self.watchdog_s > 0:
+            raise ValueError(f"URSettings.watchdog_s={self.watchdog_s}: expected > 0 s")
         if self.frequency != -1.0 and not (0 < self.frequency <= 500):
             raise ValueError(f"URSettings.frequency={self.frequency}: expected -1 (automatic) or 0 < f <= 500 Hz")
 
@@ -170,12 +200,13 @@ class URArm(Arm):
     ``reconnect``, ``stop_failed``, ``protective_stop`` and ``read``.
     """
 
-    def __init__(self, settings: URSettings, metrics: Metrics | None = None, *,
+    def __init__(self, settings: URSettings | ArmConfig, metrics: Metrics | None = None, *,
                  receive_factory: Callable[..., Any] | None = None,
                  control_factory: Callable[..., Any] | None = None,
                  dashboard_factory: Callable[..., Any] | None = None) -> None:
-        self.settings = settings
+        self.settings = settings if isinstance(settings, URSettings) else URSettings.from_config(settings)
         self.metrics = metrics
+        self._watchdog_armed = False  # setWatchdog sent to the control script now running
         self._receive_factory = receive_factory or _default_factory("rtde_receive", "RTDEReceiveInterface")
         self._control_factory = control_factory or _default_factory("rtde_control", "RTDEControlInterface")
         self._dashboard_factory = dashboard_factory or _default_factory("dashboard_client", "DashboardClient")
@@ -326,6 +357,30 @@ class URArm(Arm):
             getattr(self._dashboard_connected(), name)()
         return True
 
+    def kick_watchdog(self) -> None:
+        """Arm the controller-side watchdog on the running control script (first call after each upload),
+        then kick it. Never raises: a failed kick is counted (``kind="watchdog"``); the controller halting
+        the arm is then the intended outcome."""
+        c = self._control
+        if c is None:
+            return
+        try:
+            if not self._watchdog_armed:
+                if not c.isProgramRunning() or not c.setWatchdog(1.0 / self.settings.watchdog_s):
+                    self._count("watchdog")
+                    return
+                self._watchdog_armed = True
+            c.kickWatchdog()
+        except RuntimeError:
+            self._count("watchdog")
+
+    def control_script_running(self) -> bool:
+        """True when there is no control interface, or its script runs (the watchdog ends it when unkicked)."""
+        try:
+            return self._control is None or bool(self._control.isProgramRunning())
+        except RuntimeError:
+            return False
+
     def reconnect(self) -> bool:
         """Reconnect whatever is down; re-upload the control script when it is no longer running."""
         s = self.settings
@@ -337,10 +392,12 @@ class URArm(Arm):
             if s.use_control:
                 if self._control is None:
                     self._control = self._control_factory(s.host, s.frequency)
+                    self._watchdog_armed = False
                 elif not self._control.isConnected():
                     self._control.reconnect()
                 if not self._control.isProgramRunning() and not self._protective_now():
                     self._control.reuploadScript()
+                    self._watchdog_armed = False  # a new script starts without one
                     deadline = time.monotonic() + s.script_start_timeout
                     while not self._control.isProgramRunning() and time.monotonic() < deadline:
                         time.sleep(0.01)
@@ -380,3 +437,4 @@ class URArm(Arm):
                 with contextlib.suppress(RuntimeError):
                     obj.disconnect()
         self._receive = self._control = self._dashboard = None
+        self._watchdog_armed = False

@@ -110,8 +110,8 @@ class URControllerConfig:
 _POSE, _SPEED = slice(0, 6), slice(6, 12)
 (_PROGRAM_RUNNING, _STOP_COUNT, _LAST_STOP_T, _PROTECTIVE, _CONTROL_SCRIPT, _MOVING, _CLIENTS, _TICKS,
  _SAFETY_MODE, _ROBOT_MODE, _RUNTIME_STATE, _LAST_STOP_KIND, _LAST_STOP_DECEL, _MOVES, _UNSUPPORTED,
- _SCRIPTS, _LAST_STOP_RX_T) = range(12, 29)
-_SHARED_SIZE = 29
+ _SCRIPTS, _LAST_STOP_RX_T, _WATCHDOG_HZ, _WATCHDOG_INPUT_T) = range(12, 31)
+_SHARED_SIZE = 31
 
 
 @dataclass(frozen=True)
@@ -137,6 +137,8 @@ class URControllerState:
     scripts_received: int
     clients: int
     ticks: int
+    watchdog_hz: float  # the control script's RTDE watchdog (0: none set)
+    watchdog_input_t: float  # time.monotonic() of the latest update of the watched register (a kick)
 
     @property
     def linear_speed(self) -> float:
@@ -155,7 +157,8 @@ def _snapshot(arr: Any) -> URControllerState:
         stop_count=int(v[_STOP_COUNT]), last_stop_t=v[_LAST_STOP_T], last_stop_received_t=v[_LAST_STOP_RX_T],
         last_stop_kind=kinds.get(int(v[_LAST_STOP_KIND]), ""), last_stop_decel=v[_LAST_STOP_DECEL],
         moves_started=int(v[_MOVES]), unsupported_commands=int(v[_UNSUPPORTED]), scripts_received=int(v[_SCRIPTS]),
-        clients=int(v[_CLIENTS]), ticks=int(v[_TICKS]),
+        clients=int(v[_CLIENTS]), ticks=int(v[_TICKS]), watchdog_hz=v[_WATCHDOG_HZ],
+        watchdog_input_t=v[_WATCHDOG_INPUT_T],
     )
 
 
@@ -449,7 +452,10 @@ class _Controller:
             raise ValueError(f"unknown RTDE packet type {ptype!r}")
 
     def _write_inputs(self, values: dict[str, object], now: float) -> None:
-        self.last_input_t = now
+        if f"input_int_register_{self.reg_offset}" in values:
+            # rtde_set_watchdog watches one input variable, the command register: any package that writes
+            # it (every ur_rtde command, and kickWatchdog) is an update; other inputs are not.
+            self.last_input_t = now
         for name, value in values.items():
             m = re.match(r"input_(int|double|bit)_register_(\d+)$", name)
             if not m:
@@ -718,6 +724,7 @@ class _Controller:
                 done = not self.motion.active
         elif cmd == CMD_SET_WATCHDOG:
             self.watchdog_hz = max(0.0, d[0])
+            self.last_input_t = now  # the period runs from the set-up
         elif cmd == CMD_PROTECTIVE_STOP:
             self._protective_stop()
         elif cmd == CMD_IS_STEADY:
@@ -788,7 +795,9 @@ class _Controller:
         if self.control_script and self._program_running():
             self._script_tick(now)
             if self.watchdog_hz > 0 and now - self.last_input_t > 1.0 / self.watchdog_hz:
-                self._end_programs()  # rtde_set_watchdog(..., "stop")
+                # rtde_set_watchdog(..., "stop"): the program stops, and with it the arm, as on a real
+                # controller when the RTDE client died, froze or stopped kicking.
+                self._end_programs()
                 self._start_stop("watchdog", self.cfg.dashboard_stop_decel, now)
         for client in list(self.clients.values()):
             if client.kind == "script" and client.text and now - client.last_rx > 0.05:
@@ -819,6 +828,8 @@ class _Controller:
             a[_MOVES] = self.moves
             a[_UNSUPPORTED] = self.unsupported
             a[_SCRIPTS] = self.scripts
+            a[_WATCHDOG_HZ] = self.watchdog_hz
+            a[_WATCHDOG_INPUT_T] = self.last_input_t
 
     def run(self) -> None:
         self.sel.register(self.conn.fileno(), selectors.EVENT_READ, "parent")
