@@ -1,0 +1,256 @@
+"""Never blind and alive: every way of going blind fails safe once, and only a live loop says it is alive.
+
+The real ``Daemon`` (pyserial reader, ONNX ensemble, dynamixel-sdk, ur_rtde) runs in-process against the
+emulated PapillArray (pty), MX-28 (pty) and UR controller (own process). Frames are hand-made and written
+to the sensor's pty in real time by a writer thread, so a test can switch the stream into one fault: a
+silent sensor, a packet counter that never advances, non-finite values, bit-identical frames. systemd is a
+real AF_UNIX datagram socket (``$NOTIFY_SOCKET``) that records ``READY=1`` and ``WATCHDOG=1``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+from slipd.config import load_config, override
+from slipd.daemon.devices import build_devices
+from slipd.daemon.loop import Daemon
+from slipd.daemon.sdnotify import Notifier
+from slipd.detect.ensemble import Ensemble
+from slipd.io.pts import Frame
+from slipd.metrics import Metrics
+from slipd.sim.devices.mx28 import EmulatedMX28
+from slipd.sim.devices.papillarray import EmulatedPapillArray
+from slipd.sim.devices.ur_controller import URControllerProcess
+
+HOST = "127.0.0.6"  # test_faults uses .5
+STALL_MS = 150
+WATCHDOG_S = 0.1  # systemd's WatchdogSec= (pings every half)
+
+pytestmark = pytest.mark.timeout(120)
+
+
+class Writer:
+    """Writes hand-made frames to the emulated sensor in real time (blocks of 10 every 10 ms) in ``mode``:
+    ``ok`` (a noisy still grasp, counter advancing), ``stuck`` (the counter never advances), ``nan`` (every
+    value NaN), ``frozen`` (bit-identical frames, counter advancing)."""
+
+    def __init__(self, sensor: EmulatedPapillArray) -> None:
+        self.sensor = sensor
+        self.mode = "ok"
+        self.rng = np.random.default_rng(0)
+        self.counter = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._frozen = self._still()
+
+    def _still(self) -> np.ndarray:
+        force = np.zeros((9, 3), np.float32)
+        force[:, 2] = 1.5
+        return force + self.rng.normal(0.0, 0.01, force.shape).astype(np.float32)
+
+    def _frame(self, i: int) -> Frame:
+        disp = np.zeros((9, 3), np.float32)
+        force = self._still()
+        if self.mode == "nan":
+            force[:] = np.nan
+        elif self.mode == "frozen":
+            force = self._frozen.copy()
+        if self.mode != "stuck":
+            self.counter += 1
+        return Frame(counter=self.counter, t_us=i * 1000, force=force, disp=disp)
+
+    def _run(self) -> None:
+        t0, i = time.monotonic(), 0
+        while not self._stop.is_set():
+            self.sensor.write_frames([self._frame(i + k) for k in range(10)], timeout=10.0)
+            i += 10
+            delay = t0 + i / 1000 - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5)
+
+
+class Systemd:
+    """The notify socket: records every datagram with its arrival time."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(path)
+        self.sock.settimeout(0.05)
+        self.got: list[tuple[float, str]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.got.append((time.monotonic(), self.sock.recv(4096).decode()))
+            except TimeoutError:
+                continue
+
+    def count(self, what: str, since: float = 0.0) -> int:
+        return sum(1 for t, msg in list(self.got) if t >= since and what in msg)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self.sock.close()
+
+
+@pytest.fixture(scope="module")
+def controller():
+    ur = URControllerProcess(HOST)
+    ur.start()
+    yield ur
+    ur.stop()
+
+
+@pytest.fixture(scope="module")
+def base_cfg(tiny_model_json):
+    cfg = load_config(ROOT / "config" / "sim.yaml")
+    return override(cfg, {
+        "model.manifest": str(tiny_model_json), "model.detector": "onnx", "decision.threshold": 0.999,
+        "model.stride": 10, "sensor.tare": "startup", "sensor.tare_samples": 100, "recorder.enabled": False,
+        "sensor.stall_timeout_ms": STALL_MS, "reaction.rearm_after_s": 0.0, "control.watchdog": True,
+        "arm.enabled": True, "arm.host": HOST, "arm.watchdog_s": 0.3,
+    })
+
+
+def metric(m: Metrics, name: str, **labels: str) -> float:
+    v = m.registry.get_sample_value(name, labels or None)
+    return 0.0 if v is None else v
+
+
+def failsafes(m: Metrics) -> dict[str, float]:
+    out = {}
+    for fam in m.registry.collect():
+        if fam.name == "slipd_failsafe_stops":
+            out = {s.labels["reason"]: s.value for s in fam.samples if s.name.endswith("_total")}
+    return out
+
+
+async def until(pred, timeout: float = 5.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for: {what}")
+        await asyncio.sleep(0.01)
+
+
+def run_daemon(cfg, ur: URControllerProcess, tmp_path, monkeypatch, scenario) -> tuple[Daemon, Systemd]:
+    """Fresh sensor and servo emulators, a notify socket and the daemon; ``scenario(daemon, writer,
+    systemd)`` runs while the daemon does (the writer is not started: the scenario decides)."""
+    monkeypatch.setenv("WATCHDOG_USEC", str(int(WATCHDOG_S * 1e6)))
+    monkeypatch.delenv("WATCHDOG_PID", raising=False)
+    systemd = Systemd(str(tmp_path / "notify.sock"))
+    sensor, servo = EmulatedPapillArray(), EmulatedMX28()
+    cfg = override(cfg, {"sensor.port": sensor.port, "gripper.port": servo.port})
+    writer = Writer(sensor)
+    metrics = Metrics()
+    daemon = None
+    try:
+        arm, gripper = build_devices(cfg, metrics)
+        daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=metrics, arm=arm, gripper=gripper,
+                        notifier=Notifier(systemd.path))
+
+        async def main() -> None:
+            task = asyncio.create_task(daemon.run())
+            await daemon.ready.wait()
+            try:
+                await scenario(daemon, writer, systemd)
+            finally:
+                daemon.stop()
+                await task
+
+        asyncio.run(main())
+    finally:
+        writer.stop()
+        if daemon is not None:
+            daemon.close()
+        sensor.close()
+        servo.close()
+        systemd.close()
+    return daemon, systemd
+
+
+def test_silent_sensor_from_start_up_fails_safe_and_never_reports_ready(controller, base_cfg, tmp_path,
+                                                                         monkeypatch, caplog) -> None:
+    caplog.set_level(logging.ERROR, logger="slipd.daemon.loop")
+
+    async def scenario(d: Daemon, w: Writer, sd: Systemd) -> None:
+        stops0 = controller.state().stop_count
+        await until(lambda: failsafes(d.metrics).get("sensor_silent", 0) == 1, timeout=3.0,
+                    what="sensor_silent fail-safe")
+        await until(lambda: controller.state().stop_count > stops0, what="the stop reached the UR controller")
+        await asyncio.sleep(0.5)  # still silent: no second stop, no sign of life
+
+    d, sd = run_daemon(base_cfg, controller, tmp_path, monkeypatch, scenario)
+    assert failsafes(d.metrics) == {"sensor_silent": 1.0}
+    assert sd.count("READY=1") == 0 and sd.count("WATCHDOG=1") == 0
+    assert not d.live and d.started_live is False and d.stats.decisions == 0
+    blind = [r.getMessage() for r in caplog.records if r.getMessage().startswith("blind:")]
+    assert len(blind) == 1 and "since start-up" in blind[0], blind
+
+
+@pytest.mark.parametrize("mode, reason", [("stuck", "sensor_counter_stuck"), ("nan", "sensor_nonfinite"),
+                                          ("frozen", "sensor_frozen")])
+def test_blind_stream_fails_safe_once_stops_the_pings_and_the_arm_watchdog_then_recovers(
+        controller, base_cfg, tmp_path, monkeypatch, caplog, mode: str, reason: str) -> None:
+    caplog.set_level(logging.WARNING, logger="slipd.daemon.loop")
+    seen: dict[str, object] = {}
+
+    async def scenario(d: Daemon, w: Writer, sd: Systemd) -> None:
+        w.start()
+        await until(lambda: sd.count("READY=1") == 1, what="READY=1 after the first live decision")
+        assert d.stats.decisions > 0  # READY waited for a decision
+        await until(lambda: sd.count("WATCHDOG=1") >= 2, what="watchdog pings while live")
+        await until(lambda: controller.state().watchdog_hz > 0, what="the arm's watchdog armed by a kick")
+        stops0 = controller.state().stop_count
+        w.mode = mode
+        t_fault = time.monotonic()
+        await until(lambda: failsafes(d.metrics).get(reason, 0) == 1, timeout=3.0, what=f"{reason} fail-safe")
+        seen["detected_s"] = time.monotonic() - t_fault
+        t_blind = time.monotonic()
+        await until(lambda: controller.state().stop_count > stops0, what="the stop reached the UR controller")
+        # No kicks while blind: the controller ends the control script (and halts the arm) by itself.
+        s = await asyncio.to_thread(controller.wait_for, lambda s: not s.control_script_running, 3.0,
+                                    "the arm's watchdog expiring")
+        seen["expired_kind"] = s.last_stop_kind
+        await asyncio.sleep(0.3)
+        seen["pings_blind"] = sd.count("WATCHDOG=1", since=t_blind + WATCHDOG_S / 2 + 0.02)
+        seen["failsafes_blind"] = dict(failsafes(d.metrics))
+        w.mode = "ok"
+        await until(lambda: d.live, what="live again on fresh frames")
+        t_live = time.monotonic()
+        await until(lambda: sd.count("WATCHDOG=1", since=t_live) >= 2, what="pings resume")
+        # Live again: the control script is re-uploaded and the watchdog armed again.
+        await asyncio.to_thread(controller.wait_for, lambda s: s.control_script_running and s.watchdog_hz > 0,
+                                5.0, "the control script back with its watchdog")
+
+    d, sd = run_daemon(base_cfg, controller, tmp_path, monkeypatch, scenario)
+    assert seen["failsafes_blind"] == {reason: 1.0}  # one fault, one stop, one label
+    assert failsafes(d.metrics) == {reason: 1.0}
+    assert seen["pings_blind"] == 0  # systemd hears nothing from a blind loop
+    assert seen["detected_s"] < 2.0  # generous: the stall timeout is 0.15 s
+    assert sd.count("READY=1") == 1
+    blind = [r.getMessage() for r in caplog.records if r.getMessage().startswith("blind:")]
+    assert len(blind) == 1, blind
+    assert any(r.getMessage() == f"live again after {reason}" for r in caplog.records)
+    assert not d.stats.alarms
