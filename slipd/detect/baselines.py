@@ -30,14 +30,18 @@ Both raise the alarm after ``confirm`` consecutive flagged decisions and report 
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+from typing import Any, TypeVar
 
 import numpy as np
 
 from slipd.detect.decision import Detection
 from slipd.detect.features import FeatureSpec, FeatureStream, batch_windows, tare_offset
 from slipd.geometry import CONTACT_THRESHOLD_N, N_PILLARS
+
+_P = TypeVar("_P", "ReferencePillarParams", "DecelerationParams", "FrontEndParams")
 
 TANGENTIAL_STIFFNESS_N_PER_MM = 3.5
 """k_t of a v2 pillar: converts tangential force to deflection when no displacement is recorded."""
@@ -185,7 +189,7 @@ def deceleration_flags(
     flag = decel.any(axis=1) & moving.any(axis=1)
     drop_depth = np.where(decel, 1.0 - speed / np.maximum(peak, 1e-9), 0.0)
     score = np.where(moving.any(axis=1), drop_depth.max(axis=1), 0.0)
-    return flag, np.clip(score, 0.0, 1.0)
+    return np.asarray(flag), np.clip(score, 0.0, 1.0)
 
 
 def confirm_flags(flag: np.ndarray, confirm: int) -> np.ndarray:
@@ -206,6 +210,7 @@ class _HeuristicDetector:
     """Common streaming machinery: same interface as ``slipd.detect.detector.Detector``."""
 
     name = "heuristic"
+    params: Any  # each subclass's own parameter dataclass
 
     def __init__(self, frontend: FrontEndParams | None, offset: np.ndarray | None, history: int) -> None:
         self.frontend = SpeedFrontEnd(frontend, offset)
@@ -261,6 +266,7 @@ class ReferencePillarDetector(_HeuristicDetector):
     """Khamis-style reference-pillar velocity-drop detector (see the module docstring)."""
 
     name = "reference_pillar"
+    params: ReferencePillarParams
 
     def __init__(
         self,
@@ -272,11 +278,11 @@ class ReferencePillarDetector(_HeuristicDetector):
         self.params = params or ReferencePillarParams()
         self._confirm = self.params.confirm
 
-    def _rule(self, speed, fz, history):
+    def _rule(self, speed: np.ndarray, fz: np.ndarray, history: np.ndarray) -> tuple[bool, float]:
         flag, score = reference_pillar_flags(speed, fz, self.params, self.frontend.params.contact_n)
         return bool(flag[0]), float(score[0])
 
-    def _batch_rule(self, speed, fz):
+    def _batch_rule(self, speed: np.ndarray, fz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return reference_pillar_flags(speed, fz, self.params, self.frontend.params.contact_n)
 
 
@@ -284,6 +290,7 @@ class DecelerationDetector(_HeuristicDetector):
     """Ulloa-style per-pillar deceleration detector (see the module docstring)."""
 
     name = "deceleration"
+    params: DecelerationParams
 
     def __init__(
         self,
@@ -296,12 +303,12 @@ class DecelerationDetector(_HeuristicDetector):
         super().__init__(fe, offset, history=_memory_decisions(self.params, fe))
         self._confirm = self.params.confirm
 
-    def _rule(self, speed, fz, history):
+    def _rule(self, speed: np.ndarray, fz: np.ndarray, history: np.ndarray) -> tuple[bool, float]:
         peak = history.max(axis=0, keepdims=True)
         flag, score = deceleration_flags(speed, peak, fz, self.params, self.frontend.params.contact_n)
         return bool(flag[0]), float(score[0])
 
-    def _batch_rule(self, speed, fz):
+    def _batch_rule(self, speed: np.ndarray, fz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         peak = recent_max(speed, _memory_decisions(self.params, self.frontend.params))
         return deceleration_flags(speed, peak, fz, self.params, self.frontend.params.contact_n)
 
@@ -311,7 +318,8 @@ BASELINES = {"reference_pillar": (ReferencePillarDetector, ReferencePillarParams
 
 
 def make_baseline(
-    name: str, params: dict | None = None, frontend: dict | None = None, offset: np.ndarray | None = None
+    name: str, params: dict[str, Any] | None = None, frontend: dict[str, Any] | None = None,
+    offset: np.ndarray | None = None,
 ) -> _HeuristicDetector:
     """Build a baseline detector by name from plain dicts (as stored in the tuned JSON).
 
@@ -319,11 +327,13 @@ def make_baseline(
     """
     if name not in BASELINES:
         raise ValueError(f"unknown baseline {name!r}; choose from {sorted(BASELINES)}")
-    cls, pcls = BASELINES[name]
-    return cls(_from_dict(pcls, params or {}, name), _from_dict(FrontEndParams, frontend or {}, "frontend"), offset)
+    fe = _from_dict(FrontEndParams, frontend or {}, "frontend")
+    if name == "reference_pillar":
+        return ReferencePillarDetector(_from_dict(ReferencePillarParams, params or {}, name), fe, offset)
+    return DecelerationDetector(_from_dict(DecelerationParams, params or {}, name), fe, offset)
 
 
-def _from_dict(cls, d: dict, where: str):
+def _from_dict(cls: type[_P], d: Mapping[str, Any], where: str) -> _P:
     known = {f.name for f in fields(cls)}
     unknown = sorted(set(d) - known)
     if unknown:
@@ -337,7 +347,7 @@ def baseline_offset(force: np.ndarray, disp: np.ndarray | None, stretch: tuple[i
 
 
 # --------------------------------------------------------------------------- tuned parameters on disk
-def save_params(path: str | Path, tuned: dict) -> Path:
+def save_params(path: str | Path, tuned: dict[str, Any]) -> Path:
     """Write ``{name: {"params": {...}, "frontend": {...}, ...}}`` as JSON."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -345,7 +355,7 @@ def save_params(path: str | Path, tuned: dict) -> Path:
     return path
 
 
-def load_params(path: str | Path, name: str) -> tuple[dict, dict]:
+def load_params(path: str | Path, name: str) -> tuple[dict[str, Any], dict[str, Any]]:
     """(params, frontend) of baseline ``name`` from a tuned JSON file; errors name the file and key."""
     path = Path(path)
     try:
@@ -358,6 +368,6 @@ def load_params(path: str | Path, name: str) -> tuple[dict, dict]:
     return dict(entry.get("params", {})), dict(entry.get("frontend", {}))
 
 
-def params_dict(det: _HeuristicDetector) -> dict:
+def params_dict(det: _HeuristicDetector) -> dict[str, Any]:
     """The detector's parameters as plain dicts (for reports and the tuned JSON)."""
     return {"params": asdict(det.params), "frontend": asdict(det.frontend.params)}

@@ -40,6 +40,7 @@ from slipd.geometry import CONTACT_THRESHOLD_N
 
 if TYPE_CHECKING:
     from slipd.config import SlipdConfig
+    from slipd.detect.decision import Decision
     from slipd.detect.ensemble import Ensemble
 
 
@@ -123,8 +124,8 @@ class Detector:
 
     def __init__(
         self,
-        ensemble,
-        decision,
+        ensemble: Ensemble,
+        decision: Decision,
         spec: FeatureSpec | None = None,
         offset: np.ndarray | None = None,
         tare_samples: int = 0,
@@ -271,7 +272,7 @@ class Detector:
             # Refused (non-finite window: state kept) or non-finite output (stream reset): no decision.
             self.step_errors += 1
             return Detection(index, t_us, float("nan"), 0.0, bool(self.decision.alarm), False, valid=False)
-        d = self.decision.update(result.p_slip, result.p_members)
+        d = self.decision.update(float(result.p_slip), result.p_members)
         return Detection(index, t_us, float(result.p_slip), float(d.risk), bool(d.alarm), bool(d.rising_edge))
 
 
@@ -319,7 +320,7 @@ class HeuristicDetector:
         self.resets += 1
 
 
-def run_recording(detector: Detector, force: np.ndarray, t_us: np.ndarray | None = None) -> list[Detection]:
+def run_recording(detector: SlipDetector, force: np.ndarray, t_us: np.ndarray | None = None) -> list[Detection]:
     """Push a whole recording through ``detector`` (replay and evaluation); returns every Detection."""
     out = []
     ts = np.arange(len(force), dtype=np.int64) * 1000 if t_us is None else t_us

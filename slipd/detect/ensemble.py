@@ -138,7 +138,7 @@ class Ensemble:
 
     @classmethod
     def load(
-        cls, manifest_path: str | os.PathLike, threads: int = 1, expected_spec: FeatureSpec | None = None
+        cls, manifest_path: str | os.PathLike[str], threads: int = 1, expected_spec: FeatureSpec | None = None
     ) -> Ensemble:
         """Validate the manifest and model (``ModelError`` on any mismatch), open the session, warm up."""
         path = Path(manifest_path)

@@ -28,8 +28,9 @@ windows; ``tests/test_features.py`` proves it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
@@ -129,11 +130,9 @@ class FeatureSpec:
             return filtered
         f = filtered.reshape(len(filtered), len(self.pillars), 3)
         parts = []
-        util = None
         fz = np.maximum(f[:, :, 2], np.float32(UTIL_FLOOR_N))
+        util = np.hypot(f[:, :, 0], f[:, :, 1]) / fz if {"util", "lutil"} & set(self.channels) else fz
         for c in self.channels:
-            if c in ("util", "lutil") and util is None:
-                util = np.hypot(f[:, :, 0], f[:, :, 1]) / fz
             if c == "ux":
                 parts.append(f[:, :, 0] / fz)
             elif c == "uy":
@@ -166,7 +165,7 @@ class FeatureSpec:
         """Indices into a flattened [9*3] sample, in feature order."""
         return self._cols
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """JSON-friendly form for the manifest."""
         d = asdict(self)
         d.pop("_cols", None)
@@ -176,7 +175,7 @@ class FeatureSpec:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> FeatureSpec:
+    def from_dict(cls, d: Mapping[str, Any]) -> FeatureSpec:
         """Inverse of ``to_dict``; unknown keys raise ``TypeError``."""
         d = dict(d)
         for key in ("pillars", "channels", "tare_samples"):
@@ -184,7 +183,7 @@ class FeatureSpec:
                 d[key] = tuple(d[key])
         return cls(**d)
 
-    def with_(self, **changes) -> FeatureSpec:
+    def with_(self, **changes: Any) -> FeatureSpec:
         """A copy with some fields changed."""
         d = self.to_dict()
         d.update(changes)
@@ -243,7 +242,8 @@ def causal_median(x: np.ndarray, width: int) -> np.ndarray:
     if width == 1 or len(x) == 0:
         return x.copy()
     padded = np.concatenate([np.repeat(x[:1], width - 1, axis=0), x], axis=0)
-    return np.median(sliding_window_view(padded, width, axis=0), axis=-1).astype(np.float32)
+    out: np.ndarray = np.median(sliding_window_view(padded, width, axis=0), axis=-1).astype(np.float32)
+    return out
 
 
 def window_ends(n_samples: int, spec: FeatureSpec) -> np.ndarray:
@@ -267,7 +267,8 @@ def batch_windows(
 
 def window_labels(label: np.ndarray, ends: np.ndarray) -> np.ndarray:
     """Label of each window = label of its last sample (the method's rule)."""
-    return np.asarray(label)[ends]
+    out: np.ndarray = np.asarray(label)[ends]
+    return out
 
 
 class FeatureStream:
@@ -421,7 +422,8 @@ def causal_median_tail(hist: np.ndarray, width: int) -> np.ndarray:
     """Median filter outputs for the last ``len(hist) - width + 1`` samples of ``hist`` (no padding)."""
     if width == 1:
         return hist
-    return np.median(sliding_window_view(hist, width, axis=0), axis=-1).astype(np.float32)
+    tail: np.ndarray = np.median(sliding_window_view(hist, width, axis=0), axis=-1).astype(np.float32)
+    return tail
 
 
 def stream_windows(force: np.ndarray, spec: FeatureSpec, offset: np.ndarray | None = None) -> list[np.ndarray]:

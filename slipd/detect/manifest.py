@@ -36,7 +36,7 @@ Dim = int | str
 class ModelError(Exception):
     """A model or its manifest is unusable. ``file``, ``field`` and ``reason`` say where and why."""
 
-    def __init__(self, file: str | os.PathLike, field: str, reason: str) -> None:
+    def __init__(self, file: str | os.PathLike[str], field: str, reason: str) -> None:
         self.file = str(file)
         self.field = field
         self.reason = reason
@@ -90,7 +90,7 @@ class Manifest(BaseModel):
         return FeatureSpec.from_dict(self.feature_spec)
 
 
-def check_consistency(manifest: Manifest, path: str | os.PathLike) -> None:
+def check_consistency(manifest: Manifest, path: str | os.PathLike[str]) -> None:
     """The manifest agrees with itself: format version, feature spec, its spelled-out copies, I/O shapes."""
     if manifest.format_version != FORMAT_VERSION:
         raise ModelError(path, "format_version", f"{manifest.format_version} is not supported (expected "
@@ -145,7 +145,7 @@ def io_infos(input_size: int, members: int, hidden: int) -> tuple[list[TensorInf
     )
 
 
-def sha256_file(path: str | os.PathLike) -> str:
+def sha256_file(path: str | os.PathLike[str]) -> str:
     """Hex sha256 of a file, read in chunks."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -154,7 +154,7 @@ def sha256_file(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
     """Write ``data`` to ``path`` so readers see the old file or the new one, never a partial one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -171,18 +171,18 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
         raise
 
 
-def manifest_path_for(onnx_path: str | os.PathLike) -> Path:
+def manifest_path_for(onnx_path: str | os.PathLike[str]) -> Path:
     """``models/x.onnx`` -> ``models/x.json``."""
     return Path(onnx_path).with_suffix(".json")
 
 
-def write_manifest(manifest: Manifest, path: str | os.PathLike) -> None:
+def write_manifest(manifest: Manifest, path: str | os.PathLike[str]) -> None:
     """Write the manifest as indented JSON, atomically."""
     text = json.dumps(manifest.model_dump(mode="json"), indent=2) + "\n"
     atomic_write_bytes(path, text.encode())
 
 
-def read_manifest(path: str | os.PathLike) -> Manifest:
+def read_manifest(path: str | os.PathLike[str]) -> Manifest:
     """Parse the manifest JSON and check it is consistent (no file or graph checks)."""
     path = Path(path)
     if not path.is_file():
@@ -201,7 +201,7 @@ def read_manifest(path: str | os.PathLike) -> Manifest:
     return manifest
 
 
-def update_metrics(path: str | os.PathLike, metrics: dict[str, Any]) -> Manifest:
+def update_metrics(path: str | os.PathLike[str], metrics: dict[str, Any]) -> Manifest:
     """Merge evaluation/benchmark figures into a manifest's ``metrics`` and rewrite it atomically.
 
     The ONNX file is not touched, so its hash stays valid. Values must be JSON-serialisable.
@@ -213,12 +213,12 @@ def update_metrics(path: str | os.PathLike, metrics: dict[str, Any]) -> Manifest
     return manifest
 
 
-def onnx_path_of(manifest: Manifest, manifest_path: str | os.PathLike) -> Path:
+def onnx_path_of(manifest: Manifest, manifest_path: str | os.PathLike[str]) -> Path:
     """Where the manifest's ONNX file lives (relative names resolve against the manifest's folder)."""
     return Path(manifest_path).parent / manifest.onnx_file
 
 
-def check_session_io(manifest: Manifest, session: Any, onnx_path: str | os.PathLike) -> None:
+def check_session_io(manifest: Manifest, session: Any, onnx_path: str | os.PathLike[str]) -> None:
     """Compare an onnxruntime session's I/O with the manifest; raise ``ModelError`` on any difference."""
     for kind, declared, actual in (
         ("inputs", manifest.inputs, session.get_inputs()),
@@ -237,7 +237,7 @@ def check_session_io(manifest: Manifest, session: Any, onnx_path: str | os.PathL
                 raise ModelError(onnx_path, f"{kind}.{t.name}", f"graph shape {a.shape}, manifest says {t.shape}")
 
 
-def open_session(onnx_path: str | os.PathLike, options: Any = None) -> Any:
+def open_session(onnx_path: str | os.PathLike[str], options: Any = None) -> Any:
     """An onnxruntime CPU session; a file onnxruntime cannot parse raises ``ModelError``."""
     import onnxruntime as ort  # imported here so that manifest-only tools start fast
 
@@ -248,7 +248,7 @@ def open_session(onnx_path: str | os.PathLike, options: Any = None) -> Any:
 
 
 def load_manifest(
-    path: str | os.PathLike, expected_spec: FeatureSpec | None = None, check_graph: bool = True
+    path: str | os.PathLike[str], expected_spec: FeatureSpec | None = None, check_graph: bool = True
 ) -> Manifest:
     """Validate a manifest and its model; return the manifest.
 

@@ -55,6 +55,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from slipd.detect.detector import gate_windows
 from slipd.detect.features import FeatureSpec, batch_windows, tare_offset, window_labels
 from slipd.lab.augment import (
     SPEED_RATES,
@@ -195,13 +196,26 @@ def lead_labels(label: np.ndarray, lead: int) -> np.ndarray:
     return win.max(axis=1)
 
 
-def featurize(seqs: list[Seq], spec: FeatureSpec, lead: int = 0) -> list[Item]:
-    """Run the daemon's feature pipeline on every sequence (offset already removed)."""
+def featurize(seqs: list[Seq], spec: FeatureSpec, lead: int = 0, gate: bool = True) -> list[Item]:
+    """Run the daemon's feature pipeline on every sequence (offset already removed).
+
+    With ``gate`` (the default, as the detector runs), each stretch the contact gate lets through
+    (``slipd.detect.detector.gate_windows``) becomes its own item, so its first window meets h0 exactly as
+    in the daemon; windows without contact are never shown to the model (the detector reports 0 there).
+    """
     items = []
     for seq in seqs:
         windows, ends = batch_windows(seq.force, spec, None)
-        if len(ends):
-            items.append(Item(windows, window_labels(lead_labels(seq.label, lead), ends).astype(np.int64)))
+        if not len(ends):
+            continue
+        labels = window_labels(lead_labels(seq.label, lead), ends).astype(np.int64)
+        if not gate:
+            items.append(Item(windows, labels))
+            continue
+        open_ = gate_windows(seq.force, spec)
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], open_.astype(np.int8), [0]])))
+        for a, b in zip(edges[::2], edges[1::2]):
+            items.append(Item(windows[a:b], labels[a:b]))
     return items
 
 
