@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import csv
 import json
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,26 +47,29 @@ class Recording:
     meta: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.t_us = np.asarray(self.t_us, dtype=np.int64)
-        self.force = np.asarray(self.force, dtype=np.float32)
-        self.disp = np.asarray(self.disp, dtype=np.float32)
+        # Every message names the array at fault; the readers prefix the file.
+        self.t_us = _array("t_us", self.t_us, np.int64)
+        self.force = _array("force", self.force, np.float32)
+        self.disp = _array("disp", self.disp, np.float32)
+        if self.t_us.ndim != 1:
+            raise RecordingError(f"t_us: shape {self.t_us.shape}, expected [N]")
         n = len(self.t_us)
-        if self.force.shape != (n, N_PILLARS, 3) or self.disp.shape != (n, N_PILLARS, 3):
-            raise RecordingError(
-                f"force/disp must be [{n}, 9, 3]; got {self.force.shape} and {self.disp.shape}"
-            )
+        for name in ("force", "disp"):
+            shape = getattr(self, name).shape
+            if shape != (n, N_PILLARS, 3):
+                raise RecordingError(f"{name}: shape {shape}, expected [{n}, {N_PILLARS}, 3] (N from t_us)")
         if self.slip is not None:
-            self.slip = np.asarray(self.slip, dtype=bool)
+            self.slip = _array("slip", self.slip, bool)
             if self.slip.shape != (n, N_PILLARS):
-                raise RecordingError(f"slip must be [{n}, 9]; got {self.slip.shape}")
+                raise RecordingError(f"slip: shape {self.slip.shape}, expected [{n}, {N_PILLARS}]")
         if self.label is not None:
-            self.label = np.asarray(self.label, dtype=np.uint8)
+            self.label = _array("label", self.label, np.uint8)
             if self.label.shape != (n,):
-                raise RecordingError(f"label must be [{n}]; got {self.label.shape}")
+                raise RecordingError(f"label: shape {self.label.shape}, expected [{n}]")
         if self.object_motion is not None:
-            self.object_motion = np.asarray(self.object_motion, dtype=np.float32)
+            self.object_motion = _array("object_motion", self.object_motion, np.float32)
             if self.object_motion.shape != (n, 3):
-                raise RecordingError(f"object_motion must be [{n}, 3]; got {self.object_motion.shape}")
+                raise RecordingError(f"object_motion: shape {self.object_motion.shape}, expected [{n}, 3]")
 
     def __len__(self) -> int:
         return len(self.t_us)
@@ -106,31 +111,106 @@ class Recording:
 
     @classmethod
     def load(cls, path: str | Path) -> Recording:
-        """Read an ``.npz`` recording or an SDK CSV log (by extension)."""
+        """Read an ``.npz`` recording or an SDK CSV log (by extension).
+
+        A broken file raises ``RecordingError`` with one line naming the file and the part at fault
+        (``rec.npz: meta: not JSON: ...``, ``log.csv: T_us: goes backwards at sample 12 ...``).
+        """
         path = Path(path)
         if path.suffix.lower() == ".csv":
             return read_sdk_csv(path)
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                missing = [k for k in ("t_us", "force", "disp") if k not in data]
-                if missing:
-                    raise RecordingError(f"{path}: missing arrays {missing}")
-                meta = json.loads(str(data["meta"])) if "meta" in data else {}
-                return cls(
-                    t_us=data["t_us"],
-                    force=data["force"],
-                    disp=data["disp"],
-                    slip=data.get("slip", None),
-                    label=data.get("label", None),
-                    object_motion=data.get("object_motion", None),
-                    meta=meta,
-                )
-        except RecordingError as exc:
-            if str(path) in str(exc):
-                raise
-            raise RecordingError(f"{path}: {exc}") from None
-        except (OSError, ValueError, KeyError) as exc:
-            raise RecordingError(f"{path}: not a readable recording ({exc})") from exc
+        return read_npz(path)
+
+
+# ---------------------------------------------------------------------- checks shared by the readers
+_ARRAYS = ("t_us", "force", "disp", "slip", "label", "object_motion")
+# Local file header, or the end-of-directory record that an archive with no members starts with.
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 160 else text[:157] + "..."
+
+
+def _array(name: str, value: Any, dtype: Any) -> np.ndarray:
+    """``value`` as ``dtype``; refuses what would convert silently into garbage (NaN times, text)."""
+    try:
+        raw = np.asarray(value)
+        if raw.dtype.kind not in "biuf":
+            raise RecordingError(f"{name}: not numbers (dtype {raw.dtype})")
+        if raw.dtype.kind == "f" and np.dtype(dtype).kind in "iub" and not np.isfinite(raw).all():
+            bad = int(np.argmin(np.isfinite(raw).reshape(len(raw), -1).all(1))) if raw.ndim else 0
+            raise RecordingError(f"{name}: not a finite number at sample {bad}")
+        return raw.astype(dtype, copy=False)
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, RecordingError):
+            raise
+        raise RecordingError(f"{name}: not numbers ({_one_line(exc)})") from None
+
+
+def check_times(t_us: np.ndarray, name: str = "t_us") -> None:
+    """Refuse timestamps that go backwards: replayed, they would feed the detector a reordered stream."""
+    if len(t_us) < 2:
+        return
+    back = np.flatnonzero(np.diff(t_us) < 0)
+    if len(back):
+        i = int(back[0]) + 1
+        raise RecordingError(
+            f"{name}: goes backwards at sample {i} ({int(t_us[i - 1])} -> {int(t_us[i])} us)"
+            + (f"; {len(back)} such samples" if len(back) > 1 else "")
+        )
+
+
+def _parse_meta(text: str) -> dict[str, Any]:
+    try:
+        meta = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise RecordingError(f"meta: not JSON: {exc}") from None
+    if not isinstance(meta, dict):
+        raise RecordingError(f"meta: not a JSON object (got {type(meta).__name__})")
+    return meta
+
+
+def read_npz(path: str | Path) -> Recording:
+    """Read an ``.npz`` recording; ``RecordingError`` names the file and the part at fault."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4)
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if head not in _ZIP_MAGIC:
+        # np.load would try the file as a bare .npy, then as a pickle, and report that instead.
+        what = "empty file" if not head else f"starts with {head!r}"
+        raise RecordingError(f"{path}: not an .npz recording (not a zip archive: {what})")
+    try:
+        npz = np.load(path, allow_pickle=False)
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+        raise RecordingError(f"{path}: not an .npz recording (broken zip archive: {_one_line(exc)})") from None
+    try:
+        with npz:
+            missing = [k for k in ("t_us", "force", "disp") if k not in npz.files]
+            if missing:
+                raise RecordingError(f"missing array(s) {', '.join(missing)} (has: {', '.join(npz.files) or 'none'})")
+            arrays: dict[str, Any] = {}
+            for name in (*_ARRAYS, "meta"):
+                if name in npz.files:
+                    try:
+                        arrays[name] = npz[name]
+                    except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError, KeyError) as exc:
+                        raise RecordingError(f"{name}: cannot read ({_one_line(exc)})") from None
+        meta: dict[str, Any] = {}
+        if "meta" in arrays:
+            m = arrays.pop("meta")
+            if m.shape != () or m.dtype.kind not in "US":
+                raise RecordingError(f"meta: not a JSON string (dtype {m.dtype}, shape {m.shape})")
+            meta = _parse_meta(str(m))
+        rec = Recording(**arrays, meta=meta)
+        check_times(rec.t_us)
+    except RecordingError as exc:
+        raise RecordingError(f"{path}: {exc}") from None
+    return rec
 
 
 # ---------------------------------------------------------------------- SDK CSV
@@ -222,41 +302,58 @@ def write_sdk_csv(rec: Recording, path: str | Path, contact_threshold_n: float =
 def read_sdk_csv(path: str | Path) -> Recording:
     """Read a Contactile SDK CSV log (one sensor, S0). Unknown columns are ignored.
 
-    Raises RecordingError naming the file and the missing column when the layout does not match.
+    Raises RecordingError with one line naming the file and the part at fault: a missing column, the
+    line and column of a value that is not a number, a row of the wrong length, timestamps that go
+    backwards, a ``# slipd-meta`` line that is not JSON.
     """
     path = Path(path)
     meta: dict[str, Any] = {}
     try:
-        with open(path, newline="") as fh:
+        with open(path, newline="", encoding="utf-8") as fh:
             lines = fh.readlines()
     except OSError as exc:
-        raise RecordingError(f"{path}: cannot read ({exc})") from exc
-    body = []
-    for line in lines:
+        raise RecordingError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise RecordingError(f"{path}: not a CSV text file (byte {exc.start} is not UTF-8)") from None
+    body: list[tuple[int, str]] = []  # (1-based file line, text)
+    for lineno, line in enumerate(lines, 1):
         if line.startswith("# slipd-meta "):
-            meta = json.loads(line[len("# slipd-meta ") :])
+            try:
+                meta = _parse_meta(line[len("# slipd-meta ") :])
+            except RecordingError as exc:
+                raise RecordingError(f"{path}:{lineno}: {exc}") from None
         elif not line.startswith("#") and line.strip():
-            body.append(line)
+            body.append((lineno, line))
     if not body:
-        raise RecordingError(f"{path}: empty CSV")
-    reader = csv.reader(body)
-    header = [h.strip() for h in next(reader)]
+        raise RecordingError(f"{path}: empty CSV (no header)")
+    try:
+        header = [h.strip() for h in next(csv.reader([body[0][1]]))]
+        rows = [(lineno, r) for lineno, r in zip((b[0] for b in body[1:]), csv.reader(b[1] for b in body[1:]))
+                if r]
+    except csv.Error as exc:
+        raise RecordingError(f"{path}: not CSV ({_one_line(exc)})") from None
     index = {name: i for i, name in enumerate(header)}
     needed = ["T_us"] + [f"S0_P{p}_{q}{a}" for p in range(N_PILLARS) for q in "DF" for a in _AXES]
     missing = [c for c in needed if c not in index]
     if missing:
         raise RecordingError(f"{path}: missing SDK column(s) {missing[:4]}{'...' if len(missing) > 4 else ''}")
-    rows = [r for r in reader if r]
-    try:
-        data = np.array([[float(v) if v.strip() else np.nan for v in r] for r in rows], dtype=np.float64)
-    except ValueError as exc:
-        raise RecordingError(f"{path}: non-numeric value ({exc})") from exc
-    if data.ndim != 2 or data.shape[1] != len(header):
-        raise RecordingError(f"{path}: rows do not match the header's {len(header)} columns")
+    data = np.empty((len(rows), len(header)), dtype=np.float64)
+    for k, (lineno, r) in enumerate(rows):
+        if len(r) != len(header):
+            raise RecordingError(f"{path}:{lineno}: {len(r)} values, but the header has {len(header)} columns")
+        for j, v in enumerate(r):
+            try:
+                data[k, j] = float(v) if v.strip() else np.nan
+            except ValueError:
+                raise RecordingError(f"{path}:{lineno}: {header[j]}: not a number ({v[:40]!r})") from None
 
     def col(name: str) -> np.ndarray:
         return data[:, index[name]]
 
+    t = col("T_us")
+    if not np.isfinite(t).all():
+        k = int(np.argmin(np.isfinite(t)))
+        raise RecordingError(f"{path}:{rows[k][0]}: T_us: missing or not finite (sample {k})")
     force = np.stack(
         [np.stack([col(f"S0_P{p}_F{a}") for a in _AXES], -1) for p in range(N_PILLARS)], 1
     )
@@ -266,19 +363,20 @@ def read_sdk_csv(path: str | Path) -> Recording:
     slip = None
     if all(c in index for c in _TRUTH_SLIP):
         slip = np.stack([col(c) for c in _TRUTH_SLIP], 1) > 0.5
-    label = col("SLIPD_label").astype(np.uint8) if "SLIPD_label" in index else None
+    label = None
+    if "SLIPD_label" in index:
+        label = np.nan_to_num(col("SLIPD_label")).astype(np.uint8)
     motion = None
     if all(c in index for c in _TRUTH_REST[1:]):
         motion = np.stack([col(c) for c in _TRUTH_REST[1:]], 1)
-    return Recording(
-        t_us=col("T_us").astype(np.int64),
-        force=force,
-        disp=disp,
-        slip=slip,
-        label=label,
-        object_motion=motion,
-        meta=meta,
-    )
+    try:
+        rec = Recording(
+            t_us=t.astype(np.int64), force=force, disp=disp, slip=slip, label=label, object_motion=motion, meta=meta
+        )
+        check_times(rec.t_us, "T_us")
+    except RecordingError as exc:
+        raise RecordingError(f"{path}: {exc}") from None
+    return rec
 
 
 def list_recordings(folder: str | Path) -> list[Path]:

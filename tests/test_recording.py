@@ -57,9 +57,154 @@ def test_bad_files_name_the_file(tmp_path) -> None:
     bad.write_text("T_us,S0_P0_DX\n1,2\n")
     with pytest.raises(RecordingError, match=r"broken\.csv.*missing SDK column"):
         Recording.load(bad)
+    with pytest.raises(RecordingError, match=r"^force: shape \(3, 8, 3\), expected \[3, 9, 3\]"):
+        Recording(t_us=np.arange(3), force=np.zeros((3, 8, 3)), disp=np.zeros((3, 9, 3)))
+
+
+def _error(path) -> str:
+    """The whole message, checked to be one line starting with the file's name."""
+    with pytest.raises(RecordingError) as exc:
+        Recording.load(path)
+    text = str(exc.value)
+    assert "\n" not in text and text.startswith(f"{path}"), text
+    return text
+
+
+def _one_line_error(path) -> str:
+    """The message after ``file: ``."""
+    text = _error(path)
+    assert text.startswith(f"{path}: "), text
+    return text[len(f"{path}: ") :]
+
+
+def _npz(path, **arrays) -> None:
+    """Write an .npz as another tool might: any arrays, no checks."""
+    with open(path, "wb") as fh:
+        np.savez(fh, **arrays)
+
+
+def test_npz_that_is_not_a_zip(tmp_path) -> None:
     junk = tmp_path / "junk.npz"
     junk.write_bytes(b"not a zip")
-    with pytest.raises(RecordingError, match=r"junk\.npz"):
-        Recording.load(junk)
-    with pytest.raises(RecordingError, match="force/disp"):
-        Recording(t_us=np.arange(3), force=np.zeros((3, 8, 3)), disp=np.zeros((3, 9, 3)))
+    assert _one_line_error(junk) == "not an .npz recording (not a zip archive: starts with b'not ')"
+    # A bare .npy and a pickle were read by np.load and reported as "pickled data": now the same answer.
+    np.save(tmp_path / "bare.npy", np.zeros(3))
+    (tmp_path / "bare.npy").rename(tmp_path / "bare.npz")
+    assert _one_line_error(tmp_path / "bare.npz").startswith("not an .npz recording (not a zip archive")
+    (tmp_path / "empty.npz").write_bytes(b"")
+    assert _one_line_error(tmp_path / "empty.npz") == "not an .npz recording (not a zip archive: empty file)"
+    # Starts like a zip (this raised zipfile.BadZipFile through the CLI), then garbage.
+    (tmp_path / "pk.npz").write_bytes(b"PK\x03\x04garbage")
+    assert _one_line_error(tmp_path / "pk.npz").startswith("not an .npz recording (broken zip archive")
+    assert _one_line_error(tmp_path / "missing.npz").startswith("cannot read (No such file")
+
+
+def test_truncated_npz_names_the_archive_or_array(tmp_path) -> None:
+    good = _rec(400).save(tmp_path / "good.npz").read_bytes()
+    for cut in (len(good) // 3, len(good) - 30):
+        path = tmp_path / f"cut{cut}.npz"
+        path.write_bytes(good[:cut])
+        text = _one_line_error(path)
+        assert text.startswith(("not an .npz recording (broken zip archive", "t_us: cannot read", "force: cannot read",
+                                "disp: cannot read", "slip: cannot read")), text
+
+
+def test_npz_meta_not_json(tmp_path) -> None:
+    path = tmp_path / "meta.npz"
+    _npz(path, t_us=np.arange(3), force=np.zeros((3, 9, 3)), disp=np.zeros((3, 9, 3)), meta=np.array("{scene: x"))
+    assert _one_line_error(path).startswith("meta: not JSON: Expecting property name enclosed in double quotes")
+    _npz(path, t_us=np.arange(3), force=np.zeros((3, 9, 3)), disp=np.zeros((3, 9, 3)), meta=np.array("[1, 2]"))
+    assert _one_line_error(path) == "meta: not a JSON object (got list)"
+    _npz(path, t_us=np.arange(3), force=np.zeros((3, 9, 3)), disp=np.zeros((3, 9, 3)), meta=np.zeros(2))
+    assert _one_line_error(path) == "meta: not a JSON string (dtype float64, shape (2,))"
+
+
+def test_npz_timestamps_going_backwards_are_refused(tmp_path) -> None:
+    rec = _rec(10)
+    t = rec.t_us.copy()
+    t[6] = t[4]  # 6000 -> 4000: backwards at sample 6
+    path = tmp_path / "back.npz"
+    _npz(path, t_us=t, force=rec.force, disp=rec.disp)
+    assert _one_line_error(path) == "t_us: goes backwards at sample 6 (5000 -> 4000 us)"
+    t[3] = 0
+    _npz(path, t_us=t, force=rec.force, disp=rec.disp)
+    assert _one_line_error(path) == "t_us: goes backwards at sample 3 (2000 -> 0 us); 2 such samples"
+    t = rec.t_us.copy()
+    t[5] = t[4]  # a repeated timestamp is not backwards (a sensor clock tick can be coarse)
+    _npz(path, t_us=t, force=rec.force, disp=rec.disp)
+    assert len(Recording.load(path)) == 10
+
+
+def test_npz_wrong_shapes_types_and_missing_arrays(tmp_path) -> None:
+    path = tmp_path / "shape.npz"
+    ok = {"t_us": np.arange(4), "force": np.zeros((4, 9, 3)), "disp": np.zeros((4, 9, 3))}
+    cases = [
+        ({"force": np.zeros((4, 3, 9))}, "force: shape (4, 3, 9), expected [4, 9, 3] (N from t_us)"),
+        ({"disp": np.zeros((5, 9, 3))}, "disp: shape (5, 9, 3), expected [4, 9, 3] (N from t_us)"),
+        ({"t_us": np.zeros((4, 2))}, "t_us: shape (4, 2), expected [N]"),
+        ({"label": np.zeros(3)}, "label: shape (3,), expected [4]"),
+        ({"slip": np.zeros((4, 8))}, "slip: shape (4, 8), expected [4, 9]"),
+        ({"object_motion": np.zeros((4, 2))}, "object_motion: shape (4, 2), expected [4, 3]"),
+        ({"force": np.full((4, 9, 3), "x")}, "force: not numbers (dtype <U1)"),
+        ({"t_us": np.array([0.0, 1.0, np.nan, 3.0])}, "t_us: not a finite number at sample 2"),
+    ]
+    for change, message in cases:
+        _npz(path, **{**ok, **change})
+        assert _one_line_error(path) == message
+    _npz(path, t_us=np.arange(4), force=np.zeros((4, 9, 3)))
+    assert _one_line_error(path) == "missing array(s) disp (has: t_us, force)"
+
+
+def _csv(path, rows: list[list[str]], meta: str | None = None) -> None:
+    cols = ["T_us", *[f"S0_P{p}_{q}{a}" for p in range(9) for q in "DF" for a in "XYZ"]]
+    lines = ([f"# slipd-meta {meta}"] if meta is not None else []) + [",".join(cols)]
+    path.write_text("\n".join(lines + [",".join(r) for r in rows]) + "\n")
+
+
+def test_sdk_csv_broken_files_name_line_and_column(tmp_path) -> None:
+    path = tmp_path / "log.csv"
+    row = lambda t: [str(t), *(["0.5"] * 54)]  # noqa: E731
+    _csv(path, [row(1000), row(2000), row(1500)])
+    assert _one_line_error(path) == "T_us: goes backwards at sample 2 (2000 -> 1500 us)"
+    _csv(path, [row(1000), row(2000)], meta="{not json")
+    assert _error(path).startswith(f"{path}:1: meta: not JSON: ")
+    bad = row(2000)
+    bad[7] = "1.2.3"
+    _csv(path, [row(1000), bad])
+    assert _error(path) == (
+        f"{path}:3: S0_P1_DX: not a number ('1.2.3')"
+    )
+    _csv(path, [row(1000), row(2000)[:-1]])
+    assert _error(path) == (
+        f"{path}:3: 54 values, but the header has 55 columns"
+    )
+    _csv(path, [row(1000), ["", *row(0)[1:]]])
+    assert _error(path) == (
+        f"{path}:3: T_us: missing or not finite (sample 1)"
+    )
+    path.write_bytes(b"T_us,\xff\xfe\n")
+    assert _one_line_error(path) == "not a CSV text file (byte 5 is not UTF-8)"
+    path.write_text("# only a comment\n")
+    assert _one_line_error(path) == "empty CSV (no header)"
+
+
+def test_replay_cli_on_broken_files_prints_one_line_and_exits_1(tmp_path) -> None:
+    """Through the installed command, as a user meets it: no traceback, the file and the part named."""
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    slipd = root / ".venv" / "bin" / "slipd"
+    exe = [str(slipd)] if slipd.exists() else [str(root / ".venv" / "bin" / "python"), "-m", "slipd"]
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"PK\x03\x04 this is not a zip")  # raised zipfile.BadZipFile before
+    back = tmp_path / "back.npz"
+    rec = _rec(10)
+    t = rec.t_us.copy()
+    t[6] = 0
+    _npz(back, t_us=t, force=rec.force, disp=rec.disp)
+    for path, part in ((junk, "not an .npz recording (broken zip archive"), (back, "t_us: goes backwards at sample 6")):
+        r = subprocess.run([*exe, "replay", str(path)], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 1, r.stderr
+        assert r.stdout == "" and r.stderr.count("\n") == 1, r.stderr
+        assert r.stderr.startswith(f"slipd replay: {path}: {part}"), r.stderr

@@ -27,10 +27,69 @@ from slipd.config.schema import (
     _SectionProblem,
 )
 
-
 # ---------------------------------------------------------------------------------------------- loading
+MAX_YAML_NODES = 20_000
+"""Most values (scalars, lists, mappings, keys) a config may expand to, aliases counted at full size.
+
+The shipped config has about 120. An alias is a shared reference: cheap to parse, but everything
+after parsing (line numbers, validation, error messages) walks it once per use, so ten lines of
+nested aliases (a "billion laughs") would make ``check-config`` run for minutes in gigabytes.
+"""
+
+MAX_YAML_DEPTH = 32
+"""Deepest nesting of lists and mappings; the schema needs 3, the composer recurses per level."""
+
+
+class _Refused(yaml.MarkedYAMLError):
+    """Input that is valid YAML but refused as a config (too large once expanded, too deep, recursive)."""
+
+
 class _Loader(yaml.SafeLoader):
-    """SafeLoader that rejects duplicate keys (YAML would silently keep the last one)."""
+    """SafeLoader that rejects duplicate keys (YAML would silently keep the last one) and bounds the
+    document while it is composed: expanded size (aliases at the size of what they point to), depth,
+    and self-referencing anchors. The bounds are checked before anything walks the tree."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._expanded = 0  # values so far in the document with every alias expanded
+        self._sizes: dict[int, int] = {}  # id(node) -> its expanded size, for the aliases that reuse it
+        self._open: list[int] = [0]  # expanded size accumulated by each node being composed
+        self._open_anchors: set[str] = set()
+
+    def _count(self, size: int, mark: Any, what: str) -> None:
+        self._expanded += size
+        self._open[-1] += size
+        if self._expanded > MAX_YAML_NODES:
+            raise _Refused(None, None, f"{what} makes the document expand to more than {MAX_YAML_NODES} values "
+                                       f"(nested aliases: a YAML alias bomb?)", mark)
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:
+        event = self.peek_event()
+        if isinstance(event, yaml.AliasEvent):
+            if event.anchor in self._open_anchors:
+                raise _Refused(None, None, f"alias *{event.anchor} refers to its own anchor (a recursive value)",
+                               event.start_mark)
+            node = super().compose_node(parent, index)  # raises on an undefined alias
+            self._count(self._sizes.get(id(node), 1), event.start_mark, f"alias *{event.anchor}")
+            return node
+        if len(self._open) > MAX_YAML_DEPTH:
+            raise _Refused(None, None, f"nested deeper than {MAX_YAML_DEPTH} levels", event.start_mark)
+        anchor = getattr(event, "anchor", None)
+        if anchor is not None:
+            self._open_anchors.add(anchor)
+        self._open.append(0)
+        try:
+            node = super().compose_node(parent, index)
+        finally:
+            inner = self._open.pop()
+            if anchor is not None:
+                self._open_anchors.discard(anchor)
+        self._sizes[id(node)] = 1 + inner
+        self._open[-1] += 1 + inner
+        self._expanded += 1
+        if self._expanded > MAX_YAML_NODES:
+            raise _Refused(None, None, f"more than {MAX_YAML_NODES} values in one config", event.start_mark)
+        return node
 
 
 def _construct_mapping(loader: _Loader, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
@@ -135,6 +194,10 @@ def parse_config(text: str, source: str = "<config>", base_dir: str | os.PathLik
             data = loader.construct_document(node) if node is not None else None
         finally:
             loader.dispose()
+    except _Refused as exc:
+        mark = exc.problem_mark
+        where = f"{source}:{mark.line + 1}:{mark.column + 1}" if mark else source
+        raise ConfigError([f"{where}: refused: {exc.problem}"]) from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         where = f"{source}:{mark.line + 1}:{mark.column + 1}" if mark else source

@@ -16,6 +16,10 @@ PACKAGE_DIR = Path(__file__).resolve().parent
 DEFAULT_MODEL = "slip_ensemble_int8"
 """The daemon's default: the int8 variant of the shipped ensemble."""
 
+SAMPLE_RECORDING = PACKAGE_DIR / "sample_slip.npz"
+"""A 1.5 s simulated slip trial (hexapod translation, seed 0) that ships with the package so that
+``slipd replay`` can be tried, and tested, on an installed daemon; written by ``make sample``."""
+
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
