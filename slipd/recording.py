@@ -97,7 +97,7 @@ class Recording:
         """Write the recording as a compressed ``.npz`` atomically (temporary file + rename)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        arrays: dict[str, np.ndarray] = {"t_us": self.t_us, "force": self.force, "disp": self.disp}
+        arrays: dict[str, Any] = {"t_us": self.t_us, "force": self.force, "disp": self.disp}
         for name in ("slip", "label", "object_motion"):
             value = getattr(self, name)
             if value is not None:

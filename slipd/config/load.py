@@ -43,6 +43,9 @@ MAX_YAML_DEPTH = 32
 class _Refused(yaml.MarkedYAMLError):
     """Input that is valid YAML but refused as a config (too large once expanded, too deep, recursive)."""
 
+    def __init__(self, problem: str, mark: Any) -> None:
+        super().__init__(None, None, problem, mark)
+
 
 class _Loader(yaml.SafeLoader):
     """SafeLoader that rejects duplicate keys (YAML would silently keep the last one) and bounds the
@@ -60,20 +63,20 @@ class _Loader(yaml.SafeLoader):
         self._expanded += size
         self._open[-1] += size
         if self._expanded > MAX_YAML_NODES:
-            raise _Refused(None, None, f"{what} makes the document expand to more than {MAX_YAML_NODES} values "
-                                       f"(nested aliases: a YAML alias bomb?)", mark)
+            raise _Refused(f"{what} makes the document expand to more than {MAX_YAML_NODES} values "
+                           f"(nested aliases: a YAML alias bomb?)", mark)
 
-    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:
-        event = self.peek_event()
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
+        event: Any = self.peek_event()  # type: ignore[no-untyped-call]
         if isinstance(event, yaml.AliasEvent):
             if event.anchor in self._open_anchors:
-                raise _Refused(None, None, f"alias *{event.anchor} refers to its own anchor (a recursive value)",
+                raise _Refused(f"alias *{event.anchor} refers to its own anchor (a recursive value)",
                                event.start_mark)
             node = super().compose_node(parent, index)  # raises on an undefined alias
             self._count(self._sizes.get(id(node), 1), event.start_mark, f"alias *{event.anchor}")
             return node
         if len(self._open) > MAX_YAML_DEPTH:
-            raise _Refused(None, None, f"nested deeper than {MAX_YAML_DEPTH} levels", event.start_mark)
+            raise _Refused(f"nested deeper than {MAX_YAML_DEPTH} levels", event.start_mark)
         anchor = getattr(event, "anchor", None)
         if anchor is not None:
             self._open_anchors.add(anchor)
@@ -88,7 +91,7 @@ class _Loader(yaml.SafeLoader):
         self._open[-1] += 1 + inner
         self._expanded += 1
         if self._expanded > MAX_YAML_NODES:
-            raise _Refused(None, None, f"more than {MAX_YAML_NODES} values in one config", event.start_mark)
+            raise _Refused(f"more than {MAX_YAML_NODES} values in one config", event.start_mark)
         return node
 
 
@@ -185,7 +188,9 @@ def _problems(exc: ValidationError, source: str, lines: Mapping[tuple[Any, ...],
     return out
 
 
-def parse_config(text: str, source: str = "<config>", base_dir: str | os.PathLike | None = None) -> SlipdConfig:
+def parse_config(
+    text: str, source: str = "<config>", base_dir: str | os.PathLike[str] | None = None
+) -> SlipdConfig:
     """Validate YAML text; ``source`` names it in errors, ``base_dir`` anchors relative paths."""
     try:
         loader = _Loader(text)
@@ -217,7 +222,7 @@ def parse_config(text: str, source: str = "<config>", base_dir: str | os.PathLik
 def _validate(
     data: Mapping[str, Any],
     source: str,
-    base_dir: str | os.PathLike | None,
+    base_dir: str | os.PathLike[str] | None,
     lines: Mapping[tuple[Any, ...], int] | None = None,
 ) -> SlipdConfig:
     try:
@@ -229,13 +234,13 @@ def _validate(
 
 
 def config_from_dict(
-    data: Mapping[str, Any], source: str = "<dict>", base_dir: str | os.PathLike | None = None
+    data: Mapping[str, Any], source: str = "<dict>", base_dir: str | os.PathLike[str] | None = None
 ) -> SlipdConfig:
     """Validate an already-parsed mapping (tests, the simulated rig)."""
     return _validate(data, source, base_dir)
 
 
-def load_config(path: str | os.PathLike) -> SlipdConfig:
+def load_config(path: str | os.PathLike[str]) -> SlipdConfig:
     """Read and validate a YAML config file; raise ``ConfigError`` naming the file, key path and reason."""
     path = Path(path)
     try:
@@ -309,7 +314,7 @@ def check_against_manifest(cfg: SlipdConfig, manifest: Any, source: str) -> list
     return problems
 
 
-def permission_warnings(path: str | os.PathLike) -> list[str]:
+def permission_warnings(path: str | os.PathLike[str]) -> list[str]:
     """Warnings about who may change the config (it decides what the robot does)."""
     mode = Path(path).stat().st_mode
     warnings = []
