@@ -57,6 +57,27 @@ def test_bad_model_is_refused_before_any_device_is_opened(tiny_model_json: Path,
         assert servo.packets_received == 0  # the servo never saw a byte
 
 
+def test_missing_sensor_port_exits_5_in_one_line_before_any_device_is_opened(tiny_model_json: Path,
+                                                                             tmp_path: Path) -> None:
+    from slipd.sim.devices.ur_controller import URControllerProcess
+
+    with EmulatedMX28() as servo, URControllerProcess("127.0.0.8") as ur:
+        cfg = yaml.safe_load(_config(tmp_path, tiny_model_json, str(tmp_path / "ttyACM9"), servo.port).read_text())
+        cfg["arm"].update(enabled=True, host=ur.host)  # the arm too: it must stay untouched
+        cfg["reaction"].update(actions=["stop_arm", "tighten_gripper"], on_failsafe="stop_arm")
+        path = tmp_path / "missing.yaml"
+        path.write_text(yaml.safe_dump(cfg))
+        r = subprocess.run([sys.executable, "-m", "slipd", "run", "--config", str(path)],
+                           capture_output=True, text=True, timeout=120)
+        state = ur.state()
+    assert r.returncode == 5, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert "sensor.port" in lines[0] and "ttyACM9" in lines[0] and "no such device" in lines[0]
+    assert servo.packets_received == 0  # the gripper was never opened
+    assert state.scripts_received == 0 and not state.control_script_running  # nor the arm's control
+
+
 def test_running_daemon_never_imports_torch(tiny_model_json: Path, tmp_path: Path) -> None:
     with EmulatedMX28() as servo, EmulatedPapillArray(_quiet_recording(), loop=True) as sensor:
         cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)

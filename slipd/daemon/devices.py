@@ -1,18 +1,49 @@
-"""Opening the configured devices, in the order that keeps the robot safe.
+"""Checking, then opening, the configured devices, in the order that keeps the robot safe.
 
 Called after the config and the model have been checked and before the loop starts; blocking.
+``check_devices`` looks at every device without taking control of any (the sensor and servo ports exist
+and may be opened; the arm's controller answers on its RTDE port), so a missing device refuses start-up
+before the gripper is commanded or ur_rtde's control script replaces the user's program.
 """
 
 from __future__ import annotations
+
+import os
+import socket
 
 from slipd.config import SlipdConfig
 from slipd.io.arm import URArm
 from slipd.io.gripper import DynamixelGripper
 from slipd.metrics import Metrics
 
+RTDE_PORT = 30004
+ARM_PROBE_TIMEOUT_S = 2.0
+
 
 class DeviceError(RuntimeError):
-    """A device could not be opened at start-up; the message names the device."""
+    """A device is missing or could not be opened at start-up; the message names the device, on one line."""
+
+
+def _check_port(key: str, port: str | None, what: str) -> None:
+    if port is None:
+        raise DeviceError(f"{key}: not set")
+    if not os.path.exists(port):
+        raise DeviceError(f"{key} {port}: no such device (is the {what} plugged in?)")
+    if not os.access(port, os.R_OK | os.W_OK):
+        raise DeviceError(f"{key} {port}: no read/write permission (is slipd in the device's group, e.g. dialout?)")
+
+
+def check_devices(cfg: SlipdConfig, sensor_port: str | None = None) -> None:
+    """Every configured device is there, before any is opened: raises ``DeviceError`` naming the first
+    that is not. Takes control of nothing (a TCP connect to the arm's RTDE port is closed at once)."""
+    _check_port("sensor.port", sensor_port or cfg.sensor.port, "PapillArray")
+    if cfg.gripper.enabled:
+        _check_port("gripper.port", cfg.gripper.port, "servo bus adapter")
+    if cfg.arm.enabled:
+        try:
+            socket.create_connection((str(cfg.arm.host), RTDE_PORT), timeout=ARM_PROBE_TIMEOUT_S).close()
+        except OSError as exc:
+            raise DeviceError(f"arm.host {cfg.arm.host}: RTDE port {RTDE_PORT} does not answer: {exc}") from exc
 
 
 def build_devices(cfg: SlipdConfig, metrics: Metrics) -> tuple[URArm | None, DynamixelGripper | None]:
@@ -20,40 +51,19 @@ def build_devices(cfg: SlipdConfig, metrics: Metrics) -> tuple[URArm | None, Dyn
 
     Raises ``DeviceError`` naming the device; a gripper already opened is closed again when the arm fails.
     """
+    gripper = None
     try:
-        return _build(cfg, metrics)
-    except DeviceError:
-        raise
+        if cfg.gripper.enabled:
+            gripper = DynamixelGripper(cfg.gripper, metrics=metrics)
+            gripper.connect()
+            # slipd owns the grip: it holds at the hold setting from the start and tightens on an alarm.
+            gripper.hold()
+        arm = None
+        if cfg.arm.enabled:
+            arm = URArm(cfg.arm, metrics=metrics)
+            arm.connect()
     except Exception as exc:  # any driver failure at start-up: refuse to run, say which device
-        raise DeviceError(f"device start-up failed: {exc}") from exc
-
-
-def _build(cfg: SlipdConfig, metrics: Metrics) -> tuple[URArm | None, DynamixelGripper | None]:
-    arm = gripper = None
-    if cfg.gripper.enabled:
-        from slipd.io.gripper import DynamixelSettings
-
-        g = cfg.gripper
-        gripper = DynamixelGripper(
-            DynamixelSettings(
-                port=g.port, baudrate=g.baudrate, dxl_id=g.id, protocol=float(g.protocol),
-                hold_position=g.hold_position, secure_position=g.secure_position,
-                hold_pwm=g.hold_effort, secure_pwm=g.secure_effort,
-                retries=g.retries, packet_timeout_ms=g.packet_timeout_ms,
-            ),
-            metrics=metrics,
-        )
-        gripper.connect()
-        # slipd owns the grip: it holds at the hold setting from the start and tightens on an alarm.
-        gripper.hold()
-    if cfg.arm.enabled:
-        from slipd.io.arm import URSettings
-
-        a = cfg.arm
-        arm = URArm(
-            URSettings(host=a.host, frequency=a.rtde_frequency, stop_deceleration=a.stop_deceleration,
-                       stop_method=a.stop_method),
-            metrics=metrics,
-        )
-        arm.connect()
+        if gripper is not None:
+            gripper.close()
+        raise DeviceError(f"device start-up failed: {' '.join(str(exc).split())}") from exc
     return arm, gripper

@@ -1,8 +1,10 @@
 """``slipd run``: the daemon's start-up order, its run and its shutdown.
 
-Order (fail-safe): the config, then the model (manifest, hash, shapes, feature layout, warm-up), and only
-then the devices. A broken config or model therefore never touches hardware. Each step raises its own
-typed error (``ConfigError``, ``ModelError``, ``DeviceError``); ``slipd.cli`` turns them into exit codes.
+Order (fail-safe): the config, then the model (manifest, hash, shapes, feature layout, warm-up), then a
+check that every device is there (``check_devices``: the sensor and servo ports exist and may be opened,
+the arm's controller answers), and only then are the devices opened. A broken config or model, or a
+missing device, therefore never touches hardware. Each step raises its own typed error (``ConfigError``,
+``ModelError``, ``DeviceError``); ``slipd.cli`` turns them into exit codes (5: one line, no traceback).
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import signal
 from dataclasses import dataclass
 
 from slipd.config import SlipdConfig, load_config
-from slipd.daemon.devices import DeviceError, build_devices
+from slipd.daemon.devices import DeviceError, build_devices, check_devices
 from slipd.daemon.loop import Daemon
 from slipd.daemon.sdnotify import Notifier
 from slipd.detect.ensemble import Ensemble
@@ -51,10 +53,11 @@ class Service:
 
 def prepare(config_path: str | os.PathLike) -> Service:
     """Load and check everything, then open the devices (in that order). Raises ConfigError, ModelError or
-    DeviceError; nothing is opened when the config or the model is refused."""
+    DeviceError; nothing is opened when the config or the model is refused or a device is missing."""
     cfg = load_config(config_path)
     logging.basicConfig(level=cfg.control.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     ensemble = Ensemble.load(cfg.model.manifest, threads=cfg.model.threads)
+    check_devices(cfg)
     metrics = Metrics()
     arm, gripper = build_devices(cfg, metrics)
     daemon = Daemon(cfg, ensemble, metrics=metrics, arm=arm, gripper=gripper, notifier=Notifier())

@@ -39,6 +39,8 @@ from dynamixel_sdk import (
     PortHandler,
 )
 
+from slipd.config import DYNAMIXEL_BAUDRATES, GripperConfig
+
 if TYPE_CHECKING:
     from slipd.metrics import Metrics
 
@@ -72,8 +74,7 @@ HARDWARE_ERRORS = {
 V1_HARDWARE_BITS = 0x01 | 0x04 | 0x20
 V2_ALERT = 0x80
 
-BAUDRATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600, 1000000, 1152000,
-             2000000, 2500000, 3000000, 3500000, 4000000)  # what dynamixel-sdk's PortHandler accepts
+BAUDRATES = DYNAMIXEL_BAUDRATES  # what dynamixel-sdk's PortHandler accepts; one list, in the config schema
 
 _NO_RETRY = (COMM_TX_ERROR, COMM_NOT_AVAILABLE)
 _COMM_KIND = {
@@ -175,7 +176,7 @@ class Gripper(ABC):
 
 @dataclass(frozen=True)
 class DynamixelSettings:
-    """How to reach and drive the gripper servo (``slipd.config.GripperConfig`` maps into this).
+    """How to reach and drive the gripper servo (``from_config`` reads ``slipd.config.GripperConfig``).
 
     ``hold_pwm`` / ``secure_pwm`` are the effort settings: Goal PWM (0..885) under Protocol 2.0,
     Torque Limit (0..1023) under 1.0. Positions are in ticks (4096 per turn); the closing direction is
@@ -229,6 +230,16 @@ class DynamixelSettings:
             raise bad("retries", "must be >= 0")
         if not self.packet_timeout_ms > 0:
             raise bad("packet_timeout_ms", "must be > 0")
+
+    @classmethod
+    def from_config(cls, cfg: GripperConfig) -> DynamixelSettings:
+        """The settings of the config's ``gripper`` section (the other fields keep their defaults)."""
+        if cfg.port is None or cfg.hold_position is None or cfg.secure_position is None:
+            raise ValueError("gripper.port, hold_position and secure_position: required when the gripper is enabled")
+        return cls(port=cfg.port, baudrate=cfg.baudrate, dxl_id=cfg.id, protocol=float(cfg.protocol),
+                   hold_position=cfg.hold_position, secure_position=cfg.secure_position,
+                   hold_pwm=cfg.hold_effort, secure_pwm=cfg.secure_effort,
+                   retries=cfg.retries, packet_timeout_ms=cfg.packet_timeout_ms)
 
     @property
     def closing_sign(self) -> int:
@@ -285,7 +296,9 @@ def _usb_latency_timer_ms(port: str) -> int | None:
 class DynamixelGripper(Gripper):
     """An MX-28 gripper servo over dynamixel-sdk, Protocol 2.0 or 1.0."""
 
-    def __init__(self, settings: DynamixelSettings, metrics: Metrics | None = None) -> None:
+    def __init__(self, settings: DynamixelSettings | GripperConfig, metrics: Metrics | None = None) -> None:
+        if not isinstance(settings, DynamixelSettings):
+            settings = DynamixelSettings.from_config(settings)
         self.settings = settings
         self.metrics = metrics
         self.model_number: int | None = None

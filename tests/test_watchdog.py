@@ -1,0 +1,98 @@
+"""Dying stops the arm: ``slipd run`` as a real process, killed, frozen or aborted while the arm moves.
+
+The daemon runs against the emulated PapillArray and MX-28 (ptys) and the emulated UR controller (own
+process) with the real ur_rtde client. Once its decisions are live it arms ur_rtde's controller-side
+watchdog and kicks it; the emulated controller applies ``rtde_set_watchdog(..., "stop")``'s rule. A
+SIGKILL (also what the OOM killer sends), a SIGSTOP (a frozen process) and a SIGABRT (systemd's
+watchdog abort, ``WatchdogSignal=`` default) must each halt the moving arm within the watchdog period.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from conftest import ROOT
+
+from slipd.recording import Recording
+from slipd.sim.devices.mx28 import EmulatedMX28
+from slipd.sim.devices.papillarray import EmulatedPapillArray
+from slipd.sim.devices.ur_controller import URControllerProcess
+
+HOST = "127.0.0.7"
+WATCHDOG_S = 0.3
+FAR = (0.30, -0.20, 1.40, 0.0, 3.1416, 0.0)  # 1 m above the start: the move outlasts the test
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _still(n: int = 5000) -> Recording:
+    rng = np.random.default_rng(0)
+    force = np.zeros((n, 9, 3), np.float32)
+    force[:, :, 2] = 1.5
+    force += rng.normal(0, 0.01, force.shape).astype(np.float32)
+    return Recording(t_us=np.arange(n) * 1000, force=force, disp=np.zeros((n, 9, 3)))
+
+
+def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str) -> Path:
+    cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
+    cfg["model"].update(manifest=str(model), detector="onnx", stride=10)
+    cfg["decision"]["threshold"] = 0.999  # the tiny random model: no alarm, only the watchdog stops the arm
+    cfg["sensor"].update(port=sensor_port, tare="startup", tare_samples=100, stall_timeout_ms=250)
+    cfg["gripper"]["port"] = servo_port
+    cfg["arm"].update(host=HOST, watchdog_s=WATCHDOG_S)
+    cfg["recorder"]["enabled"] = False
+    path = tmp / "slipd.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+@pytest.fixture(scope="module")
+def controller():
+    ur = URControllerProcess(HOST)
+    ur.start()
+    yield ur
+    ur.stop()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP, signal.SIGABRT], ids=lambda s: s.name)
+def test_a_dead_or_frozen_daemon_halts_the_moving_arm_within_the_watchdog_period(
+        controller: URControllerProcess, tiny_model_json: Path, tmp_path: Path, sig: signal.Signals) -> None:
+    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor:
+        cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)
+        proc = subprocess.Popen([sys.executable, "-m", "slipd", "run", "--config", str(cfg)],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        try:
+            controller.wait_for(lambda s: s.control_script_running, timeout=60.0, what="slipd's control script")
+            sensor.start()
+            # Live decisions: the daemon armed the watchdog with its first kick.
+            s = controller.wait_for(lambda s: s.control_script_running and s.watchdog_hz > 0, timeout=30.0,
+                                    what="the watchdog armed by a live daemon")
+            assert s.watchdog_hz == pytest.approx(1 / WATCHDOG_S)
+            time.sleep(3 * WATCHDOG_S)  # kicks keep it alive
+            assert controller.state().control_script_running and proc.poll() is None
+            stops0 = controller.state().stop_count
+            controller.move_l(FAR, speed=0.02, accel=0.5)  # the user's program moves the arm
+            controller.wait_for(lambda s: s.moving and s.linear_speed > 0.015, what="the arm moving")
+            t_signal = time.monotonic()
+            os.kill(proc.pid, sig)
+            s = controller.wait_for(lambda s: not s.moving, timeout=5.0, what="the arm halted")
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            out = proc.communicate(timeout=30)[0]
+    assert s.stop_count == stops0 + 1 and s.last_stop_kind == "watchdog", out[-3000:]
+    assert not s.control_script_running
+    # The last kick came before the signal, and the controller halted the arm one period after it.
+    assert s.watchdog_input_t <= t_signal + 0.05
+    assert s.last_stop_t - s.watchdog_input_t <= WATCHDOG_S + 0.05
+    assert s.last_stop_t - t_signal <= WATCHDOG_S + 0.05
+    assert s.tcp_pose[2] < FAR[2] - 0.5  # stopped on its way, far from the target
