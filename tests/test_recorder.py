@@ -85,6 +85,46 @@ def test_second_alarm_during_recording_is_part_of_it_and_later_one_starts_anothe
     assert second.meta["trigger"]["t_us"] == 250_000
 
 
+def test_alarm_that_stays_high_extends_one_recording_beyond_the_ring(tmp_path):
+    rec = Recorder(tmp_path, RATE, seconds_before=0.05, seconds_after=0.05, max_episode_s=10.0)
+    high = set(range(100, 1000, 10))  # the alarm holds for 0.9 s: six ring lengths
+    feed(rec, 0, 1200, alarm_at=high)
+    rec.close()
+    (f,) = list_recordings(tmp_path)
+    r = Recording.load(f)
+    # [onset - before, last alarm + after), as for a single alarm: every frame once, in order.
+    idx = np.arange(51, 1041)
+    np.testing.assert_array_equal(r.t_us, 1000 * idx)
+    np.testing.assert_array_equal(r.force[:, 1, 2], idx.astype(np.float32))
+    d = r.meta["decisions"]
+    assert d["t_us"] == sorted(d["t_us"]) and len(set(d["t_us"])) == len(d["t_us"])
+    assert {t // 1000 for t, a in zip(d["t_us"], d["alarm"]) if a} == high
+    assert r.meta["trigger"]["t_us"] == 100_000
+
+
+def test_latched_alarm_for_10_minutes_writes_one_bounded_recording_and_keeps_it(tmp_path):
+    rate = 100  # 10 minutes of a 100 Hz stream keep the test fast; the logic counts frames
+    rec = Recorder(tmp_path, rate, seconds_before=2.0, seconds_after=1.0, max_total_mb=0.5)
+    n = 10 * 60 * rate
+    for i in range(n):
+        rec.push_frame(*frame(i))
+        if i % 4 == 3:
+            rec.push_decision(1000 * i, 0.95, i >= 1000)  # rises at frame 1003 and never falls
+    rec.wait()
+    (f,) = list_recordings(tmp_path)
+    r = Recording.load(f)
+    assert r.meta["trigger"]["t_us"] == 1_003_000  # the onset is in the recording kept
+    assert len(r) == 200 + 30 * rate  # seconds_before + MAX_EPISODE_S: bounded, not 10 minutes
+    assert rec.deleted == [] and len(rec.written) == 1
+    # The alarm falls, then rises again: a new episode, a new recording.
+    for i in range(n, n + 1000):
+        rec.push_frame(*frame(i))
+        if i % 4 == 3:
+            rec.push_decision(1000 * i, 0.9, i >= n + 500)
+    rec.close()
+    assert len(rec.written) == 2
+
+
 def test_trigger_for_failsafe_and_meta(tmp_path):
     rec = Recorder(tmp_path, RATE, seconds_before=0.01, seconds_after=0.0, meta={"model": "m1"})
     feed(rec, 0, 30)

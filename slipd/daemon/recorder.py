@@ -14,8 +14,15 @@ its final ``.npz`` / ``.csv`` name. A crash at any point leaves either the compl
 staging files, which ``slipd.recording.list_recordings`` (suffix ``.npz``/``.csv``) never returns and
 the next ``Recorder`` deletes. The directory is created with mode 0750.
 
+Episodes: one recording per alarm episode. An alarm decision while a recording runs extends it to
+``seconds_after`` past that decision, up to ``max_episode_s`` after the onset; frames that would fall out
+of the ring meanwhile are copied out in blocks (one copy per ring length, not per sample). An alarm that
+stays high past that bound (a latched alarm) starts no further recording until it falls: a 10-minute
+latched alarm is one recording, holding its onset, not a new file every ``seconds_after``.
+
 Size bound: after every write the oldest recordings are deleted until all of them together fit
-``max_total_mb`` (MiB). The newest recording is always kept, even alone above the bound.
+``max_total_mb`` (MiB). The newest recording is always kept, even alone above the bound. As each episode
+is one recording, the one that holds an onset is never pushed out by later files of its own episode.
 """
 
 from __future__ import annotations
@@ -46,6 +53,8 @@ DIR_MODE = 0o750
 PREFIX = "slip-"
 STAGING_SUFFIXES = (".part", ".tmp")
 FORMATS = ("npz", "csv")
+MAX_EPISODE_S = 30.0
+"""Longest recording of one alarm episode (after its onset); a latched alarm records no more than this."""
 
 
 @dataclass
@@ -78,6 +87,7 @@ class Recorder:
         meta: Mapping[str, Any] | None = None,
         worker: DeviceWorker | None = None,
         max_pending: int = 4,
+        max_episode_s: float = MAX_EPISODE_S,
     ) -> None:
         if rate_hz <= 0 or seconds_before < 0 or seconds_after < 0:
             raise ValueError(f"rate_hz > 0 and non-negative seconds required, got {rate_hz}, "
@@ -106,6 +116,13 @@ class Recorder:
         self.frames_seen = 0
         self.decisions_seen = 0
         self._pending_end: int | None = None  # frames_seen at which the current dump is complete
+        self._limit = 0  # frames_seen at which the current episode's recording ends whatever the alarm does
+        self.max_episode = max(self.after, math.ceil(max_episode_s * rate_hz))
+        self._copied = 0  # frames (and decisions) of the recording copied out of the rings so far
+        self._dcopied = 0
+        self._chunks: list[list[np.ndarray]] = []  # [t, force, disp] blocks copied out of the ring
+        self._dchunks: list[list[np.ndarray]] = []  # [t, p, alarm] blocks of decisions
+        self._latched = False  # the alarm outlived its episode's recording: no new one until it falls
         self._trigger: dict[str, Any] = {}
         self._seq = 0
         self.max_pending = max_pending
@@ -143,6 +160,8 @@ class Recorder:
 
     def push_frame(self, t_us: int, force: np.ndarray, disp: np.ndarray) -> None:
         """Add one raw frame (``force``/``disp`` shaped [9, 3]); completes a dump when one is due."""
+        if self._pending_end is not None and self.frames_seen - self._copied >= self.capacity:
+            self._spill()  # a long episode: the frame about to be overwritten is still to be written
         i = self.frames_seen % self.capacity
         self._t[i] = t_us
         self._force[i] = force
@@ -158,7 +177,11 @@ class Recorder:
         self._dp[i] = p_slip
         self._da[i] = alarm
         self.decisions_seen += 1
-        if alarm and self._pending_end is None:
+        if not alarm:
+            self._latched = False
+        elif self._pending_end is not None:
+            self._pending_end = min(max(self._pending_end, self.frames_seen + self.after), self._limit)
+        elif not self._latched:
             self.trigger(t_us, "alarm", p_slip=float(p_slip))
 
     def trigger(self, t_us: int, reason: str, **details: Any) -> bool:
@@ -166,10 +189,14 @@ class Recorder:
 
         The stretch ends ``seconds_after`` of frames from now; alarms meanwhile are part of it.
         """
-        if self._pending_end is not None:
+        if self._pending_end is not None or (reason == "alarm" and self._latched):
             return False
         self._trigger = {"t_us": int(t_us), "reason": reason, "wall_time": time.time(), **details}
         self._pending_end = self.frames_seen + self.after
+        self._limit = self.frames_seen + self.max_episode
+        self._copied = max(0, self.frames_seen - self.before)
+        self._dcopied = max(0, self.decisions_seen - self.capacity)
+        self._chunks, self._dchunks = [], []
         if self.after == 0:
             self._dump()
         return True
@@ -192,24 +219,34 @@ class Recorder:
         with self._lock:
             return list(self.written)
 
-    def _ordered(self, count: int, t: np.ndarray, *arrays: np.ndarray) -> list[np.ndarray]:
-        """Copies of the ring arrays, oldest entry first (the one allocation per dump)."""
-        n = min(count, self.capacity)
+    def _ordered(self, count: int, t: np.ndarray, *arrays: np.ndarray, since: int = 0) -> list[np.ndarray]:
+        """Copies of the ring entries from ``since`` to ``count``, oldest first (one allocation per call)."""
+        n = min(count - since, self.capacity)
         start = (count - n) % self.capacity
         idx = (np.arange(n) + start) % self.capacity
         return [a[idx] for a in (t, *arrays)]
 
+    def _spill(self) -> None:
+        """Copy the episode's frames and decisions still in the rings out before they are overwritten."""
+        self._chunks.append(self._ordered(self.frames_seen, self._t, self._force, self._disp, since=self._copied))
+        self._dchunks.append(self._ordered(self.decisions_seen, self._dt, self._dp, self._da, since=self._dcopied))
+        self._copied, self._dcopied = self.frames_seen, self.decisions_seen
+
     def _dump(self) -> None:
         trig, self._trigger = self._trigger, {}
+        if self._pending_end is not None and self.frames_seen >= self._limit:
+            self._latched = True  # bounded: a latched alarm starts no new recording until it falls
         self._pending_end = None
+        self._spill()
+        chunks, dchunks, self._chunks, self._dchunks = self._chunks, self._dchunks, [], []
         self._futures = [f for f in self._futures if not f.done()]
         if len(self._futures) >= self.max_pending:
             # The disk cannot keep up; losing a recording is better than growing memory without bound.
             self.dropped += 1
             log.warning("recorder: %d writes pending, recording of %s dropped", len(self._futures), trig)
             return
-        t, force, disp = self._ordered(self.frames_seen, self._t, self._force, self._disp)
-        dt, dp, da = self._ordered(self.decisions_seen, self._dt, self._dp, self._da)
+        t, force, disp = (np.concatenate(a) for a in zip(*chunks))
+        dt, dp, da = (np.concatenate(a) for a in zip(*dchunks))
         if len(t):
             keep = (dt >= t[0]) & (dt <= t[-1])
             dt, dp, da = dt[keep], dp[keep], da[keep]
