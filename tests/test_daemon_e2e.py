@@ -101,7 +101,7 @@ def test_stop_scene_raises_no_alarm(base_cfg) -> None:
     rec, _ = _scenes("stop", ens, base_cfg, want_alarm=False)
     stats, ur_state, writes, _ = _run_live(rec, base_cfg)
     assert stats.frames == len(rec)
-    assert stats.alarms == [] and stats.failsafes == 0
+    assert not stats.alarms and stats.failsafes == 0
     assert ur_state.stop_count == 0
     assert not [w for w in writes if w.address == 116 and
                 int.from_bytes(w.data[:4], "little") == base_cfg.gripper.secure_position]

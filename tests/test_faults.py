@@ -260,6 +260,29 @@ def test_servo_silent_while_tightening_falls_back_to_stopping_the_arm(controller
     assert metric(d.metrics, "slipd_device_errors_total", device="gripper", kind="reaction") >= 1
 
 
+def test_tighten_lost_while_the_servo_was_silent_is_retried_when_it_answers(controller, base_cfg) -> None:
+    seen: dict[str, object] = {}
+
+    async def scenario(d: Daemon, dev: EmulatedDevices, ur: URControllerProcess) -> None:
+        await frames_after(d, TARE + 100)
+        await until(lambda: d.health.get("gripper") == "ok", what="first gripper poll")
+        dev.servo.mute_for(1.0)
+        t_back = time.monotonic() + 1.0
+        futures = d.reaction.on_alarm(1.0)
+        await until(lambda: all(f.done() for f in futures), what="reaction calls finished")
+        await until(lambda: d.reaction.tighten_owed is None and d.reaction._owed, what="the failed tighten owed")
+        await until(lambda: d.health.get("gripper", "ok") != "ok", timeout=3.0, what="silence seen by the poll")
+        await until(lambda: d.health.get("gripper") == "ok", timeout=5.0, what="the servo answers again")
+        await until(lambda: not d.reaction._owed, what="the owed tighten sent again")
+        await until(lambda: any(w.t >= t_back and w.values.get("goal_position") == 2600 for w in dev.servo.writes()),
+                    what="the secure goal position written after the servo came back")
+        seen["owed"] = d.reaction._owed
+
+    d, _ = run_live(controller, base_cfg, scenario)
+    assert seen["owed"] is False
+    assert metric(d.metrics, "slipd_failsafe_stops_total", reason="tighten_gripper failed") == 1
+
+
 def test_servo_hardware_error_seen_by_the_health_poll_fails_safe(controller, base_cfg) -> None:
     async def scenario(d: Daemon, dev: EmulatedDevices, ur: URControllerProcess) -> None:
         await frames_after(d, TARE + 100)

@@ -80,6 +80,31 @@ def test_gripper_failure_falls_back_to_arm_stop() -> None:
     assert r.failsafe_count == 1 and "tighten_gripper" in r.records[0].errors
 
 
+def test_failed_tighten_is_owed_and_retried_once_the_servo_answers() -> None:
+    r, arm, grip, _ = _reaction(graded=True, grip_fail=True)
+    _wait(r.on_alarm(0.6))
+    assert arm.event.wait(5) and r.tighten_owed == 0.6
+    grip.fail = False  # the servo answers again
+    _wait([r.retry_tighten()])
+    assert grip.calls == [("tighten", 0.6)]
+    assert r.retry_tighten() is None  # paid: nothing owed any more
+    grip.fail, arm.event = True, threading.Event()
+    _wait(r.on_alarm(1.0))
+    assert arm.event.wait(5)  # the failure was handled (owed, fail-safe stop)
+    r.reset()  # a new grasp: a failed tighten of the old one is not sent again
+    assert r.retry_tighten() is None
+
+
+def test_records_are_bounded() -> None:
+    from slipd.daemon.reaction import MAX_RECORDS
+
+    r, _arm, _grip, clock = _reaction(rearm_after_s=0.0)
+    for _ in range(MAX_RECORDS + 50):
+        clock.t += 1.0
+        _wait(r.on_alarm(1.0))
+    assert len(r.records) == MAX_RECORDS
+
+
 def test_disabled_reaction_issues_nothing() -> None:
     r, arm, grip, _ = _reaction(enabled=False)
     assert r.on_alarm(1.0) == [] and r.failsafe("sensor stalled") is None

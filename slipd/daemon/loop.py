@@ -509,6 +509,7 @@ class Daemon:
             self._fail_safe("gripper_fault")
         elif not problem and before not in (None, "ok"):
             log.warning("gripper: healthy again (was: %s)", before)
+            self.reaction.retry_tighten()  # a tighten lost while it was silent is still owed
 
     # ---------------------------------------------------------------- lifecycle
     async def run(self, sensor_port: str | None = None, duration_s: float | None = None) -> LoopStats:

@@ -12,19 +12,31 @@ Policies:
 - ``rearm_after_s``: after a reaction, further alarms within this time do not re-issue the same
   commands (the grasp is being secured already), except a graded escalation.
 Fail-safe (sensor stall, model failure, a device error while reacting): stop the arm, keep the grip.
+
+A tighten that failed (the servo did not answer) stays owed until the grasp is reset: ``retry_tighten``
+sends it again, and the daemon calls it when the gripper's health poll hears the servo again, so a servo
+that was silent during the alarm still secures the grasp once it is back.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from slipd.daemon.worker import DeviceWorker
+    from slipd.metrics import Metrics
 
 log = logging.getLogger("slipd.daemon.reaction")
 
 ACTIONS = ("stop_arm", "tighten_gripper")
+MAX_RECORDS = 1000
+"""Reactions kept in ``Reaction.records`` (the oldest are dropped): bounded state for a long-running daemon."""
 
 
 @dataclass
@@ -45,11 +57,11 @@ class Reaction:
         self,
         *,
         actions: tuple[str, ...] | list[str] = ACTIONS,
-        arm=None,
-        gripper=None,
-        arm_worker=None,
-        gripper_worker=None,
-        metrics=None,
+        arm: Any = None,
+        gripper: Any = None,
+        arm_worker: DeviceWorker | None = None,
+        gripper_worker: DeviceWorker | None = None,
+        metrics: Metrics | None = None,
         graded: bool = False,
         rearm_after_s: float = 1.0,
         enabled: bool = True,
@@ -70,7 +82,10 @@ class Reaction:
             raise ValueError(f"unknown on_failsafe policy {on_failsafe!r}")
         self.on_failsafe = on_failsafe
         self.clock = clock
-        self.records: list[ReactionRecord] = []
+        self.records: deque[ReactionRecord] = deque(maxlen=MAX_RECORDS)
+        self.tighten_owed: float | None = None
+        """Level (None: secure) of a tighten that failed and was not yet sent again (``retry_tighten``)."""
+        self._owed = False
         self._last_t: float | None = None
         self._last_level = 0.0
         self.failsafe_count = 0
@@ -116,10 +131,21 @@ class Reaction:
             return None
         return self._submit(rec, "stop_arm", self.arm_worker, self.arm.stop, f"fail-safe: {reason}")
 
+    def retry_tighten(self) -> Future | None:
+        """Send a tighten that failed again (the servo answers again); None when none is owed."""
+        if not self._owed or self.gripper is None or not self.enabled:
+            return None
+        level, self._owed = self.tighten_owed, False
+        log.warning("gripper answers again: retrying the tighten that failed")
+        rec = ReactionRecord(t_decision=self.clock(), risk=1.0 if level is None else level)
+        self.records.append(rec)
+        return self._submit(rec, "tighten_gripper", self.gripper_worker, self.gripper.tighten, level)
+
     def reset(self) -> None:
-        """Forget the last reaction (a new grasp)."""
+        """Forget the last reaction (a new grasp); a failed tighten is no longer owed."""
         self._last_t = None
         self._last_level = 0.0
+        self._owed, self.tighten_owed = False, None
 
     def _submit(self, rec: ReactionRecord, action: str, worker, fn, arg) -> Future:
         def call() -> None:
@@ -137,10 +163,15 @@ class Reaction:
                 if self.metrics is not None:
                     self.metrics.device_errors.labels(device=action.split("_")[1], kind="reaction").inc()
                 if action != "stop_arm":
-                    # A gripper that cannot tighten leaves the object at risk: halt the arm whatever the policy.
+                    # A gripper that cannot tighten leaves the object at risk: halt the arm whatever the policy,
+                    # and owe the tighten until the servo answers again (retry_tighten).
+                    self._owed, self.tighten_owed = True, arg
                     self.failsafe(f"{action} failed")
-            elif self.metrics is not None and action in rec.done:
-                self.metrics.reaction_seconds.observe(rec.done[action] - rec.t_decision)
+            else:
+                if action == "tighten_gripper":
+                    self._owed = False  # the grasp is secured: nothing owed any more
+                if self.metrics is not None and action in rec.done:
+                    self.metrics.reaction_seconds.observe(rec.done[action] - rec.t_decision)
 
         fut.add_done_callback(finished)
         return fut
