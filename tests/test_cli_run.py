@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -81,6 +82,13 @@ def test_missing_sensor_port_exits_5_in_one_line_before_any_device_is_opened(tin
 def test_running_daemon_never_imports_torch(tiny_model_json: Path, tmp_path: Path) -> None:
     with EmulatedMX28() as servo, EmulatedPapillArray(_quiet_recording(), loop=True) as sensor:
         cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)
+        # /metrics on every interface: accepted, with a warning naming the exposure.
+        doc = yaml.safe_load(cfg.read_text())
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        doc["metrics"].update(enabled=True, host="0.0.0.0", port=port)
+        cfg.write_text(yaml.safe_dump(doc))
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         proc = subprocess.Popen([sys.executable, "-X", "importtime", "-m", "slipd", "run", "--config", str(cfg)],
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
@@ -95,7 +103,19 @@ def test_running_daemon_never_imports_torch(tiny_model_json: Path, tmp_path: Pat
             proc.send_signal(signal.SIGTERM)
             out, _ = proc.communicate(timeout=30)
     assert proc.returncode == 0, out[-2000:]
+    warned = [line for line in out.splitlines() if "metrics.host 0.0.0.0" in line]
+    assert len(warned) == 1 and "every network interface" in warned[0] and "WARNING" in warned[0]
     imported = [line.split("|")[-1].strip() for line in out.splitlines() if line.startswith("import time:")]
     # The run really got to the model and the loop (import lines may interleave with log lines).
     assert any(m.startswith("onnxruntime") for m in imported) and any(m.startswith("slipd.") for m in imported)
     assert not [m for m in imported if m == "torch" or m.startswith("torch.")]
+
+
+def test_metrics_exposure_names_who_can_scrape() -> None:
+    from slipd.daemon.service import metrics_exposure
+
+    assert metrics_exposure("127.0.0.1") == metrics_exposure("::1") == metrics_exposure("localhost") == ""
+    assert "every network interface" in metrics_exposure("0.0.0.0")
+    assert "every network interface" in metrics_exposure("::")
+    assert "192.168.1.5" in metrics_exposure("192.168.1.5")
+    assert "beyond this machine" in metrics_exposure("cell-pc.local")

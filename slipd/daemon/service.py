@@ -10,6 +10,7 @@ missing device, therefore never touches hardware. Each step raises its own typed
 from __future__ import annotations
 
 import asyncio
+import ipaddress
 import logging
 import os
 import signal
@@ -35,7 +36,13 @@ class Service:
 
     def run(self) -> None:
         """Serve metrics and run the loop until SIGINT/SIGTERM; always releases the devices."""
-        server = self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.port) if self.cfg.metrics.enabled else None
+        m = self.cfg.metrics
+        if m.enabled:
+            exposure = metrics_exposure(m.host)
+            if exposure:
+                log.warning("metrics.host %s: /metrics (model hash, alarm and fail-safe counts) is served %s; "
+                            "keep it on 127.0.0.1 unless a firewall limits who can scrape it", m.host, exposure)
+        server = self.metrics.serve(m.host, m.port) if m.enabled else None
 
         async def _main() -> None:
             loop = asyncio.get_running_loop()
@@ -49,6 +56,21 @@ class Service:
             self.daemon.close()
             if server is not None:
                 server.shutdown()
+
+
+def metrics_exposure(host: str) -> str:
+    """Empty for a loopback listen address, else who can reach it (for the start-up warning)."""
+    if host == "localhost":
+        return ""
+    try:
+        ip = ipaddress.ip_address(host)
+    except ValueError:
+        return f"on the interface of host name {host!r}, beyond this machine"
+    if ip.is_loopback:
+        return ""
+    if ip.is_unspecified:
+        return "on every network interface of this machine"
+    return f"on the network interface {host}, beyond this machine"
 
 
 def prepare(config_path: str | os.PathLike) -> Service:
