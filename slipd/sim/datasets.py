@@ -1,4 +1,9 @@
-"""Simulated data sets: ``offline`` (hexapod-like, v1) and ``transfer`` (gripper trials, v2).
+"""Simulated data sets: ``offline`` (hexapod-like, v1), ``transfer`` (gripper trials, v2), ``robust`` (every
+physics family, both sensors, randomised scenario timelines) and ``holds`` (long no-slip holds of each type).
+
+``robust`` and ``holds`` recordings carry ``meta["physics_family"]`` (one of ``FAMILIES``) and
+``meta["scenario"]`` (the scenario kind: ``ROBUST_SCENARIOS`` or ``HOLD_TYPES``), also listed per recording in
+``index.json``, so that a family can be left out of training and tested on alone.
 
 Every scene of a set is drawn from a generator seeded by (set, split, seed, index), and its simulation
 seed comes from a split-specific range, so the same arguments always give the same files and train
@@ -28,10 +33,10 @@ from slipd.sim.scene import (
     secure_grip_n,
 )
 
-SETS = ("offline", "transfer")
+SETS = ("offline", "transfer", "robust", "holds")
 SPLITS = ("train", "test")
 _SPLIT_BASE = {"train": 0, "test": 1 << 30}
-_SET_ID = {"offline": 1, "transfer": 2}
+_SET_ID = {"offline": 1, "transfer": 2, "robust": 3, "holds": 4}
 
 # Effects of a realistic measurement chain, listed by every data-set scene.
 MEASUREMENT = [{"name": "lowpass"}, {"name": "noise"}, {"name": "quantisation"}]
@@ -79,6 +84,8 @@ OFFLINE_RANGES: dict[str, tuple[float, float]] = {
 }
 """Parameter ranges of the offline set (uniform draws), calibrated with ``tools/realism.py``."""
 OFFLINE_STOP_PROB = 0.25
+HOLD_S = 60.0
+"""Length of the still hold of every ``holds`` recording (after its scenario's events)."""
 
 
 def _depth_for_first_slip(travel_mm: float, mu_s: float, sensor: str = "v1") -> float:
@@ -171,10 +178,21 @@ def transfer_design() -> list[dict[str, Any]]:
     return out
 
 
-def dataset_scenes(set_name: str, split: str, count: int | None, seed: int) -> list[tuple[dict, int]]:
-    """(scene dict, simulation seed) for every scene of a set."""
+def dataset_scenes(set_name: str, split: str, count: int | None, seed: int,
+                   hold_s: float = HOLD_S) -> list[tuple[dict, int]]:
+    """(scene dict, simulation seed) for every scene of a set. ``robust``/``holds`` scene dicts carry their
+    tags under ``"_tags"`` (``physics_family``, ``scenario``); ``write_dataset`` moves them into the meta."""
     if set_name not in SETS:
         raise ValueError(f"set must be one of {SETS}, got {set_name!r}")
+    if set_name in ("robust", "holds"):
+        n = (200 if set_name == "robust" else len(HOLD_TYPES) * 2 * 10) if count is None else count
+        make = robust_scene if set_name == "robust" else hold_scene
+        out = []
+        for i in range(n):
+            rng = np.random.default_rng([_SET_ID[set_name], _SPLIT_BASE[split] >> 20, seed, i])
+            d = make(rng, i) if set_name == "robust" else make(rng, i, hold_s)
+            out.append((d, scene_seed(set_name, split, seed, i)))
+        return out
     if set_name == "offline":
         n = 200 if count is None else count
         out = []
@@ -189,11 +207,17 @@ def dataset_scenes(set_name: str, split: str, count: int | None, seed: int) -> l
 
 
 def write_dataset(set_name: str, split: str, out: str | Path, count: int | None = None, seed: int = 0,
-                  batch: int = 16, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
+                  batch: int = 16, progress: Callable[[int], None] | None = None,
+                  hold_s: float = HOLD_S) -> dict[str, Any]:
     """Simulate and write a data set; returns the index (also written as ``index.json``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    items = dataset_scenes(set_name, split, count, seed)
+    items = list(enumerate(dataset_scenes(set_name, split, count, seed, hold_s)))
+    if set_name in ("robust", "holds"):
+        # Simulate recordings of similar length together (a batch runs as long as its longest scene) and of
+        # the same sensor and physics path; files keep their scene index.
+        items.sort(key=lambda it: (it[1][0]["sensor"], it[1][0]["physics"]["name"] != "stick_slip"
+                                   or "spread" in it[1][0]["physics"], _timeline_s(it[1][0]), it[0]))
     import scipy.signal  # noqa: F401  (the lowpass effect's one-off import is not simulation time)
 
     entries = []
@@ -201,22 +225,25 @@ def write_dataset(set_name: str, split: str, out: str | Path, count: int | None 
     wall = 0.0
     for b0 in range(0, len(items), batch):
         chunk = items[b0: b0 + batch]
-        scenes: list[HexapodScene | GripperScene] = [parse_scene(d, d["name"]) for d, _ in chunk]
+        scenes: list[HexapodScene | GripperScene] = [
+            parse_scene({k: v for k, v in d.items() if k != "_tags"}, d["name"]) for _, (d, _) in chunk]
         t0 = time.perf_counter()
-        recs = generate_batch(scenes, [s for _, s in chunk])
+        recs = generate_batch(scenes, [s for _, (_, s) in chunk])
         wall += time.perf_counter() - t0
-        for k, ((d, s), rec) in enumerate(zip(chunk, recs)):
-            i = b0 + k
+        for (i, (d, s)), rec in zip(chunk, recs):
             fname = f"{i:05d}_{d['name']}.npz"
+            tags = d.get("_tags", {})
+            rec.meta.update(tags)
             rec.save(out / fname)
             sim_s += len(rec) / 1000.0
             entries.append({
-                "file": fname, "seed": s, "kind": rec.meta["kind"], "motion": rec.meta["motion"],
+                "file": fname, "seed": s, "kind": rec.meta["kind"], "motion": rec.meta["motion"], **tags,
                 "events": rec.meta["events"], "samples": len(rec), "label_samples": int(rec.label.sum()),
-                "scene": d,
+                "scene": {k: v for k, v in d.items() if k != "_tags"},
             })
         if progress:
             progress(len(chunk))
+    entries.sort(key=lambda e: e["file"])
     index = {
         "set": set_name, "split": split, "seed": seed, "count": len(entries),
         "generator": GENERATOR_VERSION,
@@ -226,5 +253,162 @@ def write_dataset(set_name: str, split: str, out: str | Path, count: int | None 
         "speed_ratio": round(sim_s / wall, 1) if wall > 0 else None,
         "recordings": entries,
     }
+    if set_name in ("robust", "holds"):
+        index["physics_family"] = {f: sum(e.get("physics_family") == f for e in entries) for f in FAMILIES}
+        index["scenario"] = {}
+        for e in entries:
+            index["scenario"][e["scenario"]] = index["scenario"].get(e["scenario"], 0) + 1
     (out / "index.json").write_text(json.dumps(index, indent=1))
     return index
+
+
+# ---------------------------------------------------------------------------- robustness sets
+FAMILIES = ("stick_slip", "viscoelastic", "stribeck", "spread", "calibration")
+"""Physics families of the ``robust`` and ``holds`` sets (``spread``/``calibration``: stick-slip with that option)."""
+ROBUST_SCENARIOS = ("slip", "stop", "in_contact", "multi", "press", "shear_hold")
+_SCENARIO_P = (0.33, 0.2, 0.12, 0.2, 0.07, 0.08)
+HOLD_TYPES = ("still_press", "shear_hold", "after_stop", "after_regrasp", "free_air")
+
+
+def _loguniform(rng: np.random.Generator, lo: float, hi: float) -> float:
+    return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+
+
+def physics_spec(family: str, rng: np.random.Generator) -> dict[str, Any]:
+    """A contact model of ``family`` with randomised parameters (``slipd.sim.contact_models``)."""
+    if family == "stick_slip":
+        return {"name": "stick_slip"}
+    if family == "viscoelastic":
+        return {"name": "viscoelastic", "ratio": float(rng.uniform(0.2, 0.6)), "tau_s": _loguniform(rng, 0.05, 2.0)}
+    if family == "stribeck":
+        return {"name": "stribeck", "vs_mm_s": _loguniform(rng, 0.2, 5.0), "coupling": float(rng.uniform(0.05, 0.4))}
+    if family == "spread":
+        return {"name": "stick_slip", "spread": {"kt": float(rng.uniform(0.05, 0.25)),
+                                                 "height_mm": float(rng.uniform(0.01, 0.08)),
+                                                 "mu": float(rng.uniform(0.05, 0.25))}}
+    if family == "calibration":
+        return {"name": "stick_slip", "calibration": {"rot_deg": float(rng.uniform(1.0, 8.0)),
+                                                      "gain": float(rng.uniform(0.02, 0.15))}}
+    raise ValueError(f"unknown family {family!r}; known: {FAMILIES}")
+
+
+def _pre_motion_hold(rng: np.random.Generator) -> float:
+    """Still hold before a motion: 0.2 s to 60 s, most of them short (log-uniform in two bands)."""
+    return _loguniform(rng, 0.2, 8.0) if rng.random() < 0.85 else _loguniform(rng, 8.0, 60.0)
+
+
+def _press(rng: np.random.Generator, depth: float, duration: float | None = None) -> dict[str, Any]:
+    return {"op": "press", "depth_mm": round(depth, 4),
+            "duration_s": round(_loguniform(rng, 0.05, 2.0) if duration is None else duration, 3)}
+
+
+def _move(rng: np.random.Generator, stop_fraction: float | None = None, fast: bool = False) -> dict[str, Any]:
+    r = OFFLINE_RANGES
+    kind = str(rng.choice(["translation", "rotation", "both"]))
+    speed = float(rng.uniform(*r["speed_mm_s"])) * (2.0 if fast else 1.0)
+    accel = _loguniform(rng, 5.0, 300.0 if fast else 100.0)
+    rot = float(rng.uniform(*r["rot_speed_deg_s"])) * float(rng.choice([-1, 1]))
+    m: dict[str, Any] = {"op": "move", "kind": kind, "speed_mm_s": speed, "accel_mm_s2": accel,
+                         "direction_deg": float(rng.uniform(0.0, 360.0)), "rot_speed_deg_s": rot}
+    if rng.random() < 0.5:
+        m["jerk_mm_s3"] = accel * _loguniform(rng, 5.0, 100.0)  # smoothing over accel/jerk = 10-200 ms
+    if kind == "both":
+        m["centre_mm"] = [float(v) for v in rng.uniform(-7.0, 7.0, size=2)]
+    v_eff = speed if kind == "translation" else abs(np.deg2rad(rot)) * 7.0 if kind == "rotation" else \
+        speed + abs(np.deg2rad(rot)) * 7.0
+    if stop_fraction is None:
+        m["duration_s"] = float(np.clip(2.5 / max(v_eff, 1e-3), 0.5, 6.0))
+    else:
+        m["stop_fraction"] = round(float(stop_fraction), 4)
+    return m
+
+
+def _hold(lo: float, hi: float, rng: np.random.Generator) -> dict[str, Any]:
+    return {"op": "hold", "duration_s": round(_loguniform(rng, lo, hi), 3)}
+
+
+def _robust_base(rng: np.random.Generator, family: str, sensor: str) -> tuple[dict[str, Any], float]:
+    r = OFFLINE_RANGES
+    mu_s = float(rng.uniform(*r["mu_s"]))
+    depth = _depth_for_first_slip(float(rng.uniform(*r["first_slip_mm"])), mu_s, sensor)
+    effects = list(MEASUREMENT)
+    if rng.random() < 0.3:
+        effects.append({"name": "tilt", "angle_deg": float(rng.uniform(0.1, 1.0))})
+    if rng.random() < 0.2:
+        effects.append({"name": "drift"})
+    if rng.random() < 0.2:
+        effects.append({"name": "glitches", "rate_hz": 1.0})
+    base = {"family": "hexapod", "sensor": sensor, "physics": physics_spec(family, rng),
+            "friction": {"mu_s": mu_s, "mu_k": mu_s * float(rng.uniform(*r["mu_k_ratio"]))},
+            "pre_s": round(float(rng.uniform(0.1, 0.5)), 3), "effects": effects}
+    return base, depth
+
+
+def robust_scene(rng: np.random.Generator, index: int) -> dict[str, Any]:
+    """One scene of the ``robust`` set: a family (round-robin), a sensor, and a randomised scenario timeline."""
+    family = FAMILIES[index % len(FAMILIES)]
+    sensor = str(rng.choice(["v1", "v2"]))
+    scenario = str(rng.choice(ROBUST_SCENARIOS, p=_SCENARIO_P))
+    base, depth = _robust_base(rng, family, sensor)
+    pre_hold = {"op": "hold", "duration_s": round(_pre_motion_hold(rng), 3)}
+    after = _hold(0.5, 10.0, rng)
+    if scenario == "slip":
+        tl = [_press(rng, depth), pre_hold, _move(rng), _hold(0.3, 3.0, rng)]
+    elif scenario == "stop":
+        tl = [_press(rng, depth), pre_hold, _move(rng, float(rng.uniform(0.1, 0.95)), fast=rng.random() < 0.5), after]
+    elif scenario == "in_contact":
+        stop = rng.random() < 0.4
+        tl = [_press(rng, depth, 0.0), pre_hold,
+              _move(rng, float(rng.uniform(0.1, 0.95)) if stop else None), _hold(0.3, 3.0, rng)]
+    elif scenario == "multi":
+        # press, hold, [stop, hold,] slip, hold, release, regrasp, hold, slip or stop, hold
+        tl = [_press(rng, depth), pre_hold]
+        if rng.random() < 0.5:
+            tl += [_move(rng, float(rng.uniform(0.1, 0.95))), _hold(0.3, 8.0, rng)]
+        release = {"op": "release", "duration_s": round(float(rng.uniform(0.1, 1.0)), 3)}
+        regrasp = _press(rng, depth * float(rng.uniform(0.8, 1.2)))
+        tl += [_move(rng), _hold(0.3, 5.0, rng), release, _hold(0.1, 2.0, rng), regrasp, _hold(0.2, 8.0, rng)]
+        tl += [_move(rng, float(rng.uniform(0.1, 0.95)) if rng.random() < 0.4 else None), _hold(0.3, 5.0, rng)]
+    elif scenario == "press":
+        tl = [_press(rng, depth * float(rng.uniform(0.5, 1.5))), _hold(2.0, 30.0, rng)]
+    else:  # shear_hold
+        tl = [_press(rng, depth), pre_hold, _move(rng, float(rng.uniform(0.3, 0.9))), _hold(2.0, 30.0, rng)]
+    return {**base, "name": f"robust_{index:05d}_{family}_{scenario}", "timeline": tl,
+            "_tags": {"physics_family": family, "scenario": scenario}}
+
+
+def hold_scene(rng: np.random.Generator, index: int, hold_s: float = HOLD_S) -> dict[str, Any]:
+    """One recording of the ``holds`` set: hold type ``index % 5``, sensor alternating every 5, family
+    round-robin every 10; ``hold_s`` of stillness after the scenario's events (none slip)."""
+    htype = HOLD_TYPES[index % len(HOLD_TYPES)]
+    sensor = ("v1", "v2")[(index // len(HOLD_TYPES)) % 2]
+    family = FAMILIES[(index // (2 * len(HOLD_TYPES))) % len(FAMILIES)]
+    base, depth = _robust_base(rng, family, sensor)
+    depth *= float(rng.uniform(0.6, 1.4))
+    long = {"op": "hold", "duration_s": float(hold_s)}
+    if htype == "still_press":
+        tl = [_press(rng, depth), long]
+    elif htype == "shear_hold":
+        tl = [_press(rng, depth), _hold(0.2, 2.0, rng), _move(rng, float(rng.uniform(0.3, 0.9))), long]
+    elif htype == "after_stop":
+        tl = [_press(rng, depth), _hold(0.2, 2.0, rng), _move(rng, float(rng.uniform(0.5, 0.95)), fast=True), long]
+    elif htype == "after_regrasp":
+        # No shear before the release: unloading a sheared contact makes its tips slide (real slip).
+        release = {"op": "release", "duration_s": round(float(rng.uniform(0.1, 0.5)), 3)}
+        regrasp = _press(rng, depth * float(rng.uniform(0.8, 1.2)))
+        tl = [_press(rng, depth), _hold(0.3, 5.0, rng), release, _hold(0.1, 1.0, rng), regrasp, long]
+    else:  # free_air
+        tl = [long]
+    return {**base, "name": f"hold_{index:05d}_{htype}_{sensor}_{family}", "timeline": tl,
+            "_tags": {"physics_family": family, "scenario": htype}}
+
+
+def _timeline_s(d: dict[str, Any]) -> float:
+    """Approximate length of a timeline scene (stop moves count their probe's worst case as 2 s)."""
+    total = float(d.get("pre_s", 0.3))
+    for seg in d.get("timeline") or []:
+        if seg["op"] == "move":
+            total += seg.get("duration_s", 2.0) + 1.0
+        else:
+            total += seg.get("duration_s", 0.3)
+    return total

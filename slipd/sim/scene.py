@@ -36,7 +36,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from slipd.geometry import CONTACT_THRESHOLD_N, N_PILLARS, OUTER
 from slipd.recording import Recording
+from slipd.sim import contact_models as cm
 from slipd.sim import effects as fx
+from slipd.sim import timeline as tl
 from slipd.sim.physics import (
     DT_S,
     GripperStepper,
@@ -118,14 +120,41 @@ class _SceneBase(_Model):
 class HexapodScene(_SceneBase):
     family: Literal["hexapod"] = "hexapod"
     sensor: Literal["v1", "v2"] = "v1"
-    contact: HexContact
-    motion: HexMotion
+    contact: HexContact | None = None
+    motion: HexMotion | None = None
+    timeline: list[tl.Segment] | None = None
+    """A sequence of events instead of ``contact`` + ``motion`` (``slipd.sim.timeline``)."""
+    physics: dict[str, Any] | None = None
+    """The contact model (``slipd.sim.contact_models``): ``{name: stick_slip | viscoelastic | stribeck, ...}``."""
     friction: Friction = Friction()
     pre_s: float = Field(0.3, ge=0.05)
     settle_s: float = Field(0.2, ge=0.0)
 
+    @field_validator("physics")
+    @classmethod
+    def _physics_valid(cls, value: dict[str, Any] | None) -> dict[str, Any] | None:
+        cm.build_model(value)  # raises ValueError naming the key and reason
+        return value
+
+    @model_validator(mode="after")
+    def _contact_motion_or_timeline(self) -> HexapodScene:
+        if self.timeline is None and (self.contact is None or self.motion is None):
+            raise ValueError("needs contact and motion, or a timeline")
+        if self.timeline is not None and (self.contact is not None or self.motion is not None):
+            raise ValueError("a timeline replaces contact and motion: give one or the other")
+        return self
+
+    def build_model(self) -> cm.ContactModel:
+        """The scene's contact model (the default when none is named)."""
+        return cm.build_model(self.physics)
+
     @property
     def kind(self) -> str:
+        if self.timeline is not None:
+            moves = [s for s in self.timeline if s.op == "move"]
+            if any(m.stop_fraction is None for m in moves):
+                return "slip"
+            return "stop" if moves else "hold"
         return "stop" if self.motion.stop_fraction is not None else "slip"
 
 
@@ -340,9 +369,10 @@ def generate_batch(scenes: list[HexapodScene | GripperScene], seeds: list[int | 
     out: list[Recording | None] = [None] * len(scenes)
     groups: dict[tuple[str, str], list[int]] = {}
     for i, sc in enumerate(scenes):
-        groups.setdefault((sc.family, sc.sensor), []).append(i)
+        family = "timeline" if getattr(sc, "timeline", None) is not None else sc.family
+        groups.setdefault((family, sc.sensor), []).append(i)
     for (family, _), idx in groups.items():
-        run = _generate_hexapod if family == "hexapod" else _generate_gripper
+        run = {"hexapod": _generate_hexapod, "gripper": _generate_gripper, "timeline": _generate_timeline}[family]
         for i, rec in zip(idx, run([scenes[i] for i in idx], [_seed_of(scenes[i], seeds[i]) for i in idx])):
             out[i] = rec
     return out  # type: ignore[return-value]
@@ -355,7 +385,54 @@ def _pad(a: np.ndarray, n: int) -> np.ndarray:
     return np.concatenate([a, np.repeat(a[-1:], n - len(a), axis=0)])
 
 
-def _run_hex_contexts(sensor_name: str, scenes: list[HexapodScene], ctxs: list[fx.SimContext]) -> list[dict]:
+def _run_hex_contexts(sensor_name: str, scenes: list[HexapodScene], ctxs: list[fx.SimContext],
+                      seeds: list[int]) -> list[dict]:
+    """Physics of hexapod contexts: the default model through ``run_hexapod`` (bit-identical to before the
+    registry), every other family through ``contact_models.run_general``."""
+    models = [sc.build_model() for sc in scenes]
+    default = [i for i, m in enumerate(models) if m.default_path]
+    other = [i for i, m in enumerate(models) if not m.default_path]
+    out: list[dict | None] = [None] * len(scenes)
+    if default:
+        res = _run_hex_default(sensor_name, [scenes[i] for i in default], [ctxs[i] for i in default])
+        for i, r in zip(default, res):
+            out[i] = r
+    if other:
+        res = _run_hex_general(sensor_name, [scenes[i] for i in other], [ctxs[i] for i in other],
+                               [models[i] for i in other], [seeds[i] for i in other])
+        for i, r in zip(other, res):
+            out[i] = r
+    return out  # type: ignore[return-value]
+
+
+def _run_hex_general(sensor_name: str, scenes: list[HexapodScene], ctxs: list[fx.SimContext],
+                     models: list[cm.ContactModel], seeds: list[int]) -> list[dict]:
+    sensor = sensor_params(sensor_name)
+    n = max(c.n for c in ctxs)
+    spread = [cm.pillar_spread(m, s) for m, s in zip(models, seeds)]
+    coefs = [m.coefficients() for m in models]
+    res = cm.run_general(
+        sensor,
+        np.stack([_pad(c.pose_t, n) for c in ctxs], 1),
+        np.stack([_pad(c.pose_th, n) for c in ctxs], 1),
+        np.stack([_pad(c.depth, n) for c in ctxs], 1),
+        np.stack([s.friction.mu_s * p["mu"] for s, p in zip(scenes, spread)]),
+        np.stack([s.friction.mu_k * p["mu"] for s, p in zip(scenes, spread)]),
+        np.stack([c.contact_offset + p["height_mm"] for c, p in zip(ctxs, spread)]),
+        np.stack([c.contact_mask for c in ctxs]),
+        np.stack([p["kt"] for p in spread]),
+        {k: np.array([c[k] for c in coefs], np.float64) for k in coefs[0]},
+    )
+    out = []
+    for b, c in enumerate(ctxs):
+        fz = res["fz"][: c.n, b]
+        force = np.concatenate([res["ft"][: c.n, b], fz[..., None]], -1)
+        disp = np.concatenate([res["u"][: c.n, b], res["c"][: c.n, b, :, None]], -1)
+        out.append({"force": force, "disp": disp, "slip": res["slip"][: c.n, b]})
+    return out
+
+
+def _run_hex_default(sensor_name: str, scenes: list[HexapodScene], ctxs: list[fx.SimContext]) -> list[dict]:
     sensor = sensor_params(sensor_name)
     n = max(c.n for c in ctxs)
     res = run_hexapod(
@@ -390,7 +467,7 @@ def _generate_hexapod(scenes: list[HexapodScene], seeds: list[int]) -> list[Reco
 
     full = [round(sc.duration_s / DT_S) for sc in scenes]
     ctxs = contexts(list(range(len(scenes))), [None] * len(scenes), full)
-    phys = _run_hex_contexts(sensor_name, scenes, ctxs)
+    phys = _run_hex_contexts(sensor_name, scenes, ctxs, seeds)
     # Stop scenes: find where the first considered pillar would slip, then re-run halting before it.
     stop_ids = [i for i, sc in enumerate(scenes) if sc.kind == "stop"]
     if stop_ids:
@@ -408,7 +485,8 @@ def _generate_hexapod(scenes: list[HexapodScene], seeds: list[int]) -> list[Reco
             lengths[i] = min(full[i], stops[i] + settle + round(sc.motion.hold_s / DT_S))
         sub = [scenes[i] for i in stop_ids]
         sub_ctx = contexts(stop_ids, stops, lengths)
-        for i, ctx, res in zip(stop_ids, sub_ctx, _run_hex_contexts(sensor_name, sub, sub_ctx)):
+        sub_res = _run_hex_contexts(sensor_name, sub, sub_ctx, [seeds[i] for i in stop_ids])
+        for i, ctx, res in zip(stop_ids, sub_ctx, sub_res):
             ctxs[i], phys[i] = ctx, res
             ctx.meta["motion_stop_index"] = stops[i]
     recs = []
@@ -420,21 +498,27 @@ def _generate_hexapod(scenes: list[HexapodScene], seeds: list[int]) -> list[Reco
 
 
 def _finish(sc: HexapodScene | GripperScene, eff: list[fx.Effect], seed: int, ctx: fx.SimContext, res: dict,
-            motion: np.ndarray, sensor: dict, motion_type: str, gross_motion: int | None = None) -> Recording:
+            motion: np.ndarray, sensor: dict, motion_type: str, gross_motion: int | None = None,
+            labels: tuple[np.ndarray, int | None, int | None] | None = None) -> Recording:
     """Labels, signal effects, saturation, meta: physics output -> Recording."""
     n, start = ctx.n, ctx.motion_start
     slip = res["slip"]
-    fz0 = res["force"][start, :, 2] if start < n else np.zeros(N_PILLARS)
-    if sc.kind == "stop":
+    fz0 = res["force"][start, :, 2] if start is not None and start < n else np.zeros(N_PILLARS)
+    if labels is not None:
+        label, onset, gross = labels
+    elif sc.kind == "stop":
         label, onset, gross = np.zeros(n, np.uint8), None, None
     else:
         label, onset, gross = incipient_labels(slip, _considered(motion_type, fz0), start, gross_motion)
     ctx.force = np.array(res["force"], np.float64)
+    model = sc.build_model() if isinstance(sc, HexapodScene) else None
+    if model is not None:
+        ctx.force = cm.apply_calibration(model, seed, ctx.force)  # the sensor's error, not the truth's
     fx.run_stage("signal", eff, ctx, seed)
     disp = measured_disp(res["disp"], res["force"], ctx.force, sensor_params(sc.sensor))
     force = saturate(ctx.force, sensor_params(sc.sensor))
     fx.run_stage("meta", eff, ctx, seed)
-    events: dict[str, float] = {"motion_start": start * DT_S}
+    events: dict[str, float] = {"motion_start": start * DT_S} if start is not None else {}
     stop_index = ctx.meta.pop("motion_stop_index", None)
     if stop_index is not None:
         events["motion_stop"] = stop_index * DT_S
@@ -446,9 +530,13 @@ def _finish(sc: HexapodScene | GripperScene, eff: list[fx.Effect], seed: int, ct
         events["gross_motion"] = gross_motion * DT_S
     pre = round(sc.pre_s / DT_S)
     meta = dict(ctx.meta)
+    dump = sc.model_dump(mode="json")
+    for key in ("timeline", "physics"):  # scenes without them keep the meta they always had
+        if dump.get(key, 0) is None:
+            dump.pop(key)
     meta.update({
         "generator": GENERATOR_VERSION,
-        "scene": sc.model_dump(mode="json"),
+        "scene": dump,
         "seed": int(seed),
         "sensor": sensor,
         "effects": [e.name for e in eff],
@@ -458,6 +546,8 @@ def _finish(sc: HexapodScene | GripperScene, eff: list[fx.Effect], seed: int, ct
         "events": events,
         "tare_samples": [min(20, pre - 1), pre],
     })
+    if model is not None and sc.physics is not None:
+        meta["physics"] = {"name": model.name, **model.p.model_dump(mode="json")}
     return Recording(
         t_us=np.arange(n, dtype=np.int64) * 1000,
         force=force.astype(np.float32),
@@ -467,6 +557,116 @@ def _finish(sc: HexapodScene | GripperScene, eff: list[fx.Effect], seed: int, ct
         object_motion=motion.astype(np.float32),
         meta=meta,
     )
+
+
+# ---------------------------------------------------------------------------- timelines
+def _timeline_context(sc: HexapodScene, stops: dict[int, int]) -> tuple[fx.SimContext, tl.Built]:
+    built = tl.build(sc.timeline, round(sc.pre_s / DT_S), stops)
+    depth, pose_t, pose_th = tl.arrays(built)
+    n = len(depth)
+    start = built.moves[0]["start"] if built.moves else None
+    ctx = fx.SimContext(family="hexapod", n=n, t_s=np.arange(n) * DT_S, motion_start=start)
+    ctx.pose_t, ctx.pose_th, ctx.depth = pose_t, pose_th, depth
+    return ctx, built
+
+
+def _generate_timeline(scenes: list[HexapodScene], seeds: list[int]) -> list[Recording]:
+    """Timeline scenes: probe runs resolve the stop moves one by one, then the final run and its labels."""
+    sensor_name = scenes[0].sensor
+    effects = [sc.build_effects() for sc in scenes]
+    stops: list[dict[int, int]] = [{} for _ in scenes]
+
+    def contexts(ids: list[int]) -> tuple[list[fx.SimContext], list[tl.Built]]:
+        ctxs, builts = [], []
+        for i in ids:
+            ctx, built = _timeline_context(scenes[i], stops[i])
+            fx.run_stage("contact", effects[i], ctx, seeds[i])
+            fx.run_stage("motion", effects[i], ctx, seeds[i])
+            ctxs.append(ctx)
+            builts.append(built)
+        return ctxs, builts
+
+    onset_q: list[dict[int, tuple[float | None, float]]] = [{} for _ in scenes]
+    todo = list(range(len(scenes)))
+    while True:
+        ctxs, builts = contexts(todo)
+        probing = [j for j, b in enumerate(builts) if b.probe is not None]
+        if not probing:
+            break
+        sub = [todo[j] for j in probing]
+        res = _run_hex_contexts(sensor_name, [scenes[i] for i in sub], [ctxs[j] for j in probing],
+                                [seeds[i] for i in sub])
+        for i, j, r in zip(sub, probing, res):
+            b = builts[j]
+            mv = b.moves[-1]
+            seg = scenes[i].timeline[b.probe]
+            cons = _considered(seg.kind, r["force"][mv["start"], :, 2])
+            _, onset, _ = incipient_labels(r["slip"], cons, mv["start"])
+            q = tl.probe_progress(seg)
+            onset_q[i][b.probe] = (q[onset - mv["start"]] if onset is not None else None, q[-1])
+            stops[i][b.probe] = tl.stop_samples(seg, *onset_q[i][b.probe])
+    ctxs, builts = contexts(list(range(len(scenes))))
+    phys = _run_hex_contexts(sensor_name, scenes, ctxs, seeds)
+    # A stop must not slip: where a pillar still slid during a stop move (a family whose neighbouring tips
+    # or decelerating plate push it over), halt that move earlier (80 % of its travel) and run again.
+    for attempt in range(4):
+        redo = []
+        for i, b in enumerate(builts):
+            for mv in b.moves:
+                if mv["stop"] and phys[i]["slip"][mv["start"]: mv["end"]].any():
+                    seg = scenes[i].timeline[mv["segment"]]
+                    oq, qe = onset_q[i][mv["segment"]]
+                    scale = 0.8 ** (attempt + 1)
+                    stops[i][mv["segment"]] = tl.stop_samples(seg, oq * scale if oq is not None else None, qe * scale)
+                    redo.append(i)
+        redo = sorted(set(redo))
+        if not redo:
+            break
+        sub_ctx, sub_built = contexts(redo)
+        sub_res = _run_hex_contexts(sensor_name, [scenes[i] for i in redo], sub_ctx, [seeds[i] for i in redo])
+        for i, c, b, r in zip(redo, sub_ctx, sub_built, sub_res):
+            ctxs[i], builts[i], phys[i] = c, b, r
+    sensor = sensor_params(sensor_name)
+    recs = []
+    for sc, eff, seed, ctx, b, res in zip(scenes, effects, seeds, ctxs, builts, phys):
+        labels, extra = _timeline_labels(b, res)
+        motion = np.concatenate([ctx.pose_t, np.rad2deg(ctx.pose_th)[:, None]], 1)
+        if b.moves and b.moves[0]["stop_index"] is not None:
+            ctx.meta["motion_stop_index"] = b.moves[0]["stop_index"]
+        kinds = sorted({m["kind"] for m in b.moves})
+        mtype = "+".join(kinds) if kinds else "none"
+        rec = _finish(sc, eff, seed, ctx, res, motion, sensor.to_dict(), mtype, labels=labels)
+        rec.meta["timeline"] = {
+            "starts_in_contact": b.starts_in_contact,
+            "segments": [{"op": s["op"], "start_s": s["start"] * DT_S, "end_s": s["end"] * DT_S} for s in b.segments],
+            "moves": extra,
+        }
+        recs.append(rec)
+    return recs
+
+
+def _timeline_labels(b: tl.Built, res: dict) -> tuple[tuple[np.ndarray, int | None, int | None], list[dict]]:
+    """Union of the incipient-slip labels of every non-stop move, each within its own window."""
+    slip = res["slip"]
+    label = np.zeros(len(slip), np.uint8)
+    first: tuple[int | None, int | None] = (None, None)
+    extra = []
+    for mv in b.moves:
+        end = mv["end"]  # each move is labelled from its start until the plate is at rest again
+        item = {"kind": mv["kind"], "stop": mv["stop"], "start_s": mv["start"] * DT_S, "end_s": mv["end"] * DT_S}
+        if mv["stop"]:
+            item["stop_s"] = mv["stop_index"] * DT_S if mv["stop_index"] is not None else None
+            item["truth_slip"] = bool(slip[mv["start"]: mv["end"]].any())  # from its start until at rest
+        else:
+            cons = _considered(mv["kind"], res["force"][mv["start"], :, 2])
+            lab, onset, gross = incipient_labels(slip[:end], cons, mv["start"])
+            label[: end] |= lab
+            item["onset_s"] = onset * DT_S if onset is not None else None
+            item["gross_slip_s"] = gross * DT_S if gross is not None else None
+            if first == (None, None) and onset is not None:
+                first = (onset, gross)
+        extra.append(item)
+    return (label, *first), extra
 
 
 # ---------------------------------------------------------------------------- gripper
