@@ -10,6 +10,7 @@ watchdog abort, ``WatchdogSignal=`` default) must each halt the moving arm withi
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -96,3 +97,29 @@ def test_a_dead_or_frozen_daemon_halts_the_moving_arm_within_the_watchdog_period
     assert s.last_stop_t - s.watchdog_input_t <= WATCHDOG_S + 0.05
     assert s.last_stop_t - t_signal <= WATCHDOG_S + 0.05
     assert s.tcp_pose[2] < FAR[2] - 0.5  # stopped on its way, far from the target
+
+
+def test_ur_rtde_output_goes_through_the_log(controller: URControllerProcess, tiny_model_json: Path,
+                                             tmp_path: Path) -> None:
+    """ur_rtde's own prints (std::cout/cerr on a dropped link) come out as log lines, in the log format."""
+    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor:
+        cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)
+        proc = subprocess.Popen([sys.executable, "-m", "slipd", "run", "--config", str(cfg)],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        try:
+            controller.wait_for(lambda s: s.control_script_running, timeout=60.0, what="slipd's control script")
+            sensor.start()
+            controller.wait_for(lambda s: s.watchdog_hz > 0, timeout=30.0, what="a live daemon")
+            controller.drop_connections(down_s=0.5)  # ur_rtde prints its exceptions and reconnects
+            controller.wait_for(lambda s: s.control_script_running and s.watchdog_hz > 0, timeout=20.0,
+                                what="reconnected and live again")
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            out = proc.communicate(timeout=30)[0]
+    assert proc.returncode == 0, out[-3000:]
+    lines = [line for line in out.splitlines() if line.strip()]
+    native = [line for line in lines if " slipd.ur_rtde: " in line]
+    assert native, out[-3000:]  # ur_rtde did print, and its lines were logged
+    unformatted = [line for line in lines if not re.match(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} [A-Z]+ \S+: ", line)]
+    assert unformatted == [], unformatted

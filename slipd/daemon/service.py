@@ -10,11 +10,14 @@ missing device, therefore never touches hardware. Each step raises its own typed
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import ipaddress
 import logging
 import os
 import signal
-from dataclasses import dataclass
+import sys
+import threading
+from dataclasses import dataclass, field
 
 from slipd.config import SlipdConfig, load_config
 from slipd.daemon.devices import DeviceError, build_devices, check_devices
@@ -33,6 +36,7 @@ class Service:
     cfg: SlipdConfig
     daemon: Daemon
     metrics: Metrics
+    native: NativeOutput | None = field(default=None)
 
     def run(self) -> None:
         """Serve metrics and run the loop until SIGINT/SIGTERM; always releases the devices."""
@@ -56,6 +60,62 @@ class Service:
             self.daemon.close()
             if server is not None:
                 server.shutdown()
+            if self.native is not None:
+                self.native.close()
+
+
+class NativeOutput:
+    """Routes what native libraries write to the process's stdout and stderr through the log.
+
+    ur_rtde (C++) prints its reconnect and exception messages with ``std::cout``/``std::cerr`` straight to
+    file descriptors 1 and 2, outside the log format (no time, level or source). Both descriptors are
+    pointed at pipes; a thread turns each line into a ``slipd.ur_rtde`` log record (stderr lines as
+    warnings). Python's own ``sys.stdout``/``sys.stderr`` (logging, the CLI's messages) keep writing to
+    the original destinations through duplicates of the original descriptors. ``close`` restores them.
+    """
+
+    def __init__(self) -> None:
+        self._saved = [os.dup(1), os.dup(2)]
+        self._py = (sys.stdout, sys.stderr)
+        sys.stdout = open(self._saved[0], "w", buffering=1, closefd=False)  # noqa: SIM115 -- lives until close
+        sys.stderr = open(self._saved[1], "w", buffering=1, closefd=False)  # noqa: SIM115
+        self._threads = []
+        for fd, level in ((1, logging.INFO), (2, logging.WARNING)):
+            r, w = os.pipe()
+            os.dup2(w, fd)
+            os.close(w)
+            t = threading.Thread(target=self._pump, args=(r, level), name=f"slipd-native-{fd}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    @staticmethod
+    def _pump(fd: int, level: int) -> None:
+        out = logging.getLogger("slipd.ur_rtde")
+        with open(fd, "rb") as pipe:
+            for raw in pipe:
+                line = raw.decode(errors="replace").rstrip()
+                if line:
+                    out.log(level, "%s", line)
+
+    def close(self) -> None:
+        """Point descriptors 1 and 2 back at the originals; the pumps log what is left and end."""
+        if not self._saved:
+            return
+        with contextlib.suppress(ValueError, OSError):
+            sys.stdout.flush()
+            sys.stderr.flush()
+        for fd, saved in zip((1, 2), self._saved):
+            os.dup2(saved, fd)  # closes the pipe's last write end: the pump sees EOF after the rest
+        for t in self._threads:
+            t.join(timeout=1.0)
+        ours = (sys.stdout, sys.stderr)
+        sys.stdout, sys.stderr = self._py
+        for h in logging.getLogger().handlers:  # the log handler made meanwhile goes back to the real stream
+            if isinstance(h, logging.StreamHandler) and h.stream in ours:
+                h.setStream(self._py[ours.index(h.stream)])
+        for saved in self._saved:
+            os.close(saved)
+        self._saved = []
 
 
 def metrics_exposure(host: str) -> str:
@@ -76,19 +136,24 @@ def metrics_exposure(host: str) -> str:
 def prepare(config_path: str | os.PathLike) -> Service:
     """Load and check everything, then open the devices (in that order). Raises ConfigError, ModelError or
     DeviceError; nothing is opened when the config or the model is refused or a device is missing."""
-    cfg = load_config(config_path)
-    logging.basicConfig(level=cfg.control.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    ensemble = Ensemble.load(cfg.model.manifest, threads=cfg.model.threads)
-    check_devices(cfg)
-    metrics = Metrics()
-    arm, gripper = build_devices(cfg, metrics)
-    daemon = Daemon(cfg, ensemble, metrics=metrics, arm=arm, gripper=gripper, notifier=Notifier())
-    if cfg.recorder.enabled:
-        from slipd.daemon.recorder import Recorder
+    native = NativeOutput()  # first: the log handler must take the original stderr, not the pipe
+    try:
+        cfg = load_config(config_path)
+        logging.basicConfig(level=cfg.control.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+        ensemble = Ensemble.load(cfg.model.manifest, threads=cfg.model.threads)
+        check_devices(cfg)
+        metrics = Metrics()
+        arm, gripper = build_devices(cfg, metrics)
+        daemon = Daemon(cfg, ensemble, metrics=metrics, arm=arm, gripper=gripper, notifier=Notifier())
+        if cfg.recorder.enabled:
+            from slipd.daemon.recorder import Recorder
 
-        daemon.recorder = Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz,
-                                               meta={"model_sha256": ensemble.manifest.sha256})
-    return Service(cfg, daemon, metrics)
+            daemon.recorder = Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz,
+                                                   meta={"model_sha256": ensemble.manifest.sha256})
+    except BaseException:
+        native.close()
+        raise
+    return Service(cfg, daemon, metrics, native)
 
 
 __all__ = ["DeviceError", "Service", "prepare"]
