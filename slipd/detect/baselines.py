@@ -38,7 +38,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from slipd.detect.decision import Detection
-from slipd.detect.features import FeatureSpec, FeatureStream, batch_windows, tare_offset
+from slipd.detect.features import FeatureSpec, FeatureStream, batch_windows, stretch_offset
 from slipd.geometry import CONTACT_THRESHOLD_N, N_PILLARS
 
 _P = TypeVar("_P", "ReferencePillarParams", "DecelerationParams", "FrontEndParams")
@@ -343,7 +343,7 @@ def _from_dict(cls: type[_P], d: Mapping[str, Any], where: str) -> _P:
 
 def baseline_offset(force: np.ndarray, disp: np.ndarray | None, stretch: tuple[int, int]) -> np.ndarray:
     """Tare offset of the baseline samples over an unloaded ``stretch`` [start, stop) of a recording."""
-    return tare_offset(baseline_samples(force, disp), *stretch)
+    return stretch_offset(baseline_samples(force, disp), stretch)
 
 
 # --------------------------------------------------------------------------- tuned parameters on disk

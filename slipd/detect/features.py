@@ -213,6 +213,18 @@ def tare_offset(force: np.ndarray, start: int = 0, stop: int = 100) -> np.ndarra
     return np.where(count > 0, total / np.maximum(count, 1), 0.0).astype(np.float32)
 
 
+def stretch_offset(force: np.ndarray, stretch: Sequence[int]) -> np.ndarray:
+    """The offset of a recording from its unloaded ``stretch`` [start, stop) (``meta["tare_samples"]``).
+
+    ``[0, 0]`` names no stretch: the sensor zeroed itself (its bias command) before the recording, as for
+    a recording that starts mid-grasp, so the offset is 0.
+    """
+    start, stop = (int(v) for v in stretch)
+    if start == stop == 0:
+        return np.zeros((N_PILLARS, 3), np.float32)
+    return tare_offset(force, start, stop)
+
+
 def _hold_last_finite(x: np.ndarray) -> tuple[np.ndarray, int]:
     """Forward-fill non-finite entries along axis 0 (0 before the first finite value)."""
     bad = ~np.isfinite(x)

@@ -43,7 +43,7 @@ from slipd.detect.baselines import (
     reference_pillar_flags,
     save_params,
 )
-from slipd.detect.features import FeatureSpec, tare_offset
+from slipd.detect.features import FeatureSpec, stretch_offset
 from slipd.lab.metrics import (
     SceneResult,
     SceneTruth,
@@ -87,7 +87,7 @@ def tare_args(rec: Recording, spec: FeatureSpec) -> dict:
     a, b = (int(v) for v in rec.meta.get("tare_samples", spec.tare_samples))
     if a == 0 and b > 0:
         return {"tare_samples": min(b, len(rec))}
-    return {"offset": tare_offset(rec.force, a, b)}
+    return {"offset": stretch_offset(rec.force, (a, b))}
 
 
 def tare_stretch(rec: Recording, spec: FeatureSpec | None = None) -> tuple[int, int]:

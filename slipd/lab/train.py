@@ -56,7 +56,7 @@ import torch
 from torch import nn
 
 from slipd.detect.detector import gate_windows
-from slipd.detect.features import FeatureSpec, batch_windows, tare_offset, window_labels
+from slipd.detect.features import FeatureSpec, batch_windows, stretch_offset, window_labels
 from slipd.lab.augment import (
     SPEED_RATES,
     Seq,
@@ -132,7 +132,7 @@ def load_sequences(data_dir: Path, spec: FeatureSpec, max_recordings: int = 0,
             raise RecordingError(f"{path}: {len(rec)} samples, fewer than one window ({spec.window})")
         tare = rec.meta.get("tare_samples", spec.tare_samples)
         try:
-            offset = tare_offset(rec.force, *tare)
+            offset = stretch_offset(rec.force, tare)
         except (TypeError, ValueError) as exc:
             raise RecordingError(f"{path}: bad meta 'tare_samples' {tare!r} ({exc})") from exc
         # Taring here equals passing the offset to batch_windows (see tools/augment.py) and lets the

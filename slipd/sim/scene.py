@@ -641,6 +641,10 @@ def _generate_timeline(scenes: list[HexapodScene], seeds: list[int]) -> list[Rec
             "segments": [{"op": s["op"], "start_s": s["start"] * DT_S, "end_s": s["end"] * DT_S} for s in b.segments],
             "moves": extra,
         }
+        if b.starts_in_contact:
+            # Started mid-grasp: the stretch before the first event is loaded. The sensor zeroed itself while
+            # unloaded, before the recording (its bias command), so the offset is 0, which [0, 0] says.
+            rec.meta["tare_samples"] = [0, 0]
         recs.append(rec)
     return recs
 
