@@ -59,6 +59,10 @@ class Metrics:
             "slipd_device_errors", "Errors talking to a device", ["device", "kind"], registry=r
         )
         self.ready = Gauge("slipd_ready", "1 once warm-up is done and the loop runs", registry=r)
+        self.live = Gauge(
+            "slipd_live", "1 while decisions are live (a valid decision on fresh sensor data within the stall "
+            "timeout); 0 before the first one and while blind", registry=r,
+        )
         self.model = Info("slipd_model", "Loaded model (name, sha256)", registry=r)
 
     def serve(self, host: str = "127.0.0.1", port: int = 9477) -> object:

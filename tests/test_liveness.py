@@ -193,6 +193,7 @@ def run_daemon(cfg, ur: URControllerProcess, tmp_path, monkeypatch, scenario) ->
 def test_silent_sensor_from_start_up_fails_safe_and_never_reports_ready(controller, base_cfg, tmp_path,
                                                                          monkeypatch, caplog) -> None:
     caplog.set_level(logging.ERROR, logger="slipd.daemon.loop")
+    seen: dict[str, object] = {}
 
     async def scenario(d: Daemon, w: Writer, sd: Systemd) -> None:
         stops0 = controller.state().stop_count
@@ -200,9 +201,11 @@ def test_silent_sensor_from_start_up_fails_safe_and_never_reports_ready(controll
                     what="sensor_silent fail-safe")
         await until(lambda: controller.state().stop_count > stops0, what="the stop reached the UR controller")
         await asyncio.sleep(0.5)  # still silent: no second stop, no sign of life
+        seen["gauges"] = (metric(d.metrics, "slipd_ready"), metric(d.metrics, "slipd_live"))
 
     d, sd = run_daemon(base_cfg, controller, tmp_path, monkeypatch, scenario)
     assert failsafes(d.metrics) == {"sensor_silent": 1.0}
+    assert seen["gauges"] == (1.0, 0.0)  # the loop runs (slipd_ready) but is not live
     assert sd.count("READY=1") == 0 and sd.count("WATCHDOG=1") == 0
     assert not d.live and d.started_live is False and d.stats.decisions == 0
     blind = [r.getMessage() for r in caplog.records if r.getMessage().startswith("blind:")]
@@ -237,6 +240,7 @@ def test_blind_stream_fails_safe_once_stops_the_pings_and_the_arm_watchdog_then_
         seen["pings_blind"] = sd.count("WATCHDOG=1", since=t_blind + WATCHDOG_S / 2 + 0.02)
         seen["failsafes_blind"] = dict(failsafes(d.metrics))
         w.mode = "ok"
+        seen["live_gauge_blind"] = metric(d.metrics, "slipd_live")
         await until(lambda: d.live, what="live again on fresh frames")
         t_live = time.monotonic()
         await until(lambda: sd.count("WATCHDOG=1", since=t_live) >= 2, what="pings resume")
@@ -248,6 +252,7 @@ def test_blind_stream_fails_safe_once_stops_the_pings_and_the_arm_watchdog_then_
     assert seen["failsafes_blind"] == {reason: 1.0}  # one fault, one stop, one label
     assert failsafes(d.metrics) == {reason: 1.0}
     assert seen["pings_blind"] == 0  # systemd hears nothing from a blind loop
+    assert seen["live_gauge_blind"] == 0.0
     assert seen["detected_s"] < 2.0  # generous: the stall timeout is 0.15 s
     assert sd.count("READY=1") == 1
     blind = [r.getMessage() for r in caplog.records if r.getMessage().startswith("blind:")]

@@ -306,7 +306,7 @@ class Daemon:
     def _go_blind(self, cause: str, detail: str) -> None:
         """Liveness lost: one log line and one fail-safe per episode, whatever follows inside it."""
         self.live = False
-        self.metrics.ready.set(0)
+        self.metrics.live.set(0)
         self._decided_t = None  # live again only after a new valid decision on fresh data
         if self.blind is not None:
             return
@@ -391,7 +391,7 @@ class Daemon:
     def _on_live(self) -> None:
         """The first valid decision on fresh data: at start-up READY=1, after an episode one log line."""
         self.live = True
-        self.metrics.ready.set(1)
+        self.metrics.live.set(1)
         if self.blind is not None:
             log.warning("live again after %s", self.blind)
             self.blind = None
@@ -536,6 +536,7 @@ class Daemon:
             self.detector.restart()
         supervisor = asyncio.create_task(self._supervise())
         health = asyncio.create_task(self._health()) if self.health_period_s > 0 else None
+        self.metrics.ready.set(1)
         self.ready.set()
         try:
             if duration_s is None:
@@ -553,6 +554,7 @@ class Daemon:
                     await task
             await self.sensor.stop()
             self.metrics.ready.set(0)
+            self.metrics.live.set(0)
             if self.notifier is not None:
                 self.notifier.stopping()
         return self.stats
