@@ -40,14 +40,49 @@ class Fault:
 F = "tests/test_faults.py::"
 FAULTS: tuple[Fault, ...] = (
     Fault("Sensor stream stalls (no frame for `sensor.stall_timeout_ms`)",
-          "Fail-safe once per stall: stop the arm (policy `reaction.on_failsafe`), keep the grip; systemd watchdog "
-          "pings pause; the stream resumes and the daemon carries on",
-          '`slipd_failsafe_stops_total{reason="sensor_stall"}`',
+          "Blind: one fail-safe per episode (stop the arm, policy `reaction.on_failsafe`; keep the grip), one "
+          "log line; systemd watchdog pings and the arm's watchdog kicks pause; live again at the first valid "
+          "decision on fresh frames",
+          '`slipd_failsafe_stops_total{reason="sensor_stall"}`, `slipd_live`',
           (F + "test_sensor_stall_fails_safe_stops_the_arm_and_the_stream_resumes",
            "tests/test_sensor.py::test_stall_then_resume_without_gap")),
+    Fault("Sensor silent from start-up (port open, no frame ever)",
+          "Fail-safe once within the stall timeout of the loop's start; `READY=1` is never sent and the systemd "
+          "watchdog never pinged (was: READY sent, no fail-safe while the arm moved)",
+          '`slipd_failsafe_stops_total{reason="sensor_silent"}`, `slipd_live` 0',
+          ("tests/test_liveness.py::test_silent_sensor_from_start_up_fails_safe_and_never_reports_ready",)),
+    Fault("Every frame carries the same packet counter",
+          "Repeats are dropped by the reader (not passed on as discontinuities that restarted the detector on "
+          "every frame); no fresh sample within the stall timeout: fail-safe once, pings and arm kicks stop; "
+          "recovery when the counter advances",
+          '`slipd_failsafe_stops_total{reason="sensor_counter_stuck"}`, '
+          '`slipd_frame_errors_total{kind="repeated_counter"}`',
+          ("tests/test_liveness.py::test_blind_stream_fails_safe_once_stops_the_pings_and_the_arm_watchdog_then_"
+           "recovers",
+           "tests/test_sensor.py::test_encoded_frames_are_what_the_emulator_sends")),
+    Fault("Valid frames full of NaN / +Inf (PTSCOM carries float32)",
+          "The feature stage bridges up to 5 ms by holding the last value; a longer run is blind: fail-safe "
+          "once, decisions on held values no longer count as live",
+          '`slipd_failsafe_stops_total{reason="sensor_nonfinite"}`, `slipd_nonfinite_values_total`',
+          ("tests/test_liveness.py::test_blind_stream_fails_safe_once_stops_the_pings_and_the_arm_watchdog_then_"
+           "recovers",)),
+    Fault("Bit-identical frames (a frozen sensor; a real one is never noise-free)",
+          "No fresh sample within the stall timeout: fail-safe once, pings and arm kicks stop",
+          '`slipd_failsafe_stops_total{reason="sensor_frozen"}`',
+          ("tests/test_liveness.py::test_blind_stream_fails_safe_once_stops_the_pings_and_the_arm_watchdog_then_"
+           "recovers",)),
+    Fault("slipd killed (SIGKILL, OOM), frozen (SIGSTOP) or aborted by systemd's watchdog (SIGABRT) while the "
+          "arm moves",
+          "ur_rtde's controller-side watchdog (`setWatchdog(1 / arm.watchdog_s)`, kicked from the arm thread only "
+          "while live) halts the arm and ends the control script within `arm.watchdog_s` of the last kick (was: "
+          "the arm kept moving). Dashboard stop modes upload no script and have no such watchdog",
+          "(the controller's stop; `slipd_device_errors_total{device=\"arm\",kind=\"watchdog\"}` for failed kicks)",
+          ("tests/test_watchdog.py::test_a_dead_or_frozen_daemon_halts_the_moving_arm_within_the_watchdog_period",
+           "tests/test_arm.py::test_upper_range_registers_and_watchdog")),
     Fault("Sensor USB cable pulled / port hang-up",
-          "Fail-safe stop at once; reader retries with exponential backoff; on replug the port reopens, the "
-          "detector restarts (features, GRU state, decision) and decisions resume",
+          "One fail-safe stop at once; the stall that follows is the same episode (was: a second stop "
+          "`sensor_stall` 250 ms later); reader retries with exponential backoff; on replug the port reopens, "
+          "the detector restarts (features, GRU state, decision) and decisions resume",
           '`slipd_failsafe_stops_total{reason="sensor_lost"}`, `slipd_reconnects_total{device="sensor"}`',
           (F + "test_sensor_unplug_fails_safe_then_reconnects_and_restarts_the_detector",
            "tests/test_sensor.py::test_unplug_disconnects_and_replug_reconnects")),
@@ -88,12 +123,23 @@ FAULTS: tuple[Fault, ...] = (
           (F + "test_servo_silent_while_tightening_falls_back_to_stopping_the_arm",
            "tests/test_reaction.py::test_gripper_failure_falls_back_to_arm_stop",
            "tests/test_gripper.py::test_a_short_silence_is_bridged_by_retries")),
+    Fault("Servo answers again after a tighten failed",
+          "The failed tighten is owed until the grasp is reset and sent again when the health poll hears the "
+          "servo (was: never retried)",
+          "(reaction log; `slipd_device_errors_total{device=\"gripper\",kind=\"reaction\"}` for the failure)",
+          (F + "test_tighten_lost_while_the_servo_was_silent_is_retried_when_it_answers",
+           "tests/test_reaction.py::test_failed_tighten_is_owed_and_retried_once_the_servo_answers")),
     Fault("Gripper hardware error (overload) or torque off, seen by the health poll (every 0.5 s)",
           "Fail-safe stop once per occurrence (not per poll); no automatic reboot (it would drop the object)",
           '`slipd_failsafe_stops_total{reason="gripper_fault"}`, '
           '`slipd_device_errors_total{device="gripper",kind="unhealthy"}`',
           (F + "test_servo_hardware_error_seen_by_the_health_poll_fails_safe",
            "tests/test_gripper.py::test_overload_is_reported_and_recovered")),
+    Fault("Sensor port missing at start-up",
+          "`slipd run` exits 5 with one line naming `sensor.port`, no traceback, before the gripper or the arm "
+          "is opened (was: exit 1 with a traceback after both were opened)",
+          "(exit status)",
+          ("tests/test_cli_run.py::test_missing_sensor_port_exits_5_in_one_line_before_any_device_is_opened",)),
     Fault("Gripper unplugged at start-up / absent id",
           "`slipd run` refuses to start (exit 5, names the device); the driver retries then raises",
           '`slipd_device_errors_total{device="gripper",kind=...}`',
@@ -134,6 +180,22 @@ FAULTS: tuple[Fault, ...] = (
           "`LoopStats.step_errors` (no Prometheus metric; see the note below the table)",
           ("tests/test_ensemble.py::test_nonfinite_window_is_refused_and_state_untouched",
            "tests/test_ensemble.py::test_nonfinite_output_resets_the_stream")),
+    Fault("Alarm latched high for minutes",
+          "One recording per alarm episode, extended while the alarm stays high and bounded at 30 s after the "
+          "onset; no new file until the alarm falls, so the recording holding the onset is kept (was: a new "
+          "~300 KB recording every second, ~1 GB/h, the onset deleted under `recorder.max_total_mb`)",
+          "(recorder log)",
+          ("tests/test_recorder.py::test_latched_alarm_for_10_minutes_writes_one_bounded_recording_and_keeps_it",
+           "tests/test_recorder.py::test_alarm_that_stays_high_extends_one_recording_beyond_the_ring")),
+    Fault("`metrics.host` other than loopback",
+          "Accepted with a start-up warning naming the exposure (every interface for 0.0.0.0)",
+          "(log)",
+          ("tests/test_cli_run.py::test_running_daemon_never_imports_torch",
+           "tests/test_cli_run.py::test_metrics_exposure_names_who_can_scrape")),
+    Fault("ur_rtde prints to stdout/stderr (link drops, reconnects)",
+          "Its lines go through the log (`slipd.ur_rtde`, in the log format)",
+          "(log)",
+          ("tests/test_watchdog.py::test_ur_rtde_output_goes_through_the_log",)),
     Fault("Crash or full disk while writing a recording",
           "No valid-looking partial file; slow disk drops recordings rather than queueing without bound",
           "(recorder log)",
@@ -255,9 +317,14 @@ def main(argv: list[str] | None = None) -> int:
         "",
         *table(),
         "",
-        "Gaps seen while writing this table: `slipd_nonfinite_values_total` exists in `slipd/metrics.py` but "
-        "nothing increments it (the feature stream keeps its own `nonfinite_count`; PTSCOM carries integers, "
-        "so only float sources such as replays can produce NaN), and model step errors have no metric.",
+        "Liveness (`slipd/daemon/loop.py`) is one rule: a valid decision on fresh samples (counter advancing, "
+        "finite, not bit-identical to the one before) within `sensor.stall_timeout_ms`. Every blind cause above "
+        "fails safe once per episode with one log line and its own `reason`; only while live are the systemd "
+        "watchdog pinged and the arm's watchdog kicked, and `READY=1` waits for the first live decision.",
+        "",
+        "Corrections to the previous report: `slipd_nonfinite_values_total` is incremented (non-finite and "
+        "clipped sensor values, once per block of frames); PTSCOM carries float32, so NaN and Inf do reach the "
+        "daemon from a sensor. Model step errors still have no metric (`LoopStats.step_errors`).",
         "",
         "## Fuzzing",
         "",
