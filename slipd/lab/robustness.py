@@ -1,0 +1,326 @@
+"""Robustness benchmark: every detector on every physics family, long no-slip holds, leave-one-family-out, seeds.
+
+    python tools/robustness.py --model slipd/models/slip_ensemble_int8.json
+    python tools/robustness.py --model M.json --authors out/reference.json \\
+        --lofo viscoelastic=out/lofo_visco.json stribeck=out/lofo_stribeck.json ... \\
+        --seeds out/seed0.json out/seed1.json out/seed2.json
+
+Data (``tools/make_dataset.py``): ``--robust`` (default ``out/datasets/robust_test``) and ``--holds`` (default
+``out/datasets/holds_test``); each recording's ``physics_family`` and ``scenario`` come from the folder's
+``index.json`` (else from the recording's meta). Detectors: the ``--model`` manifest, both heuristics with their
+shipped parameters (``--baselines``, default ``slipd/models/baselines_transfer.json``), and optionally the authors'
+checkpoints as a manifest (``--authors``). Everything is streamed through ``slipd.lab.evaluate.evaluate_paths``
+and scored by ``slipd.lab.metrics`` (no second evaluation loop). Writes ``reports/robustness.md`` and ``.json``
+(``--out``) and prints every figure.
+
+Figures
+    per family: offline success (TP+TN)/N, balanced success, stop-trial false alarms FP/(FP+TN), latency
+    median / p90 (TP, from the labelled onset), false alarms per hour over the no-slip recordings.
+    holds, per hold type: recordings, hours, alarms (rising edges), false alarms per hour, and where p_slip
+    settles: p99 of p_slip over the last 80 % of each hold (worst recording) and the margin below the threshold.
+    leave-one-family-out: each fold's model on its held-out family beside the better heuristic there.
+    seeds: several manifests of one recipe -> mean and spread (sample standard deviation) of each figure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from slipd.detect.baselines import BASELINES, load_params
+from slipd.lab.evaluate import evaluate_paths
+from slipd.lab.metrics import summarize
+from slipd.lab.paths import ROOT
+from slipd.recording import Recording, list_recordings
+
+DEFAULT_BASELINES = ROOT / "slipd" / "models" / "baselines_transfer.json"
+SETTLE_FRACTION = 0.8
+"""p_slip settling is measured over the last 80 % of each hold."""
+
+
+# --------------------------------------------------------------------------- data
+def tags(folder: Path) -> dict[str, dict[str, str]]:
+    """Recording stem -> {"physics_family", "scenario", "sensor"} from ``index.json`` (else the meta)."""
+    out: dict[str, dict[str, str]] = {}
+    index = folder / "index.json"
+    if index.exists():
+        for e in json.loads(index.read_text()).get("recordings", []):
+            sensor = e.get("scene", {}).get("sensor", "")
+            out[Path(e["file"]).stem] = {"physics_family": e.get("physics_family", ""),
+                                         "scenario": e.get("scenario", ""), "sensor": sensor}
+    for p in list_recordings(folder):
+        if p.stem not in out:
+            meta = Recording.load(p).meta or {}
+            out[p.stem] = {"physics_family": meta.get("physics_family", ""), "scenario": meta.get("scenario", ""),
+                           "sensor": (meta.get("sensor") or {}).get("name", "")}
+    return out
+
+
+def subset(paths: list[Path], limit: int) -> list[Path]:
+    """``limit`` recordings spread over the whole set (a fixed permutation; families, scenarios and sensors are
+    assigned round-robin by index, so a prefix would not be representative). 0: all."""
+    if not limit or limit >= len(paths):
+        return paths
+    keep = np.sort(np.random.default_rng(0).permutation(len(paths))[:limit])
+    return [paths[i] for i in keep]
+
+
+def detectors(args) -> list[dict]:
+    """[{name, kind, args, threshold}] for evaluate_paths: the model, both heuristics, optionally the authors'."""
+    out = []
+    if args.model:
+        out.append(_model_entry("slipd", args.model))
+    src = Path(args.baselines)
+    for name in sorted(BASELINES):
+        if args.heuristics is not None and name not in args.heuristics:
+            continue
+        params, frontend = load_params(src, name) if src.exists() else ({}, {})
+        out.append({"name": name, "kind": "baseline", "args": (name, params, frontend), "threshold": 0.5,
+                    "source": f"{src.name if src.exists() else 'defaults'}"})
+    if args.authors:
+        out.append(_model_entry("authors", args.authors))
+    return out
+
+
+def _model_entry(name: str, manifest: str) -> dict:
+    threshold = float(json.loads(Path(manifest).read_text()).get("threshold", 0.5))
+    return {"name": name, "kind": "model", "args": (manifest, 0.0, None, None), "threshold": threshold,
+            "source": str(manifest)}
+
+
+# --------------------------------------------------------------------------- figures
+def figures(results: list) -> dict:
+    """The benchmark's figures of a group of (SceneResult, Trace, SceneTruth) (``slipd.lab.metrics``)."""
+    s = summarize([r[0] for r in results])
+    off = s.offline
+    stops = off.fp + off.tn
+    return {
+        "n": s.n_scenes, "slip": off.tp + off.fn, "stop": stops,
+        "success": off.success_rate, "balanced": off.balanced_success,
+        "stop_false_alarms": off.fp / stops if stops else None, "stop_alarmed": off.fp,
+        "latency_median_s": s.latency_s.median, "latency_p90_s": s.latency_s.p90,
+        "unscored_slips": s.offline_unlabelled,
+        "false_alarms_per_hour": s.false_alarms_per_hour, "no_slip_hours": s.no_slip_hours,
+    }
+
+
+def settle(results: list, threshold: float) -> dict:
+    """Where p_slip settles on holds: p99 over the last ``SETTLE_FRACTION`` of each recording."""
+    p99 = []
+    for _, trace, truth in results:
+        p = np.asarray(trace.p_slip, np.float64)
+        t = np.asarray(trace.t_s, np.float64)
+        tail = p[t >= truth.duration_s * (1.0 - SETTLE_FRACTION)]
+        if len(tail):
+            p99.append(float(np.percentile(tail, 99)))
+    if not p99:
+        return {"p99_worst": None, "p99_median": None, "margin": None}
+    worst = max(p99)
+    return {"p99_worst": worst, "p99_median": float(np.median(p99)), "margin": threshold - worst}
+
+
+def holds_figures(results: list, threshold: float | None) -> dict:
+    """Hold figures; p_slip settling only for models (``threshold`` None: a heuristic, whose output is a flag)."""
+    s = summarize([r[0] for r in results])
+    settled = settle(results, threshold) if threshold is not None else {"p99_worst": None, "p99_median": None,
+                                                                         "margin": None}
+    return {"n": s.n_scenes, "hours": s.no_slip_hours, "alarms": s.false_alarms,
+            "false_alarms_per_hour": s.false_alarms_per_hour, **settled}
+
+
+def group(results: list, tag: dict, key: str) -> dict[str, list]:
+    out: dict[str, list] = {}
+    for r in results:
+        out.setdefault(tag.get(r[2].name, {}).get(key, "") or "-", []).append(r)
+    return dict(sorted(out.items()))
+
+
+# --------------------------------------------------------------------------- run
+def run(args) -> dict:
+    robust_dir, holds_dir = Path(args.robust), Path(args.holds)
+    robust = list_recordings(robust_dir) if robust_dir.is_dir() else []
+    holds = list_recordings(holds_dir) if holds_dir.is_dir() else []
+    robust, holds = subset(robust, args.limit), subset(holds, args.holds_limit)
+    if not robust and not holds:
+        raise SystemExit(f"no recordings in {robust_dir} or {holds_dir}; make them with tools/make_dataset.py "
+                         "--set robust|holds --split test --out DIR")
+    rtag = tags(robust_dir) if robust else {}
+    htag = tags(holds_dir) if holds else {}
+    report: dict = {"robust_data": str(robust_dir), "holds_data": str(holds_dir), "robust_recordings": len(robust),
+                    "holds_recordings": len(holds), "limits": {"robust": args.limit, "holds": args.holds_limit},
+                    "detectors": [], "families": {}, "holds": {}}
+    t0 = time.perf_counter()
+    w = max(1, args.workers)
+    for det in detectors(args):
+        report["detectors"].append({k: det[k] for k in ("name", "kind", "threshold", "source")})
+        if robust:
+            res = evaluate_paths(robust, det["kind"], det["args"], workers=w, progress=False)
+            fams = {fam: figures(rs) for fam, rs in group(res, rtag, "physics_family").items()}
+            fams["all"] = figures(res)
+            report["families"][det["name"]] = fams
+        if holds:
+            res = evaluate_paths(holds, det["kind"], det["args"], workers=w, progress=False)
+            thr = det["threshold"] if det["kind"] == "model" else None
+            types = {h: holds_figures(rs, thr) for h, rs in group(res, htag, "scenario").items()}
+            types["all"] = holds_figures(res, thr)
+            report["holds"][det["name"]] = types
+        print(f"  {det['name']}: done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    if args.lofo and robust:
+        report["lofo"] = {}
+        for spec in args.lofo:
+            fam, _, manifest = spec.partition("=")
+            paths = [p for p in robust if rtag.get(p.stem, {}).get("physics_family") == fam]
+            if not paths:
+                raise SystemExit(f"--lofo {spec}: no {fam!r} recordings in {robust_dir}")
+            det = _model_entry(f"lofo_{fam}", manifest)
+            fig = figures(evaluate_paths(paths, det["kind"], det["args"], workers=w, progress=False))
+            heur = {b: report["families"].get(b, {}).get(fam, {}).get("balanced") for b in BASELINES}
+            best = max((v for v in heur.values() if v is not None), default=None)
+            report["lofo"][fam] = {"manifest": manifest, **fig, "best_heuristic_balanced": best,
+                                   "margin_points": (fig["balanced"] - best) * 100
+                                   if best is not None and fig["balanced"] is not None else None}
+    if args.seeds and robust:
+        per_seed = []
+        for manifest in args.seeds:
+            det = _model_entry("seed", manifest)
+            fig = figures(evaluate_paths(robust, det["kind"], det["args"], workers=w, progress=False))
+            if holds:
+                hf = holds_figures(evaluate_paths(holds, det["kind"], det["args"], workers=w, progress=False),
+                                   det["threshold"])
+                fig["holds_false_alarms_per_hour"] = hf["false_alarms_per_hour"]
+                fig["holds_margin"] = hf["margin"]
+            per_seed.append({"manifest": manifest, **fig})
+        keys = ("success", "balanced", "stop_false_alarms", "latency_median_s", "holds_false_alarms_per_hour",
+                "holds_margin")
+        spread = {}
+        for k in keys:
+            vals = [s[k] for s in per_seed if s.get(k) is not None]
+            if vals:
+                spread[k] = {"mean": statistics.fmean(vals), "sd": statistics.stdev(vals) if len(vals) > 1 else 0.0,
+                             "min": min(vals), "max": max(vals)}
+        report["seeds"] = {"runs": per_seed, "summary": spread}
+    report["seconds"] = round(time.perf_counter() - t0, 1)
+    return report
+
+
+# --------------------------------------------------------------------------- report
+def _pct(v) -> str:
+    return "-" if v is None else f"{100 * v:.1f} %"
+
+
+def _ms(v) -> str:
+    return "-" if v is None else f"{1000 * v:.0f} ms"
+
+
+def _num(v, digits: int = 1) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
+
+
+def tables(report: dict) -> list[tuple[str, list[str], list[list[str]]]]:
+    """(title, header, rows) of every table; printed and written the same way."""
+    out = []
+    if report["families"]:
+        head = ["detector", "family", "n (slip/stop)", "offline success", "balanced", "stop false alarms",
+                "latency median", "latency p90", "FA/h no-slip"]
+        rows = []
+        for det, fams in report["families"].items():
+            for fam, f in fams.items():
+                rows.append([det, fam, f"{f['n']} ({f['slip']}/{f['stop']})", _pct(f["success"]), _pct(f["balanced"]),
+                             f"{_pct(f['stop_false_alarms'])} ({f['stop_alarmed']}/{f['stop']})",
+                             _ms(f["latency_median_s"]), _ms(f["latency_p90_s"]), _num(f["false_alarms_per_hour"], 0)])
+        out.append(("Every detector on every physics family (robust test split)", head, rows))
+    if report["holds"]:
+        head = ["detector", "hold type", "recordings", "minutes", "alarms", "false alarms / h", "p99 p_slip (worst)",
+                "p99 p_slip (median)", "margin below threshold"]
+        rows = []
+        for det, types in report["holds"].items():
+            for h, f in types.items():
+                rows.append([det, h, str(f["n"]), _num(f["hours"] * 60), str(f["alarms"]),
+                             _num(f["false_alarms_per_hour"], 1), _num(f["p99_worst"], 3), _num(f["p99_median"], 3),
+                             _num(f["margin"], 3)])
+        out.append((f"Holds: false alarms per hour and where p_slip settles (last {SETTLE_FRACTION:.0%} of each hold)",
+                    head, rows))
+    if report.get("lofo"):
+        head = ["held-out family", "offline success", "balanced", "stop false alarms", "latency median",
+                "better heuristic balanced", "margin (points)", "manifest"]
+        rows = [[fam, _pct(f["success"]), _pct(f["balanced"]), _pct(f["stop_false_alarms"]), _ms(f["latency_median_s"]),
+                 _pct(f["best_heuristic_balanced"]), _num(f["margin_points"]), f["manifest"]]
+                for fam, f in report["lofo"].items()]
+        out.append(("Leave-one-family-out: each fold's model on the family it was trained without", head, rows))
+    if report.get("seeds"):
+        head = ["figure", "mean", "sd", "min", "max"]
+        rows = []
+        for k, v in report["seeds"]["summary"].items():
+            fmt = _ms if k.endswith("_s") else _pct if k in ("success", "balanced", "stop_false_alarms") else _num
+            rows.append([k, fmt(v["mean"]), fmt(v["sd"]), fmt(v["min"]), fmt(v["max"])])
+        out.append((f"Seeds: {len(report['seeds']['runs'])} runs of the recipe", head, rows))
+    return out
+
+
+def markdown(report: dict) -> str:
+    lines = ["# Robustness benchmark", "",
+             "Generated by `python tools/robustness.py` (slipd.lab.robustness); every figure below is printed by that "
+             "command. Metrics: `slipd.lab.metrics` (offline criterion: an alarm from 0.3 s before the labelled onset "
+             "until gross slip is a hit; any alarm on a stop/hold is a false alarm).", "",
+             f"- robust test split: `{report['robust_data']}` ({report['robust_recordings']} recordings"
+             + (f", a spread subset of --limit {report['limits']['robust']})" if report["limits"]["robust"] else ")"),
+             f"- holds: `{report['holds_data']}` ({report['holds_recordings']} recordings"
+             + (f", a spread subset of --holds-limit {report['limits']['holds']})" if report["limits"]["holds"]
+                else ")"),
+             "- detectors: " + "; ".join(f"{d['name']} ({d['kind']}, threshold {d['threshold']:g}, {d['source']})"
+                                          for d in report["detectors"]),
+             f"- evaluation time: {report['seconds']} s", ""]
+    for title, head, rows in tables(report):
+        lines += [f"## {title}", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        lines += ["| " + " | ".join(r) + " |" for r in rows]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def print_report(report: dict) -> None:
+    for title, head, rows in tables(report):
+        widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(head)]
+        print(f"\n{title}")
+        print("  ".join(h.ljust(w) for h, w in zip(head, widths)))
+        for r in rows:
+            print("  ".join(c.ljust(w) for c, w in zip(r, widths)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point."""
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--model", help="the model manifest to benchmark (slipd.detect.ensemble.Ensemble.load)")
+    p.add_argument("--authors", help="the authors' checkpoints as a manifest (optional)")
+    p.add_argument("--baselines", default=str(DEFAULT_BASELINES), help="shipped heuristic parameters JSON")
+    p.add_argument("--robust", default=str(ROOT / "out" / "datasets" / "robust_test"))
+    p.add_argument("--holds", default=str(ROOT / "out" / "datasets" / "holds_test"))
+    p.add_argument("--lofo", nargs="*", default=[], metavar="FAMILY=MANIFEST",
+                   help="per-fold manifests: the recipe trained without FAMILY")
+    p.add_argument("--seeds", nargs="*", default=[], metavar="MANIFEST", help="several seeds of one recipe")
+    p.add_argument("--workers", type=int, default=1, help="processes (2 at most on the shared machine)")
+    p.add_argument("--heuristics", nargs="*", choices=sorted(BASELINES), default=None,
+                   help="which heuristics (default: both)")
+    p.add_argument("--limit", type=int, default=0,
+                   help="evaluate N robust recordings spread over the set (0: all; a reduced run says so)")
+    p.add_argument("--holds-limit", type=int, default=0, help="the same for the holds")
+    p.add_argument("--out", default=str(ROOT / "reports" / "robustness"),
+                   help="report path without suffix (.md and .json are written)")
+    args = p.parse_args(argv)
+    report = run(args)
+    print_report(report)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")
+    out.with_suffix(".md").write_text(markdown(report))
+    print(f"\nwrote {out.with_suffix('.md')} and {out.with_suffix('.json')} ({report['seconds']} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
