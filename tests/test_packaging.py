@@ -298,3 +298,27 @@ def test_ci_runs_the_wheel_test():
     ci = (ROOT / ".ci" / "run").read_text().splitlines()
     assert "make test" in ci and "make wheel-test" in ci
     assert "\nwheel-test:" in (ROOT / "Makefile").read_text()
+
+
+def test_mx28_emulator_parts_keep_their_old_import_path():
+    """The emulated MX-28 is split into its wire codec, control table and jaw model; every public name
+    of the parts is still importable from ``slipd.sim.devices.mx28`` (the same object), and the codec
+    and the jaw model stand alone (no slipd import: each is a leaf)."""
+    pytest.importorskip("scipy")
+    from slipd.sim.devices import dynamixel_protocol, jaw_model, mx28, mx28_control_table
+
+    for part in (dynamixel_protocol, mx28_control_table, jaw_model):
+        public = [n for n in vars(part) if not n.startswith("_") and getattr(vars(part)[n], "__module__",
+                                                                            part.__name__) == part.__name__]
+        assert public
+        for name in public:
+            if name in ("annotations", "dataclass", "deque", "math", "Iterable"):
+                continue
+            assert getattr(mx28, name) is getattr(part, name), name
+            assert name in mx28.__all__, name
+    graph = import_graph()
+    for leaf in ("slipd.sim.devices.dynamixel_protocol", "slipd.sim.devices.jaw_model",
+                 "slipd.sim.devices.mx28_control_table"):
+        assert graph[leaf] == [], (leaf, graph[leaf])
+    assert {t for t, _, _ in graph["slipd.sim.devices.mx28"]} == {
+        "slipd.sim.devices.dynamixel_protocol", "slipd.sim.devices.jaw_model", "slipd.sim.devices.mx28_control_table"}
