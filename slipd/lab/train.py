@@ -104,9 +104,14 @@ def slip_span_labels(label: np.ndarray, events: dict, t_s: np.ndarray) -> np.nda
     if not len(on):
         return label
     out = label.copy()
+    # Only the first labelled run (the event the ``events`` describe) is extended: a recording with several
+    # moves (press, slip, hold, release, regrasp, slip) keeps its holds between them negative.
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], (label > 0).astype(np.int8), [0]])))
+    first_end = int(edges[1])
     end_t = events.get("gross_motion") or events.get("gross_slip")
-    end = int(np.searchsorted(t_s, end_t)) if end_t is not None else int(on[-1]) + 1
-    out[on[0] : max(end, int(on[-1]) + 1)] = 1
+    end = int(np.searchsorted(t_s, end_t)) if end_t is not None else first_end
+    later = int(edges[2]) if len(edges) > 2 else len(label)
+    out[on[0] : min(max(end, first_end), later)] = 1
     return out
 
 
