@@ -157,3 +157,15 @@ def test_batches_mixing_families_equal_single_runs():
         single = generate(sc, seed=i)
         assert np.array_equal(single.slip, batch[i].slip)
         assert np.allclose(single.force, batch[i].force, atol=1e-5)
+
+
+def test_grips_set_randomises_closing_rate_and_hold_before_the_move():
+    items = dataset_scenes("grips", "test", 20, 0)
+    scenes = [parse_scene({k: v for k, v in d.items() if k != "_tags"}, d["name"]) for d, _ in items]
+    closes = [sc.grip.close_s for sc in scenes]
+    settles = [sc.settle_s for sc in scenes]
+    assert min(closes) >= 0.05 and max(closes) <= 2.0 and max(closes) > 4 * min(closes)
+    assert min(settles) >= 0.2 and max(settles) > 2.0
+    for sc in scenes:  # the motion still fits: 3.2 s after the arm starts, as in the transfer design
+        assert sc.duration_s == pytest.approx(sc.pre_s + sc.grip.close_s + sc.settle_s + 3.2, abs=2e-3)
+    assert {d["_tags"]["scenario"] for d, _ in items} == {"grip"}

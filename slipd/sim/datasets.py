@@ -1,7 +1,8 @@
 """Simulated data sets: ``offline`` (hexapod-like, v1), ``transfer`` (gripper trials, v2), ``robust`` (every
-physics family, both sensors, randomised scenario timelines) and ``holds`` (long no-slip holds of each type).
+physics family, both sensors, randomised scenario timelines), ``holds`` (long no-slip holds of each type) and
+``grips`` (gripper trials whose grip closes at random rates and holds still for random times before the move).
 
-``robust`` and ``holds`` recordings carry ``meta["physics_family"]`` (one of ``FAMILIES``) and
+``robust``, ``holds`` and ``grips`` recordings carry ``meta["physics_family"]`` (one of ``FAMILIES``) and
 ``meta["scenario"]`` (the scenario kind: ``ROBUST_SCENARIOS`` or ``HOLD_TYPES``), also listed per recording in
 ``index.json``, so that a family can be left out of training and tested on alone.
 
@@ -33,10 +34,11 @@ from slipd.sim.scene import (
     secure_grip_n,
 )
 
-SETS = ("offline", "transfer", "robust", "holds")
+SETS = ("offline", "transfer", "robust", "holds", "grips")
 SPLITS = ("train", "test")
 _SPLIT_BASE = {"train": 0, "test": 1 << 30}
-_SET_ID = {"offline": 1, "transfer": 2, "robust": 3, "holds": 4}
+_SET_ID = {"offline": 1, "transfer": 2, "robust": 3, "holds": 4, "grips": 5}
+_TAGGED = ("robust", "holds", "grips")
 
 # Effects of a realistic measurement chain, listed by every data-set scene.
 MEASUREMENT = [{"name": "lowpass"}, {"name": "noise"}, {"name": "quantisation"}]
@@ -133,8 +135,12 @@ def offline_scene(rng: np.random.Generator, index: int, stop_prob: float | None 
 
 
 def gripper_scene(obj_name: str, motion: str, level: str, grip_fraction: float | None,
-                  name: str | None = None) -> dict[str, Any]:
-    """One gripper trial on the v2 sensor. ``grip_fraction`` None = a secure-grip stop trial."""
+                  name: str | None = None, close_s: float | None = None, settle_s: float | None = None,
+                  sensor: str = "v2") -> dict[str, Any]:
+    """One gripper trial on the v2 sensor. ``grip_fraction`` None = a secure-grip stop trial.
+
+    ``close_s``/``settle_s``: how fast the grip closes and how long it holds still before the arm moves
+    (default: the scene defaults, as in the transfer design); the recording grows by the extra settle."""
     spec = dict(OBJECTS[obj_name])
     offcentre = motion == "lift_offcentre"
     spec["com_offset_mm"] = [OFFCENTRE_MM, 0.0] if offcentre else [0.0, 0.0]
@@ -155,12 +161,17 @@ def gripper_scene(obj_name: str, motion: str, level: str, grip_fraction: float |
         effects.append({"name": "curvature"})
     if offcentre:
         effects.append({"name": "offcenter_torque"})
+    timing: dict[str, Any] = {}
+    if close_s is not None or settle_s is not None:
+        close, settle = close_s if close_s is not None else 0.3, settle_s if settle_s is not None else 0.2
+        timing = {"settle_s": round(settle, 3), "duration_s": round(4.0 + close - 0.3 + settle - 0.2, 3)}
     return {
         "family": "gripper",
         "name": name or f"{obj_name}_{motion}_{level}_{'stop' if grip_fraction is None else f'g{grip_fraction:g}'}",
-        "sensor": "v2",
+        "sensor": sensor,
+        **timing,
         "object": {"name": obj_name, **spec},
-        "grip": {"force_n": round(float(grip), 3)},
+        "grip": {"force_n": round(float(grip), 3), **({"close_s": round(close_s, 3)} if close_s is not None else {})},
         "motion": {"kind": kind, "level": level, **({"push_resist_n": round(resist, 3)} if kind == "push" else {})},
         "trial": "stop" if grip_fraction is None else "slip",
         "effects": effects,
@@ -184,13 +195,13 @@ def dataset_scenes(set_name: str, split: str, count: int | None, seed: int,
     tags under ``"_tags"`` (``physics_family``, ``scenario``); ``write_dataset`` moves them into the meta."""
     if set_name not in SETS:
         raise ValueError(f"set must be one of {SETS}, got {set_name!r}")
-    if set_name in ("robust", "holds"):
-        n = (200 if set_name == "robust" else len(HOLD_TYPES) * 2 * 10) if count is None else count
-        make = robust_scene if set_name == "robust" else hold_scene
+    if set_name in _TAGGED:
+        n = (len(HOLD_TYPES) * 2 * 10 if set_name == "holds" else 200) if count is None else count
         out = []
         for i in range(n):
             rng = np.random.default_rng([_SET_ID[set_name], _SPLIT_BASE[split] >> 20, seed, i])
-            d = make(rng, i) if set_name == "robust" else make(rng, i, hold_s)
+            d = (robust_scene(rng, i) if set_name == "robust" else grip_scene(rng, i) if set_name == "grips"
+                 else hold_scene(rng, i, hold_s))
             out.append((d, scene_seed(set_name, split, seed, i)))
         return out
     if set_name == "offline":
@@ -213,11 +224,11 @@ def write_dataset(set_name: str, split: str, out: str | Path, count: int | None 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     items = list(enumerate(dataset_scenes(set_name, split, count, seed, hold_s)))
-    if set_name in ("robust", "holds"):
+    if set_name in _TAGGED:
         # Simulate recordings of similar length together (a batch runs as long as its longest scene) and of
         # the same sensor and physics path; files keep their scene index.
-        items.sort(key=lambda it: (it[1][0]["sensor"], it[1][0]["physics"]["name"] != "stick_slip"
-                                   or "spread" in it[1][0]["physics"], _timeline_s(it[1][0]), it[0]))
+        items.sort(key=lambda it: (it[1][0]["family"], it[1][0]["sensor"], _general_path(it[1][0]),
+                                   _timeline_s(it[1][0]), it[0]))
     import scipy.signal  # noqa: F401  (the lowpass effect's one-off import is not simulation time)
 
     entries = []
@@ -253,7 +264,7 @@ def write_dataset(set_name: str, split: str, out: str | Path, count: int | None 
         "speed_ratio": round(sim_s / wall, 1) if wall > 0 else None,
         "recordings": entries,
     }
-    if set_name in ("robust", "holds"):
+    if set_name in _TAGGED:
         index["physics_family"] = {f: sum(e.get("physics_family") == f for e in entries) for f in FAMILIES}
         index["scenario"] = {}
         for e in entries:
@@ -377,6 +388,19 @@ def robust_scene(rng: np.random.Generator, index: int) -> dict[str, Any]:
             "_tags": {"physics_family": family, "scenario": scenario}}
 
 
+def grip_scene(rng: np.random.Generator, index: int) -> dict[str, Any]:
+    """One recording of the ``grips`` set: a transfer-style gripper trial (default physics, v1 or v2) whose grip
+    closes in 0.05-2 s and holds still 0.2-60 s before the arm moves (the transfer design always closes in
+    0.3 s and moves 0.2 s later)."""
+    obj = str(rng.choice(list(OBJECTS)))
+    motion = str(rng.choice(TRANSFER_MOTIONS))
+    fraction = None if rng.random() < 0.25 else float(rng.choice(GRIP_FRACTIONS))
+    d = gripper_scene(obj, motion, str(rng.choice(LEVELS)), fraction, close_s=_loguniform(rng, 0.05, 2.0),
+                      settle_s=_pre_motion_hold(rng), sensor=str(rng.choice(["v1", "v2"])))
+    d["name"] = f"grip_{index:05d}_{d['name']}"
+    return {**d, "_tags": {"physics_family": "stick_slip", "scenario": "grip"}}
+
+
 def hold_scene(rng: np.random.Generator, index: int, hold_s: float = HOLD_S) -> dict[str, Any]:
     """One recording of the ``holds`` set: hold type ``index % 5``, sensor alternating every 5, family
     round-robin every 10; ``hold_s`` of stillness after the scenario's events (none slip)."""
@@ -403,8 +427,16 @@ def hold_scene(rng: np.random.Generator, index: int, hold_s: float = HOLD_S) -> 
             "_tags": {"physics_family": family, "scenario": htype}}
 
 
+def _general_path(d: dict[str, Any]) -> bool:
+    """True when a scene runs the general contact-model loop rather than the default one."""
+    ph = d.get("physics") or {"name": "stick_slip"}
+    return ph["name"] != "stick_slip" or "spread" in ph
+
+
 def _timeline_s(d: dict[str, Any]) -> float:
     """Approximate length of a timeline scene (stop moves count their probe's worst case as 2 s)."""
+    if "timeline" not in d:
+        return float(d.get("duration_s", 4.0))
     total = float(d.get("pre_s", 0.3))
     for seg in d.get("timeline") or []:
         if seg["op"] == "move":

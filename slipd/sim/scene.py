@@ -99,7 +99,7 @@ class HexMotion(_Model):
 
 class _SceneBase(_Model):
     name: str = "scene"
-    duration_s: float = Field(4.0, gt=0.0, le=60.0)
+    duration_s: float = Field(4.0, gt=0.0, le=600.0)
     pre_s: float = Field(0.3, ge=0.05)
     settle_s: float = Field(0.2, ge=0.0)
     effects: list[dict[str, Any]] = Field(default_factory=list)
