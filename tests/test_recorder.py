@@ -115,7 +115,7 @@ def test_latched_alarm_for_10_minutes_writes_one_bounded_recording_and_keeps_it(
     r = Recording.load(f)
     assert r.meta["trigger"]["t_us"] == 1_003_000  # the onset is in the recording kept
     assert len(r) == 200 + 30 * rate  # seconds_before + MAX_EPISODE_S: bounded, not 10 minutes
-    assert rec.deleted == [] and len(rec.written) == 1
+    assert not rec.deleted and len(rec.written) == 1
     # The alarm falls, then rises again: a new episode, a new recording.
     for i in range(n, n + 1000):
         rec.push_frame(*frame(i))

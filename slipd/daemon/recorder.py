@@ -33,6 +33,7 @@ import math
 import os
 import threading
 import time
+from collections import deque
 from collections.abc import Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -53,6 +54,7 @@ DIR_MODE = 0o750
 PREFIX = "slip-"
 STAGING_SUFFIXES = (".part", ".tmp")
 FORMATS = ("npz", "csv")
+MAX_KEPT_PATHS = 1000
 MAX_EPISODE_S = 30.0
 """Longest recording of one alarm episode (after its onset); a latched alarm records no more than this."""
 
@@ -128,8 +130,9 @@ class Recorder:
         self.max_pending = max_pending
         self._futures: list[Future[list[Path]]] = []
         self._lock = threading.Lock()  # counters below are written on the worker thread
-        self.written: list[Path] = []
-        self.deleted: list[Path] = []
+        # The latest paths only: a daemon that runs for months keeps bounded state (the files are the record).
+        self.written: deque[Path] = deque(maxlen=MAX_KEPT_PATHS)
+        self.deleted: deque[Path] = deque(maxlen=MAX_KEPT_PATHS)
         self.failures = 0
         self.dropped = 0
         self._own_worker = worker is None
