@@ -17,7 +17,7 @@ import os
 import signal
 import sys
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from slipd.config import SlipdConfig, load_config
 from slipd.daemon.devices import DeviceError, build_devices, check_devices
@@ -36,7 +36,7 @@ class Service:
     cfg: SlipdConfig
     daemon: Daemon
     metrics: Metrics
-    native: NativeOutput | None = field(default=None)
+    native: NativeOutput | None = None
 
     def run(self) -> None:
         """Serve metrics and run the loop until SIGINT/SIGTERM; always releases the devices."""
