@@ -30,14 +30,15 @@ lint: $(STAMP)
 # What a robot's computer gets from `pip install slipd`: build the wheel from the files git knows
 # (a copy, so stale build/ output or a local egg-info cannot leak into it), install it into a fresh
 # virtual environment WITHOUT extras, run the daemon's commands from outside the checkout (so
-# `import slipd` is the installed one), and check that none of the extras came along.
+# `import slipd` is the installed one), and check that none of the extras came along. The fresh venv gets
+# no pip of its own: the dev venv's pip installs into it (`pip --python`), which saves bootstrapping one.
 wheel-test: $(STAMP)
 	rm -rf $(WHEEL_TEST) && mkdir -p $(WHEEL_TEST)/src
 	git ls-files -z --cached --others --exclude-standard \
 	  | tar --null --ignore-failed-read -cf - -T - 2>/dev/null | tar -xf - -C $(WHEEL_TEST)/src
 	$(BIN)/python -m build --wheel --no-isolation --outdir $(WHEEL_TEST)/dist $(WHEEL_TEST)/src >/dev/null
-	$(PY) -m venv $(WHEEL_TEST)/venv
-	$(WHEEL_TEST)/venv/bin/pip install --quiet $(WHEEL_TEST)/dist/slipd-*.whl
+	$(PY) -m venv --without-pip $(WHEEL_TEST)/venv
+	$(BIN)/pip --python $(WHEEL_TEST)/venv/bin/python install --quiet --no-compile $(WHEEL_TEST)/dist/slipd-*.whl
 	cd $(WHEEL_TEST) && set -e && \
 	  venv/bin/python -c "import slipd, sys; assert '/venv/' in slipd.__file__, slipd.__file__" && \
 	  venv/bin/slipd version && \
