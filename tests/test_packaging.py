@@ -279,9 +279,16 @@ def test_sample_recording_comes_from_its_command(tmp_path):
     sc = parse_scene({**sc.model_dump(mode="json"), "duration_s": 1.5}, "sample")
     fresh = Recording.load(generate(sc, seed=0).save(tmp_path / "sample.npz"))
     shipped = Recording.load(models.SAMPLE_RECORDING)
-    for name in ("t_us", "force", "disp", "slip", "label", "object_motion"):
-        assert np.array_equal(getattr(fresh, name), getattr(shipped, name)), name
-    assert fresh.meta == shipped.meta
+    # Bit-identical on the machine that wrote it; another CPU's SIMD exp/sin may differ in the last
+    # ulp, so the floats get a tolerance far below the signal (forces of newtons, noise of 10 mN).
+    assert np.array_equal(fresh.t_us, shipped.t_us)
+    for name in ("force", "disp", "object_motion"):
+        assert np.allclose(getattr(fresh, name), getattr(shipped, name), rtol=1e-4, atol=1e-4), name
+    assert (fresh.slip != shipped.slip).mean() < 1e-3 and abs(int(fresh.label.sum()) - int(shipped.label.sum())) <= 3
+    assert fresh.onset_index() == pytest.approx(shipped.onset_index(), abs=2)
+    assert {k: v for k, v in fresh.meta.items() if k != "events"} == {
+        k: v for k, v in shipped.meta.items() if k != "events"}
+    assert fresh.events == pytest.approx(shipped.events, abs=2e-3)
     assert "sample_slip.npz" in (ROOT / "Makefile").read_text()
 
 
