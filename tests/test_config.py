@@ -422,3 +422,42 @@ def test_check_config_refuses_alias_bomb_quickly(tmp_path):
     with pytest.raises(ConfigError):
         parse_config(alias_bomb(), "bomb")
     assert time.perf_counter() - t0 < 1.0
+
+
+def _expanded_size(levels: int, width: int) -> int:
+    """Values in ``alias_bomb(levels, width)`` with every alias expanded: the top mapping, and per line
+    a key and a list (the first of ``width`` scalars, each later one of ``width`` copies of the last)."""
+    total, size = 1, 1 + width
+    for i in range(levels):
+        total += 1 + size
+        size = 1 + width * size if i + 1 < levels else size
+    return total
+
+
+@pytest.mark.parametrize("levels,width", [(1, 3), (3, 9), (4, 9), (5, 7), (6, 5), (8, 3), (9, 3), (14, 2)])
+def test_alias_bound_is_the_expanded_size(levels, width):
+    """Refused exactly when the document, aliases expanded, is larger than the bound: the counting is
+    of values, not of lines or of alias uses."""
+    from slipd.config.load import MAX_YAML_NODES
+
+    size = _expanded_size(levels, width)
+    try:
+        parse_config(alias_bomb(levels, width), "bomb")
+        refused = False
+    except ConfigError as exc:
+        refused = "refused" in str(exc)
+    assert refused == (size > MAX_YAML_NODES), (size, MAX_YAML_NODES)
+
+
+def test_depth_bound_is_exact():
+    """The top mapping is level 1, so ``sensor:`` holds at most 30 nested lists below the bound of 32."""
+    from slipd.config.load import MAX_YAML_DEPTH
+
+    def doc(depth: int) -> str:
+        return "sensor: " + "[" * depth + "]" * depth + "\n"
+
+    with pytest.raises(ConfigError) as exc:
+        parse_config(doc(MAX_YAML_DEPTH - 1), "ok")
+    assert "refused" not in str(exc.value)  # within the bound: an ordinary validation error
+    with pytest.raises(ConfigError, match="refused: nested deeper than 32 levels"):
+        parse_config(doc(MAX_YAML_DEPTH), "deep")
