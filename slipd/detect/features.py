@@ -249,13 +249,40 @@ def prepare_samples(force: np.ndarray, spec: FeatureSpec, offset: np.ndarray | N
     return np.ascontiguousarray(tared[:, spec.columns]), n_bad
 
 
+def sliding_median(hist: np.ndarray, width: int) -> np.ndarray:
+    """Median of every run of ``width`` consecutive rows of ``hist`` [M, C] -> [M - width + 1, C] float32.
+
+    An odd-width median is one of its inputs, so any exact method gives the same bits. Widths 3 and 5
+    (the shipped model's) use min/max selection networks over shifted views: about a hundred times faster
+    than ``np.median`` over a sliding view, which dominated the cost of a training epoch; other widths
+    use ``np.median``.
+    """
+    n = len(hist) - width + 1
+    if width == 3:
+        a, b, c = hist[0:n], hist[1 : n + 1], hist[2 : n + 2]
+        return _median3(a, b, c).astype(np.float32, copy=False)
+    if width == 5:
+        a, b, c, d, e = (hist[k : n + k] for k in range(5))
+        # median5 = median3(e, max(min(a, b), min(c, d)), min(max(a, b), max(c, d))): the larger of the two
+        # pair minima and the smaller of the two pair maxima bracket the median of a..d's middle pair.
+        lo = np.maximum(np.minimum(a, b), np.minimum(c, d))
+        hi = np.minimum(np.maximum(a, b), np.maximum(c, d))
+        return _median3(e, lo, hi).astype(np.float32, copy=False)
+    out: np.ndarray = np.median(sliding_window_view(hist, width, axis=0), axis=-1).astype(np.float32)
+    return out
+
+
+def _median3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    out: np.ndarray = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+    return out
+
+
 def causal_median(x: np.ndarray, width: int) -> np.ndarray:
     """Causal median of the last ``width`` samples, edge-padded at the start. [N, C] -> [N, C]."""
     if width == 1 or len(x) == 0:
         return x.copy()
     padded = np.concatenate([np.repeat(x[:1], width - 1, axis=0), x], axis=0)
-    out: np.ndarray = np.median(sliding_window_view(padded, width, axis=0), axis=-1).astype(np.float32)
-    return out
+    return sliding_median(padded, width)
 
 
 def window_ends(n_samples: int, spec: FeatureSpec) -> np.ndarray:
@@ -272,6 +299,9 @@ def batch_windows(
     ends = window_ends(len(filtered), spec)
     if len(ends) == 0:
         return np.zeros((0, spec.input_size), np.float32), ends
+    if spec.step == spec.window:
+        # Non-overlapping windows are consecutive blocks of the time-major filtered samples: a reshape.
+        return np.ascontiguousarray(filtered[: len(ends) * spec.window]).reshape(len(ends), spec.input_size), ends
     starts = ends - spec.window + 1
     wins = sliding_window_view(filtered, spec.window, axis=0)[starts]  # [K, C, T]
     return np.ascontiguousarray(wins.transpose(0, 2, 1)).reshape(len(ends), spec.input_size), ends
@@ -434,8 +464,7 @@ def causal_median_tail(hist: np.ndarray, width: int) -> np.ndarray:
     """Median filter outputs for the last ``len(hist) - width + 1`` samples of ``hist`` (no padding)."""
     if width == 1:
         return hist
-    tail: np.ndarray = np.median(sliding_window_view(hist, width, axis=0), axis=-1).astype(np.float32)
-    return tail
+    return sliding_median(hist, width)
 
 
 def stream_windows(force: np.ndarray, spec: FeatureSpec, offset: np.ndarray | None = None) -> list[np.ndarray]:

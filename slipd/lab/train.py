@@ -115,8 +115,18 @@ def slip_span_labels(label: np.ndarray, events: dict, t_s: np.ndarray) -> np.nda
     return out
 
 
+DEFAULT_FAMILY = "stick_slip"
+"""The physics family of a recording whose meta names none (the offline and transfer sets)."""
+
+
+def physics_family(rec: Recording) -> str:
+    """The contact model a recording was simulated with (``meta["physics_family"]``)."""
+    return str(rec.meta.get("physics_family", DEFAULT_FAMILY))
+
+
 def load_sequences(data_dir: Path, spec: FeatureSpec, max_recordings: int = 0,
-                   label_span: str = "incipient") -> tuple[list[Seq], list[str]]:
+                   label_span: str = "incipient", exclude_families: tuple[str, ...] = ()
+                   ) -> tuple[list[Seq], list[str]]:
     """Load every recording under ``data_dir`` as a tared ``Seq``; returns (sequences, file names).
 
     The offset is the recording's own ``meta["tare_samples"]`` stretch (or ``spec.tare_samples``).
@@ -131,6 +141,8 @@ def load_sequences(data_dir: Path, spec: FeatureSpec, max_recordings: int = 0,
     seqs, names = [], []
     for path in paths:
         rec = Recording.load(path)
+        if physics_family(rec) in exclude_families:
+            continue  # held out (leave-one-family-out)
         if rec.label is None:
             raise RecordingError(f"{path}: no 'label' array (training needs the incipient-slip truth)")
         if len(rec) < spec.window:
@@ -470,6 +482,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--hidden", type=int)
     p.add_argument("--pred", type=int, nargs=2)
     p.add_argument("--max-recordings", type=int, help="use only the first N recordings (0 = all)")
+    p.add_argument("--exclude-family", action="append", default=[],
+                   help="leave out every recording of this physics family (meta physics_family; the offline and "
+                        "transfer sets are stick_slip); repeatable: leave-one-family-out folds")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-eval", action="store_true", help="skip the eval-mode pass over all data per member")
@@ -574,7 +589,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         pool, names = [], []
         for folder in args.data:
-            p, n = load_sequences(folder, spec, args.max_recordings, args.label_span)
+            p, n = load_sequences(folder, spec, args.max_recordings, args.label_span, tuple(args.exclude_family))
             pool += p
             names += n
     except RecordingError as exc:
