@@ -158,10 +158,16 @@ def cmd_models(args: argparse.Namespace) -> int:
 def cmd_sim(args: argparse.Namespace) -> int:
     """The closed-loop simulated rig (needs the ``sim`` extra)."""
     try:
-        from slipd.sim.rig import main_sim
+        from slipd.sim.rig import DEFAULT_CONFIG, DEFAULT_SCENE, main_sim
     except ImportError as exc:
         _err(f"slipd sim needs the simulator's extra: pip install 'slipd[sim]' ({exc})")
         return EXIT_USAGE
+    for given, default, what in ((args.scene, DEFAULT_SCENE, "--scene"), (args.config, DEFAULT_CONFIG, "--config")):
+        path = Path(given) if given else default
+        if not path.is_file():
+            # The defaults live in a source checkout (config/); an installed package has none.
+            _err(f"slipd sim: {what} {path}: file not found (run from a slipd checkout, or pass {what})")
+            return EXIT_USAGE
     return main_sim(args)
 
 
