@@ -660,7 +660,11 @@ def _timeline_labels(b: tl.Built, res: dict) -> tuple[tuple[np.ndarray, int | No
         item = {"kind": mv["kind"], "stop": mv["stop"], "start_s": mv["start"] * DT_S, "end_s": mv["end"] * DT_S}
         if mv["stop"]:
             item["stop_s"] = mv["stop_index"] * DT_S if mv["stop_index"] is not None else None
-            item["truth_slip"] = bool(slip[mv["start"]: mv["end"]].any())  # from its start until at rest
+            # From its start until at rest: pillars the labels consider (in contact at the start), and any other
+            # (a barely touching tip below the contact threshold may slide under a stop).
+            cons = _considered(mv["kind"], res["force"][mv["start"], :, 2])
+            item["truth_slip"] = bool(slip[mv["start"]: mv["end"], cons].any())
+            item["light_contact_slip"] = bool(slip[mv["start"]: mv["end"], ~cons].any())
         else:
             cons = _considered(mv["kind"], res["force"][mv["start"], :, 2])
             lab, onset, gross = incipient_labels(slip[:end], cons, mv["start"])
