@@ -229,7 +229,7 @@ class ReactionConfig(_Section):
     """What happens on an alarm and on a fail-safe event."""
 
     actions: list[Action] = Field(
-        default_factory=lambda: ["stop_arm", "tighten_gripper"],
+        default_factory=lambda: list[Action](["stop_arm", "tighten_gripper"]),
         description="in this order of submission; [] detects and records only",
     )
     graded: bool = Field(False, description="tighten in proportion to the risk (hold..secure) rather than to secure")
@@ -257,7 +257,9 @@ class GripperConfig(_Section):
     port: str | None = Field(None, min_length=1, description="servo bus serial device, e.g. /dev/ttyUSB0")
     baudrate: int = Field(57600, description="servo bus baud rate (MX-28 factory: 57600); one dynamixel-sdk accepts")
     id: int = Field(1, ge=0, le=252, description="servo ID on the bus")
-    protocol: Literal[1.0, 2.0] = Field(2.0, description="Dynamixel protocol of the servo firmware")
+    # Float literals are what YAML gives (1.0, 2.0); typing's Literal takes them at run time (pydantic checks
+    # the value), though the type checkers' Literal does not.
+    protocol: Literal[1.0, 2.0] = Field(2.0, description="Dynamixel protocol of the servo firmware")  # type: ignore[valid-type]
     hold_position: int | None = Field(
         None, ge=0, le=4095, description="goal position while holding (ticks, 0.088 deg)"
     )
@@ -393,7 +395,8 @@ class RecorderConfig(_Section):
         500.0, gt=0.0, le=1_000_000.0, description="MiB for all recordings; the oldest are deleted beyond it"
     )
     formats: list[Literal["npz", "csv"]] = Field(
-        default_factory=lambda: ["npz"], min_length=1, description="npz and/or Contactile SDK CSV"
+        default_factory=lambda: list[Literal["npz", "csv"]](["npz"]), min_length=1,
+        description="npz and/or Contactile SDK CSV",
     )
 
     @field_validator("directory", mode="before")

@@ -52,7 +52,7 @@ import itertools
 import struct
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -408,7 +408,7 @@ class FrameDecoder:
         """Validate and decode a frame whose payload starts at buffer index ``p0``, walking its structure."""
         buf = self._buf
         avail = self._end - p0  # payload bytes (and beyond) present so far
-        self._value_ranges: list[tuple[int, int]] = []
+        self._value_ranges = []
 
         def need(n: int) -> None:
             """Payload bytes [0, n) must be present; beyond the protocol's maximum the frame is bad."""
@@ -573,12 +573,12 @@ class FrameDecoder:
         fd = np.empty((n, 2, N_PILLARS, 3), dtype=np.float32)
         np.copyto(fd, rec.transpose(0, 2, 1, 3))
         none = itertools.repeat(None)
-        wrench: Iterable = none
-        states: Iterable = none
-        friction: Iterable = none
-        sensor: Iterable = none
-        f_est: Iterable = none
-        target: Iterable = none
+        wrench: Iterable[Any] = none
+        states: Iterable[Any] = none
+        friction: Iterable[Any] = none
+        sensor: Iterable[Any] = none
+        f_est: Iterable[Any] = none
+        target: Iterable[Any] = none
         g = found.get(TYPE_GLOBAL)
         if g is not None:
             wrench = np.ndarray((n, 6), dtype="<f4", buffer=buf, offset=p0 + g + 2, strides=(stride, 4)).astype(
