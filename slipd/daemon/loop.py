@@ -13,7 +13,7 @@ A supervision task runs on absolute deadlines (``next = start + k * period``; a 
 as an overrun and the schedule is not shifted). It owns **liveness**, defined once here
 (``Daemon._blind_cause``): a valid decision on a window of fresh samples within the stall timeout
 (``sensor.stall_timeout_ms``). A sample is fresh when its packet counter advanced (repeats are dropped by
-the reader), every value is finite and it is not bit-identical to the one before (a real sensor is
+the reader), every value the detector reads is finite and it is not bit-identical to the one before (a real sensor is
 never noise-free). Blind causes, each failing safe (stop the arm, keep the grip) once per episode with
 one log line and ``slipd_failsafe_stops_total{reason=...}``: ``sensor_lost`` (port gone),
 ``sensor_silent`` (no frame since start-up), ``sensor_stall`` (frames stopped), ``sensor_counter_stuck``,
@@ -159,7 +159,8 @@ class Daemon:
         self._nonfinite_bridge = max(1, round(NONFINITE_BRIDGE_S * cfg.sensor.rate_hz))
         self._nonfinite_run = 0  # consecutive non-finite samples up to the latest frame
         self._nonfinite_burst = False  # a run beyond the bridge since the supervisor last looked
-        self._prev_sample: np.ndarray | None = None  # the latest frame's force and disp, flattened
+        self._prev_sample: np.ndarray | None = None  # the latest frame's values read, flattened
+        self._reads_disp = cfg.model.detector != "onnx"  # the ensemble reads forces only
         now = time.monotonic()
         self._fresh_t = now  # when the latest fresh sample was handled (re-based when the loop starts)
         self._decided_t: float | None = None  # latest valid decision on fresh data (None: none this episode)
@@ -245,9 +246,12 @@ class Daemon:
 
     def _check_samples(self, force: np.ndarray, frames: list) -> None:
         """Freshness of a block (vectorised, once per block): finite, and not bit-identical to the sample
-        before. Updates ``_fresh_t`` and the run of non-finite samples up to the block's end."""
+        before, in what the detector reads (forces; displacements too for the heuristics). Updates
+        ``_fresh_t`` and the run of non-finite samples up to the block's end."""
         n = len(frames)
-        vals = np.concatenate([force.reshape(n, -1), np.stack([f.disp for f in frames]).reshape(n, -1)], axis=1)
+        vals = force.reshape(n, -1)
+        if self._reads_disp:  # stacking the displacements costs more than the whole check: only when read
+            vals = np.concatenate([vals, np.stack([f.disp for f in frames]).reshape(n, -1)], axis=1)
         finite = np.isfinite(vals).all(axis=1)
         prev = self._prev_sample
         changed = np.empty(n, bool)
