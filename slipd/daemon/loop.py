@@ -244,7 +244,7 @@ class Daemon:
             m.nonfinite.inc(bad - self._nonfinite_seen)
             self._nonfinite_seen = bad
 
-    def _check_samples(self, force: np.ndarray, frames: list) -> None:
+    def _check_samples(self, force: np.ndarray, frames: list[Any]) -> None:
         """Freshness of a block (vectorised, once per block): finite, and not bit-identical to the sample
         before, in what the detector reads (forces; displacements too for the heuristics). Updates
         ``_fresh_t`` and the run of non-finite samples up to the block's end."""
@@ -361,7 +361,7 @@ class Daemon:
             ping_every = wd / 2 if wd else None
         kick = self.arm if self.arm_worker is not None and self.arm is not None else None
         kick_every = self.cfg.arm.watchdog_s / KICKS_PER_WATCHDOG
-        kicking: concurrent.futures.Future | None = None
+        kicking: concurrent.futures.Future[None] | None = None
         last_kick = 0.0
         while not self._stop.is_set():
             k += 1
