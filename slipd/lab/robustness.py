@@ -62,6 +62,14 @@ def tags(folder: Path) -> dict[str, dict[str, str]]:
     return out
 
 
+def _rel(path: Path) -> str:
+    """A path relative to the repository when it lies inside it (reports stay machine-independent)."""
+    try:
+        return str(Path(path).resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
+
+
 def subset(paths: list[Path], limit: int) -> list[Path]:
     """``limit`` recordings spread over the whole set (a fixed permutation; families, scenarios and sensors are
     assigned round-robin by index, so a prefix would not be representative). 0: all."""
@@ -152,7 +160,7 @@ def run(args) -> dict:
                          "--set robust|holds --split test --out DIR")
     rtag = tags(robust_dir) if robust else {}
     htag = tags(holds_dir) if holds else {}
-    report: dict = {"robust_data": str(robust_dir), "holds_data": str(holds_dir), "robust_recordings": len(robust),
+    report: dict = {"robust_data": _rel(robust_dir), "holds_data": _rel(holds_dir), "robust_recordings": len(robust),
                     "holds_recordings": len(holds), "limits": {"robust": args.limit, "holds": args.holds_limit},
                     "detectors": [], "families": {}, "holds": {}}
     t0 = time.perf_counter()
