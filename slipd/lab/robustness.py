@@ -70,13 +70,23 @@ def _rel(path: Path) -> str:
         return str(path)
 
 
-def subset(paths: list[Path], limit: int) -> list[Path]:
-    """``limit`` recordings spread over the whole set (a fixed permutation; families, scenarios and sensors are
-    assigned round-robin by index, so a prefix would not be representative). 0: all."""
+def subset(paths: list[Path], limit: int, tag: dict | None = None, key: str = "") -> list[Path]:
+    """``limit`` recordings spread over the set: taken in turn from each group of ``tag[stem][key]`` (physics family,
+    hold type), in a fixed random order within a group, so every group gets its share. 0: all."""
     if not limit or limit >= len(paths):
         return paths
-    keep = np.sort(np.random.default_rng(0).permutation(len(paths))[:limit])
-    return [paths[i] for i in keep]
+    rng = np.random.default_rng(0)
+    groups: dict[str, list[Path]] = {}
+    for p in paths:
+        groups.setdefault((tag or {}).get(p.stem, {}).get(key, ""), []).append(p)
+    queues = [[g[i] for i in rng.permutation(len(g))] for _, g in sorted(groups.items())]
+    keep: list[Path] = []
+    while len(keep) < limit:
+        for q in queues:
+            if q and len(keep) < limit:
+                keep.append(q.pop(0))
+    order = {p: i for i, p in enumerate(paths)}
+    return sorted(keep, key=order.__getitem__)
 
 
 def detectors(args) -> list[dict]:
@@ -154,12 +164,13 @@ def run(args) -> dict:
     robust_dir, holds_dir = Path(args.robust), Path(args.holds)
     robust = list_recordings(robust_dir) if robust_dir.is_dir() else []
     holds = list_recordings(holds_dir) if holds_dir.is_dir() else []
-    robust, holds = subset(robust, args.limit), subset(holds, args.holds_limit)
     if not robust and not holds:
         raise SystemExit(f"no recordings in {robust_dir} or {holds_dir}; make them with tools/make_dataset.py "
                          "--set robust|holds --split test --out DIR")
     rtag = tags(robust_dir) if robust else {}
     htag = tags(holds_dir) if holds else {}
+    robust = subset(robust, args.limit, rtag, "physics_family")
+    holds = subset(holds, args.holds_limit, htag, "scenario")
     report: dict = {"robust_data": _rel(robust_dir), "holds_data": _rel(holds_dir), "robust_recordings": len(robust),
                     "holds_recordings": len(holds), "limits": {"robust": args.limit, "holds": args.holds_limit},
                     "detectors": [], "families": {}, "holds": {}}
@@ -315,8 +326,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--heuristics", nargs="*", choices=sorted(BASELINES), default=None,
                    help="which heuristics (default: both)")
     p.add_argument("--limit", type=int, default=0,
-                   help="evaluate N robust recordings spread over the set (0: all; a reduced run says so)")
-    p.add_argument("--holds-limit", type=int, default=0, help="the same for the holds")
+                   help="evaluate N robust recordings, an equal share per family (0: all; a reduced run says so)")
+    p.add_argument("--holds-limit", type=int, default=0, help="the same for the holds, per hold type")
     p.add_argument("--out", default=str(ROOT / "reports" / "robustness"),
                    help="report path without suffix (.md and .json are written)")
     args = p.parse_args(argv)
