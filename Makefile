@@ -22,10 +22,12 @@ sim: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/mypy
 	$(BIN)/pytest -q $(ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/mypy
 
 # What a robot's computer gets from `pip install slipd`: build the wheel from the files git knows
 # (a copy, so stale build/ output or a local egg-info cannot leak into it), install it into a fresh

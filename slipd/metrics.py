@@ -6,7 +6,12 @@ private (not prometheus_client's global one) so tests can create several daemons
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Info, start_http_server
+
+if TYPE_CHECKING:
+    from wsgiref.simple_server import WSGIServer
 
 # Sub-millisecond buckets: a 1 kHz loop and a 25 Hz model step are judged in tens of microseconds.
 FAST_BUCKETS = (
@@ -65,7 +70,7 @@ class Metrics:
         )
         self.model = Info("slipd_model", "Loaded model (name, sha256)", registry=r)
 
-    def serve(self, host: str = "127.0.0.1", port: int = 9477) -> object:
+    def serve(self, host: str = "127.0.0.1", port: int = 9477) -> WSGIServer:
         """Start the HTTP endpoint in a daemon thread; returns the server (``.shutdown()`` to stop)."""
         server, _thread = start_http_server(port, addr=host, registry=self.registry)
         return server

@@ -53,10 +53,12 @@ from slipd.metrics import Metrics
 
 if TYPE_CHECKING:
     from slipd.config import SlipdConfig
+    from slipd.daemon.recorder import Recorder
     from slipd.daemon.sdnotify import Notifier
     from slipd.detect.ensemble import Ensemble
     from slipd.io.arm import Arm
     from slipd.io.gripper import DynamixelGripper
+    from slipd.io.pts import Frame
 
 log = logging.getLogger("slipd.daemon.loop")
 
@@ -143,7 +145,7 @@ class Daemon:
             on_failsafe=cfg.reaction.on_failsafe,
         )
         self.notifier = notifier
-        self.recorder = None
+        self.recorder: Recorder | None = None
         self.stats = LoopStats()
         self.sensor: Any = None
         self._stop = asyncio.Event()
@@ -170,7 +172,7 @@ class Daemon:
         m.model.info({"name": str(cfg.model.manifest.name), "sha256": ensemble.manifest.sha256})
 
     # ----------------------------------------------------------------- hot path
-    def _on_frames(self, frames: list) -> None:
+    def _on_frames(self, frames: list[Frame]) -> None:
         t0 = time.perf_counter()
         n = len(frames)
         start = 0
@@ -187,7 +189,7 @@ class Daemon:
         self.metrics.loop_seconds.observe(time.perf_counter() - t0)
         self._coalesce()
 
-    def _on_block(self, frames: list) -> None:
+    def _on_block(self, frames: list[Frame]) -> None:
         """Frames without a discontinuity: through the detector in one call, then each decision in order.
 
         Per frame semantics are kept: the recorder gets each frame before the decision made on it, and
@@ -238,7 +240,7 @@ class Daemon:
             now = time.monotonic()
             self._decided_t = now
             self._decision_due = now + self._stall_s + det_.samples_to_decision() / self.cfg.sensor.rate_hz
-        feats = det_.features
+        feats = getattr(det_, "features", None)  # the ensemble's pipeline; the heuristics have none
         bad = feats.nonfinite_count + feats.clipped_count if feats is not None else 0
         if bad != self._nonfinite_seen:  # counted once per block, not per sample
             m.nonfinite.inc(bad - self._nonfinite_seen)

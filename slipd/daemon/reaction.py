@@ -90,7 +90,7 @@ class Reaction:
         self._last_level = 0.0
         self.failsafe_count = 0
 
-    def on_alarm(self, risk: float, t_decision: float | None = None) -> list[Future]:
+    def on_alarm(self, risk: float, t_decision: float | None = None) -> list[Future[Any]]:
         """React to an alarm decided at ``t_decision`` (monotonic); returns the futures of the issued calls."""
         t0 = self.clock() if t_decision is None else t_decision
         if not self.enabled:
@@ -101,7 +101,7 @@ class Reaction:
             return []
         rec = ReactionRecord(t_decision=t0, risk=float(risk))
         self.records.append(rec)
-        futures: list[Future] = []
+        futures: list[Future[Any]] = []
         for action in self.actions:
             if action == "stop_arm" and self.arm is not None and not recent:
                 futures.append(self._submit(rec, action, self.arm_worker, self.arm.stop, "slip alarm"))
@@ -111,7 +111,7 @@ class Reaction:
         self._last_t, self._last_level = t0, max(level, self._last_level if recent else 0.0)
         return futures
 
-    def failsafe(self, reason: str) -> Future | None:
+    def failsafe(self, reason: str) -> Future[Any] | None:
         """Fail safe (sensor stalled, model failed, reaction failed): by default stop the arm, keep the grip.
 
         ``on_failsafe="stop_arm_and_tighten"`` also tightens to the secure setting; ``"log_only"`` only
@@ -131,7 +131,7 @@ class Reaction:
             return None
         return self._submit(rec, "stop_arm", self.arm_worker, self.arm.stop, f"fail-safe: {reason}")
 
-    def retry_tighten(self) -> Future | None:
+    def retry_tighten(self) -> Future[Any] | None:
         """Send a tighten that failed again (the servo answers again); None when none is owed."""
         if not self._owed or self.gripper is None or not self.enabled:
             return None
@@ -147,15 +147,16 @@ class Reaction:
         self._last_level = 0.0
         self._owed, self.tighten_owed = False, None
 
-    def _submit(self, rec: ReactionRecord, action: str, worker, fn, arg) -> Future:
+    def _submit(self, rec: ReactionRecord, action: str, worker: DeviceWorker | None, fn: Callable[..., Any],
+                arg: Any) -> Future[Any]:
         def call() -> None:
             rec.issued[action] = self.clock()
             fn(arg) if arg is not None else fn()
             rec.done[action] = self.clock()
 
-        fut: Future = worker.submit(call) if worker is not None else _run_inline(call)
+        fut: Future[Any] = worker.submit(call) if worker is not None else _run_inline(call)
 
-        def finished(f: Future) -> None:
+        def finished(f: Future[Any]) -> None:
             exc = f.exception()
             if exc is not None:
                 rec.errors[action] = str(exc)
@@ -177,8 +178,8 @@ class Reaction:
         return fut
 
 
-def _run_inline(call: Callable[[], None]) -> Future:
-    fut: Future = Future()
+def _run_inline(call: Callable[[], None]) -> Future[Any]:
+    fut: Future[Any] = Future()
     try:
         call()
         fut.set_result(None)

@@ -79,7 +79,7 @@ class Recorder:
 
     def __init__(
         self,
-        directory: str | os.PathLike,
+        directory: str | os.PathLike[str],
         rate_hz: float,
         *,
         seconds_before: float = 2.0,

@@ -133,7 +133,7 @@ def metrics_exposure(host: str) -> str:
     return f"on the network interface {host}, beyond this machine"
 
 
-def prepare(config_path: str | os.PathLike) -> Service:
+def prepare(config_path: str | os.PathLike[str]) -> Service:
     """Load and check everything, then open the devices (in that order). Raises ConfigError, ModelError or
     DeviceError; nothing is opened when the config or the model is refused or a device is missing."""
     native = NativeOutput()  # first: the log handler must take the original stderr, not the pipe

@@ -251,7 +251,7 @@ class DynamixelSettings:
         return f"MX-28 id {self.dxl_id} on {self.port} (protocol {self.protocol:g})"
 
 
-class _TimedPortHandler(PortHandler):
+class _TimedPortHandler(PortHandler):  # type: ignore[misc]  # the vendor SDK is untyped
     """dynamixel-sdk's PortHandler with our packet timeout and a stamp of the last write."""
 
     def __init__(self, port_name: str, packet_timeout_ms: float) -> None:
@@ -266,13 +266,13 @@ class _TimedPortHandler(PortHandler):
 
     def writePort(self, packet: Any) -> int:  # vendor API name
         self.last_write_monotonic = time.monotonic()
-        return self.ser.write(bytes(packet))
+        return int(self.ser.write(bytes(packet)))
 
     def readPort(self, length: int) -> bytes:  # vendor API name
         # The SDK polls a non-blocking port in a tight loop while it waits for a status packet: that burns a
         # core and holds the GIL against the control loop. Wait in select() (GIL released) for the next bytes
         # instead, in short slices so the SDK's own timeout check still runs on time.
-        data = self.ser.read(length)
+        data: bytes = self.ser.read(length)
         if data:
             return data
         left_s = (self.packet_timeout - self.getTimeSinceStart()) / 1000.0
@@ -524,8 +524,8 @@ class DynamixelGripper(Gripper):
     def _write(self, address: int, data: bytes) -> None:
         self._txrx("write", address, self._packet.writeTxRx, address, len(data), list(data))
 
-    def _txrx(self, op: str, address: int | None, fn: Callable[..., tuple], *args: Any,
-              allow_hw_error: bool = False) -> tuple:
+    def _txrx(self, op: str, address: int | None, fn: Callable[..., tuple[Any, ...]], *args: Any,
+              allow_hw_error: bool = False) -> tuple[Any, ...]:
         """One SDK transaction with bounded retries on missing/corrupt status packets."""
         port = self._require_port()
         attempts = self.settings.retries + 1

@@ -285,7 +285,7 @@ class SerialSensor:
         if self._fd < 0:
             return 0
         try:
-            return struct.unpack("i", fcntl.ioctl(self._fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+            return int(struct.unpack("i", fcntl.ioctl(self._fd, termios.FIONREAD, b"\0\0\0\0"))[0])
         except OSError:
             return 0
 
