@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -60,6 +61,19 @@ def tags(folder: Path) -> dict[str, dict[str, str]]:
             out[p.stem] = {"physics_family": meta.get("physics_family", ""), "scenario": meta.get("scenario", ""),
                            "sensor": (meta.get("sensor") or {}).get("name", "")}
     return out
+
+
+def provenance() -> dict:
+    """The commit and any uncommitted changes to the detector code and models the figures came from."""
+    def git(*a: str) -> str:
+        try:
+            return subprocess.run(["git", *a], cwd=ROOT, capture_output=True, text=True, timeout=10).stdout.rstrip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+    dirty = git("status", "--porcelain", "--", "slipd/detect", "slipd/models", "slipd/lab/evaluate.py",
+                "slipd/lab/metrics.py")
+    return {"commit": git("rev-parse", "--short", "HEAD"),
+            "uncommitted": [line[3:] for line in dirty.splitlines() if line.strip()]}
 
 
 def _rel(path: Path) -> str:
@@ -173,7 +187,7 @@ def run(args) -> dict:
     holds = subset(holds, args.holds_limit, htag, "scenario")
     report: dict = {"robust_data": _rel(robust_dir), "holds_data": _rel(holds_dir), "robust_recordings": len(robust),
                     "holds_recordings": len(holds), "limits": {"robust": args.limit, "holds": args.holds_limit},
-                    "detectors": [], "families": {}, "holds": {}}
+                    "detectors": [], "families": {}, "holds": {}, "provenance": provenance()}
     t0 = time.perf_counter()
     w = max(1, args.workers)
     for det in detectors(args):
@@ -294,7 +308,12 @@ def markdown(report: dict) -> str:
                 else ")"),
              "- detectors: " + "; ".join(f"{d['name']} ({d['kind']}, threshold {d['threshold']:g}, {d['source']})"
                                           for d in report["detectors"]),
-             f"- evaluation time: {report['seconds']} s", ""]
+             f"- evaluation time: {report['seconds']} s"]
+    prov = report.get("provenance") or {}
+    if prov:
+        lines.append(f"- code: commit {prov.get('commit') or '?'}" + (
+            f", with uncommitted changes to {', '.join(prov['uncommitted'])}" if prov.get("uncommitted") else ""))
+    lines.append("")
     for title, head, rows in tables(report):
         lines += [f"## {title}", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         lines += ["| " + " | ".join(r) + " |" for r in rows]
@@ -303,6 +322,9 @@ def markdown(report: dict) -> str:
 
 
 def print_report(report: dict) -> None:
+    prov = report.get("provenance") or {}
+    if prov:
+        print(f"code: commit {prov.get('commit')}; uncommitted: {', '.join(prov.get('uncommitted') or []) or 'none'}")
     for title, head, rows in tables(report):
         widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(head)]
         print(f"\n{title}")
