@@ -142,6 +142,8 @@ class RigPhysics:
         self.mono = np.zeros(n, np.float64)
         self.steps = 0
         self.done = threading.Event()
+        self._begin = threading.Event()
+        self._start: int | None = None  # the emulator's frame index at which the timeline began
         self.lift_index: int | None = None
         self.grasp_index = round(GRASP_S / DT_S)
         self.lift_at = self.grasp_index + round((scene.grip.close_s + scene.settle_s) / DT_S)
@@ -153,8 +155,29 @@ class RigPhysics:
     def lift(self) -> None:
         """Start the scene's lift on the UR controller (hook for the rig's timeline)."""
 
-    def source(self, i: int) -> tuple[np.ndarray, np.ndarray] | None:
+    def begin(self) -> None:
+        """Start the scene's timeline at the next frame (until then the sensor streams unloaded noise)."""
+        self._begin.set()
+
+    @property
+    def timeline_start_s(self) -> float:
+        """Sensor-clock time at which the timeline began (0 before it did)."""
+        return (self._start or 0) * DT_S
+
+    def _idle(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """An unloaded sample with the scene's measurement noise: a real sensor streams before anything
+        happens, and a daemon that sees no frames (or bit-identical ones) rightly fails safe."""
+        zero = np.zeros((9, 3), np.float32)
+        measured = self._measure(zero, i % self.n)
+        return measured, measured_disp(zero, zero, measured, self.sensor).astype(np.float32)
+
+    def source(self, k: int) -> tuple[np.ndarray, np.ndarray] | None:
         """The sensor emulator's frame callback: advance the physics one sample, return (force, disp)."""
+        if self._start is None:
+            if not self._begin.is_set():
+                return self._idle(k)
+            self._start = k
+        i = k - self._start
         if i >= self.n:
             self.done.set()
             return None
@@ -291,10 +314,13 @@ def run_rig(
             with open(log_file, "w") as lf:
                 proc = subprocess.Popen([sys.executable, "-m", "slipd", "run", "--config", str(cfg_file)],
                                         stdout=lf, stderr=subprocess.STDOUT, env=env)
+            # The sensor streams unloaded noise from the start, as a real one does: the daemon's liveness
+            # check fails safe on a sensor that stays silent after start-up.
+            dev.start_sensor()
             try:
                 _wait_ready(proc, port, log_file)
                 log(f"rig: daemon ready (pid {proc.pid}, metrics http://127.0.0.1:{port}/metrics); streaming")
-                dev.start_sensor()
+                physics.begin()
                 physics.done.wait(duration_s + 30)
                 # Snapshot at once: with the stream ended the daemon will soon see a stalled sensor
                 # and (rightly) fail safe, which must not count as this run's reaction.
@@ -343,7 +369,9 @@ def summarise(physics: RigPhysics, scene_path: Any, react: bool, daemon_log: str
     outer[list(OUTER)] = True
     _, onset, gross = incipient_labels(physics.slip[:n], considered & outer if considered[outer].any() else
                                        considered, lift)
-    alarms = [float(m) for m in _ALARM_RE.findall(daemon_log)]
+    # The daemon logs the sensor's own clock, which ran through the idle frames before the timeline began.
+    offset = physics.timeline_start_s
+    alarms = [float(m) - offset for m in _ALARM_RE.findall(daemon_log)]
     alarm_s = alarms[0] if alarms else None
     stop_i = _index_of(mono, ur_state.last_stop_received_t) if ur_state.stop_count else None
     tighten = [w.t for w in writes if w.address in (116, 30) and
