@@ -9,6 +9,8 @@ How far below the threshold p_slip settles is printed, not asserted: issue 14 as
 model settles about 0.1 below it on these presses (p_slip about 0.41, with or without the gate), so that
 target is not met yet. The issue's own still presses, from a simulator that shares no code with ours, did
 set the old model off within 2 s; these tests guard against a regression on ours, they do not prove that.
+Other still presses of the ``holds`` set do set the shipped model off (for example ``hold_00055``, v2, and
+``hold_00035``, v2 with per-pillar spread): ``reports/robustness.md`` counts them.
 """
 
 from __future__ import annotations

@@ -74,22 +74,41 @@ class SlipDetector(Protocol):
 class ContactGate:
     """Whether the model may run: contact made and held, with glitch tolerance (see the module docstring).
 
-    ``update`` is called once per completed window with that window's last (tared) sample; it returns
-    (open, changed): the gate's state after this check, and whether it just flipped.
+    ``check`` is called once per completed window with that window's last (tared) normal forces [9]; it
+    returns (open, changed): the gate's state after this check, and whether it just flipped.
+
+    Contact is measured against a free-air baseline: while the gate is closed and no pillar is pressed, the
+    baseline follows each pillar's normal force with a time constant of ``BASELINE_TAU_S``. A tare drifts
+    (temperature; about 0.01 N/s was seen in free air) and a drift past the SDK's 0.5 N must not look like a
+    grasp and wake the model. A press loads the pillars within 0.05-2 s, far faster than the baseline moves,
+    and the baseline stands still while anything is pressed or the gate is open.
     """
 
-    def __init__(self, tolerance: int) -> None:
+    BASELINE_TAU_S = 5.0
+
+    def __init__(self, tolerance: int, period_s: float) -> None:
         self.tolerance = int(tolerance)
+        self._alpha = float(min(1.0, period_s / self.BASELINE_TAU_S))
         self.open = False
         self._since: int | None = None  # sample index of the first check that disagreed with ``open``
+        self._baseline = np.zeros(9, np.float64)
 
-    @staticmethod
-    def touching(fz_tared: np.ndarray) -> bool | None:
-        """Raw contact of one sample: some pillar above the SDK threshold (None: no finite value)."""
-        fz = np.asarray(fz_tared, np.float32)
-        if not np.isfinite(fz).any():
+    def touching(self, fz_tared: np.ndarray) -> bool | None:
+        """Raw contact of one sample: some pillar above the baseline by the SDK threshold (None: no finite value)."""
+        fz = np.asarray(fz_tared, np.float64)
+        finite = np.isfinite(fz)
+        if not finite.any():
             return None
-        return bool(np.nanmax(fz) > CONTACT_THRESHOLD_N)
+        return bool(np.max((fz - self._baseline)[finite]) > CONTACT_THRESHOLD_N)
+
+    def check(self, fz_tared: np.ndarray, index: int) -> tuple[bool, bool]:
+        """One check at sample ``index``: update the baseline in free air, then the gate."""
+        touching = self.touching(fz_tared)
+        if touching is False and not self.open:
+            fz = np.asarray(fz_tared, np.float64)
+            ok = np.isfinite(fz)
+            self._baseline[ok] += self._alpha * (fz[ok] - self._baseline[ok])
+        return self.update(touching, index)
 
     def update(self, touching: bool | None, index: int) -> tuple[bool, bool]:
         """Feed one check's raw contact (None keeps the state) at sample ``index``."""
@@ -104,8 +123,9 @@ class ContactGate:
         return self.open, False
 
     def reset(self) -> None:
-        """No contact known (a restart)."""
+        """No contact known (a restart: a new tare, so the baseline starts at zero again)."""
         self.open, self._since = False, None
+        self._baseline[:] = 0.0
 
 
 def gate_windows(force_tared: np.ndarray, spec: FeatureSpec) -> np.ndarray:
@@ -113,10 +133,9 @@ def gate_windows(force_tared: np.ndarray, spec: FeatureSpec) -> np.ndarray:
 
     The batch twin of the streaming check: the same ``ContactGate`` fed the same window-end samples.
     """
-    step = spec.step
-    ends = np.arange(spec.window - 1, len(force_tared), step)
-    gate = ContactGate(spec.median // 2)
-    return np.array([gate.update(gate.touching(force_tared[i, :, 2]), int(i))[0] for i in ends], bool)
+    ends = np.arange(spec.window - 1, len(force_tared), spec.step)
+    gate = ContactGate(spec.median // 2, spec.step / spec.rate_hz)
+    return np.array([gate.check(force_tared[i, :, 2], int(i))[0] for i in ends], bool)
 
 
 class Detector:
@@ -142,7 +161,7 @@ class Detector:
         self._tare_buf = np.zeros((max(self.tare_samples, 1), 9, 3), np.float32)
         self._tare_t = np.zeros(max(self.tare_samples, 1), np.int64)
         self.contact_gate = contact_gate
-        self.gate = ContactGate(self.spec.median // 2)
+        self.gate = ContactGate(self.spec.median // 2, self.spec.step / self.spec.rate_hz)
         self.index = -1
         self.windows = 0
         self.resets = 0
@@ -248,7 +267,7 @@ class Detector:
             # Checked once per window, on its last sample (tared, as the model sees it).
             fz = np.asarray(force, np.float32).reshape(9, 3)[:, 2] - self.features._offset[2::3]
             was_open = self.gate.open
-            is_open, changed = self.gate.update(self.gate.touching(fz), index)
+            is_open, changed = self.gate.check(fz, index)
             if changed:
                 # Made or lost: either way the next contact's first window meets h0, as in training.
                 self.ensemble.reset()
