@@ -23,7 +23,7 @@ Stages, in order, per sample:
 
 ``FeatureStream`` (sample by sample, constant memory) and ``batch_windows`` (whole recordings,
 vectorised) compute the same floating-point operations on the same values and give bit-identical
-windows; ``tests/test_features.py`` proves it.
+windows; ``tests/detect/test_features.py`` proves it.
 """
 
 from __future__ import annotations

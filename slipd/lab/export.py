@@ -335,7 +335,7 @@ def export(
     if members[0].input_size != spec.input_size:
         raise ExportError(f"input size {members[0].input_size} != feature spec's {spec.input_size}")
     # fp16 has a range of 65504: at +-1000 N inputs the hidden layers can overflow (found by the interval
-    # check in tests/test_numerics.py), so an fp16 graph clips to what slipd.detect.features can produce for its
+    # check in tests/detect/test_numerics.py), so an fp16 graph clips to what slipd.detect.features can produce for its
     # channels (twice the sensor range), which leaves every real window unchanged.
     input_clip = INPUT_CLIP
     if precision == "fp16":

@@ -1,7 +1,7 @@
 """The Dynamixel wire protocol, both generations: packet framing, CRC-16 and checksum, byte stuffing.
 
 Written from ROBOTIS' protocol e-manual, not from ``dynamixel_sdk``: the emulator is the independent peer
-the real SDK talks to, so a shared misunderstanding cannot hide (``tests/test_gripper.py`` checks the CRC
+the real SDK talks to, so a shared misunderstanding cannot hide (``tests/io/test_gripper.py`` checks the CRC
 and the framing against the vendor SDK).
 
 * Protocol 2.0: ``FF FF FD 00 | ID | LEN_L LEN_H | INST | PARAMS | CRC_L CRC_H``, CRC-16 with the

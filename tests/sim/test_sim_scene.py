@@ -12,7 +12,7 @@ from slipd.geometry import CENTRE
 from slipd.sim import SceneError, generate, load_scene, parse_scene
 from slipd.sim.scene import incipient_labels
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SCENES = ROOT / "config" / "scenes"
 OBJECTS = ("hard_paper_box", "wooden_box", "shampoo_bottle", "coffee_jar", "pringles_can", "thermos_flask")
 

@@ -233,7 +233,7 @@ def test_median_removes_spikes_of_1_and_5_to_10_samples_exactly(level, spikes) -
 
     Catches: an even or narrower median, a mean or low-pass filter (which smears spikes), and an
     off-by-one in the window (an 11-sample run must survive, so the bound is tight).
-    (``tests/test_features.py::test_median_removes_short_glitches_exactly`` covers one fixed case.)"""
+    (``tests/detect/test_features.py::test_median_removes_short_glitches_exactly`` covers one fixed case.)"""
     n = 400
     x = np.full((n, 1), level, np.float32)
     pos = 25
@@ -588,7 +588,7 @@ def test_parity_with_torch_at_10x_and_100x_and_overflowing_logits(tmp_path: Path
     """ONNX vs torch at 10x and 100x realistic inputs within 1e-5, and logits of +-1e3 (exp overflows float32
     in a naive softmax) give probabilities in [0, 1] equal to torch's.
 
-    (10x parity and one overflowing-logit case are in ``tests/test_export.py``; this adds 100x, which
+    (10x parity and one overflowing-logit case are in ``tests/lab/test_export.py``; this adds 100x, which
     reaches the non-linear regions of every layer, and negative overflow.)"""
     torch = pytest.importorskip("torch")
     import onnxruntime as ort
@@ -710,7 +710,7 @@ def test_long_stream_has_no_accumulating_state() -> None:
 def test_single_pillar_at_high_speed_and_maximum_depth_is_finite_and_within_friction() -> None:
     """One pillar in contact, 45 mm/s, the deepest press: finite, no negative normal force, no pillar past its
     static friction limit. (Zero speed, 60 mm/s, zero and maximum depth, single pillar at 3 mm/s and the
-    gripper at the friction limit are in ``tests/test_sim_physics.py``.)
+    gripper at the friction limit are in ``tests/sim/test_sim_physics.py``.)
 
     Catches: a stick-slip step that overshoots the friction cone when the whole load sits on one pillar."""
     from slipd.geometry import CENTRE

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import K_T, make_scene
 
 from slipd.detect.baselines import (
     DecelerationDetector,
@@ -19,77 +20,8 @@ from slipd.detect.baselines import (
     make_baseline,
     recent_max,
 )
-from slipd.geometry import CENTRE, CORNERS, OUTER, PILLAR_XY_MM
 from slipd.lab.metrics import SceneTruth, offline_outcome
 from slipd.recording import Recording
-
-K_T = 3.5  # N/mm
-FZ = np.array([1.0 if i in CORNERS else 3.0 if i == CENTRE else 2.0 for i in range(9)])
-
-
-def make_scene(
-    kind: str = "slip",
-    motion: str = "translation",
-    speed: float = 2.0,
-    duration_s: float = 1.5,
-    move_s: float = 0.6,
-    stop_s: float | None = None,
-    noise: float = 0.01,
-    seed: int = 0,
-    direction_deg: float = 30.0,
-) -> Recording:
-    """A kinematic stick-slip scene: press, then the surface moves; a tip sticks until its deflection reaches
-    mu F_z / k_t (mu = 1), then slides. Corners (lightest load) slip first, the centre last.
-
-    ``speed`` is mm/s for translations and deg/s for rotations about the centre pillar. ``stop_s``: the
-    surface halts at this time (a stop trial when it halts before any tip slips).
-    """
-    rng = np.random.default_rng(seed)
-    n = int(duration_s * 1000)
-    t = np.arange(n) / 1000.0
-    press = np.clip((t - 0.1) / 0.2, 0.0, 1.0)
-    fz = press[:, None] * FZ[None, :]
-    moving_t = np.clip(t - move_s, 0.0, None if stop_s is None else stop_s - move_s)
-    if motion == "rotation":
-        theta = np.deg2rad(speed * moving_t)
-        c, s = np.cos(theta), np.sin(theta)
-        xy = PILLAR_XY_MM
-        surf = np.stack([c[:, None] * xy[:, 0] - s[:, None] * xy[:, 1] - xy[:, 0],
-                         s[:, None] * xy[:, 0] + c[:, None] * xy[:, 1] - xy[:, 1]], axis=-1)
-        obj = np.stack([np.zeros(n), np.zeros(n), np.rad2deg(theta)], axis=1)
-    else:
-        d = np.deg2rad(direction_deg)
-        step = speed * moving_t
-        surf = np.repeat((step[:, None] * np.array([np.cos(d), np.sin(d)]))[:, None, :], 9, axis=1)
-        obj = np.stack([step * np.cos(d), step * np.sin(d), np.zeros(n)], axis=1)
-    limit = fz / K_T
-    mag = np.linalg.norm(surf, axis=-1)
-    slid = (mag >= limit) & (mag > 0)
-    scale = np.where(slid, limit / np.maximum(mag, 1e-12), 1.0)
-    u = surf * scale[..., None]
-    # Sliding = at the friction limit while the surface still moves.
-    still_moving = np.r_[np.diff(moving_t) > 0, False]
-    slip = slid & still_moving[:, None]
-    considered = list(OUTER) if motion == "rotation" else list(range(9))
-    ever = np.maximum.accumulate(slip[:, considered], axis=0)
-    label = (ever.any(axis=1) & ~ever.all(axis=1)).astype(np.uint8)
-    force = np.concatenate([K_T * u, fz[..., None]], axis=-1).astype(np.float32)
-    force += rng.normal(0, 1, force.shape).astype(np.float32) * np.array([noise, noise, 2 * noise], np.float32)
-    disp = np.concatenate([u, (fz / 9.0)[..., None]], axis=-1).astype(np.float32)
-    disp[..., :2] += rng.normal(0, noise / K_T, u.shape).astype(np.float32)
-    events = {"motion_start": move_s}
-    if stop_s is not None:
-        events["motion_stop"] = stop_s
-    if label.any():
-        on = int(np.argmax(label))
-        events["onset"] = float(t[on])
-        after = np.flatnonzero(label[on:] == 0)
-        if len(after):
-            events["gross_slip"] = float(t[on + after[0]])
-    return Recording(
-        t_us=np.arange(n, dtype=np.int64) * 1000, force=force, disp=disp, slip=slip, label=label,
-        object_motion=obj, meta={"kind": kind, "motion": motion, "events": events, "tare_samples": [0, 100]},
-    )
 
 
 def _stream(det, rec: Recording, use_disp: bool = True) -> list:

@@ -11,7 +11,7 @@ from slipd.geometry import CENTRE, FT_RANGE_N, FZ_RANGE_N
 from slipd.sim import generate, load_scene, parse_scene
 from slipd.sim.effects import REGISTRY, SERIAL_FAULT_KINDS
 
-SCENES = Path(__file__).resolve().parents[1] / "config" / "scenes"
+SCENES = Path(__file__).resolve().parents[2] / "config" / "scenes"
 
 
 def hexrec(effects=(), seed=7, **motion):

@@ -347,7 +347,7 @@ def test_reliability_report_cites_only_existing_tests() -> None:
     assert missing_tests() == []
     assert len(table()) == len(FAULTS) + 2
     # Every daemon-level test of this file appears in the report's table.
-    cited = {t.split("::")[1] for f in FAULTS for t in f.tests if t.startswith("tests/test_faults.py")}
+    cited = {t.split("::")[1] for f in FAULTS for t in f.tests if t.startswith("tests/daemon/test_faults.py")}
     this = "test_reliability_report_cites_only_existing_tests"
     here = {name for name in globals() if name.startswith("test_") and name != this}
     assert here <= cited, here - cited

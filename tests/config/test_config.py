@@ -12,7 +12,7 @@ import yaml
 
 from slipd.config import ConfigError, config_from_dict, load_config, override, parse_config
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SLIPD = ROOT / ".venv" / "bin" / "slipd"
 
 VALID = textwrap.dedent(

@@ -16,7 +16,7 @@ import pytest
 from slipd.daemon.recorder import DIR_MODE, FILE_MODE, Recorder
 from slipd.recording import Recording, list_recordings
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 RATE = 1000
 
 

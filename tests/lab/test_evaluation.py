@@ -178,7 +178,7 @@ def test_truth_from_a_recording() -> None:
 # --------------------------------------------------------------------------- tools/evaluate.py end to end
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory) -> Path:
-    from test_baselines import make_scene
+    from conftest import make_scene
 
     folder = tmp_path_factory.mktemp("scenes")
     make_scene(seed=1, duration_s=1.2).save(folder / "a_slip.npz")
