@@ -16,7 +16,8 @@ import pytest
 from slipd.io.arm import ArmError, ArmState, URArm, URSettings
 from slipd.metrics import Metrics
 from slipd.sim.devices import rtde_protocol as rp
-from slipd.sim.devices.ur_controller import LinearMotion, URControllerConfig, URControllerProcess
+from slipd.sim.devices.ur_controller import URControllerConfig, URControllerProcess
+from slipd.sim.devices.ur_motion import LinearMotion
 
 pytest.importorskip("rtde_control")
 pytest.importorskip("rtde_receive")
