@@ -31,8 +31,8 @@ def tiny_model_json(tmp_path_factory) -> Path:
     """
     torch = pytest.importorskip("torch")
     from slipd.detect.features import FeatureSpec
-    from slipd.lab.export import export, fold_member
-    from slipd.lab.model import SlipNet
+    from sliplab.export import export, fold_member
+    from sliplab.model import SlipNet
 
     spec = FeatureSpec()
     nets = []
@@ -59,7 +59,7 @@ def detect_model_json(tmp_path_factory) -> Path:
     if not (REFERENCE_CKPT / "ckpt_final_model_0.pth").exists():
         pytest.skip("no shipped model and no reference checkpoints")
     pytest.importorskip("torch")
-    from slipd.lab.export import export, load_reference
+    from sliplab.export import export, load_reference
 
     members, spec, prov = load_reference(REFERENCE_CKPT)
     out = tmp_path_factory.mktemp("reference") / "reference.onnx"

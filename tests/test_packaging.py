@@ -23,13 +23,14 @@ from slipd.recording import Recording
 
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "slipd"
+LAB = ROOT / "sliplab"
 PYTHON = ROOT / ".venv" / "bin" / "python"
 SLIPD = ROOT / ".venv" / "bin" / "slipd"
 
 # What `pip install slipd` does not bring (the sim, train and dev extras) and the two parts of slipd
 # that need them.
 EXTRAS = ("torch", "scipy", "matplotlib", "tqdm", "onnx", "hypothesis", "pytest")
-OFFLINE = ("slipd.sim", "slipd.lab")
+OFFLINE = ("slipd.sim", "sliplab")
 
 
 def _python() -> str:
@@ -82,8 +83,10 @@ def _wing(module: str) -> str:
         return "ground"
     if module in ("slipd.cli", "slipd.__main__"):
         return "cli"
+    if module.split(".")[0] == "sliplab":
+        return "lab"
     wing = module.split(".")[1]
-    assert wing in ("config", "io", "detect", "daemon", "sim", "lab"), f"{module}: not in any wing of the house"
+    assert wing in ("config", "io", "detect", "daemon", "sim"), f"{module}: not in any wing of the house"
     return wing
 
 
@@ -102,7 +105,7 @@ ALLOWED = {
 
 def _modules() -> dict[str, Path]:
     out = {}
-    for p in PKG.rglob("*.py"):
+    for p in [*PKG.rglob("*.py"), *LAB.rglob("*.py")]:
         parts = list(p.relative_to(ROOT).with_suffix("").parts)
         if parts[-1] == "__init__":
             parts.pop()
@@ -136,7 +139,7 @@ def import_graph() -> dict[str, list[tuple[str, int, bool]]]:
         for node in ast.walk(tree):
             targets: list[str | None] = []
             if isinstance(node, ast.Import):
-                targets = [resolve(a.name) for a in node.names if a.name.split(".")[0] == "slipd"]
+                targets = [resolve(a.name) for a in node.names if a.name.split(".")[0] in ("slipd", "sliplab")]
             elif isinstance(node, ast.ImportFrom):
                 base = node.module or ""
                 if node.level:
@@ -144,7 +147,7 @@ def import_graph() -> dict[str, list[tuple[str, int, bool]]]:
                     for _ in range(node.level - 1):
                         pkg = pkg.rpartition(".")[0]
                     base = f"{pkg}.{base}" if base else pkg
-                if base.split(".")[0] == "slipd":
+                if base.split(".")[0] in ("slipd", "sliplab"):
                     targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in mods else resolve(base) for a in node.names]
             # Executed when the module is imported: not inside a function, not under TYPE_CHECKING.
             at_import = not _in_type_checking(node, parents) and not any(
@@ -183,7 +186,7 @@ def test_imports_run_downwards_only():
 def test_nothing_outside_the_lab_imports_it_and_the_runtime_never_imports_the_simulator():
     graph = import_graph()
     bad = [f"{mod} -> {t}:{line}" for mod, edges in graph.items() for t, line, _ in edges
-           if (t.startswith("slipd.lab") and _wing(mod) != "lab")
+           if (t.startswith("sliplab") and _wing(mod) != "lab")
            or (t.startswith("slipd.sim") and _wing(mod) in ("ground", "config", "io", "detect", "daemon"))]
     assert bad == []
 

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slipd.lab.timing import realistic_windows, time_calls, torch_eager_step
+from sliplab.timing import realistic_windows, time_calls, torch_eager_step
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from slipd.detect.ensemble import Ensemble, session_options
     from slipd.detect.manifest import onnx_path_of
-    from slipd.lab.model import load_reference_ensemble
+    from sliplab.model import load_reference_ensemble
 
     torch.set_num_threads(1)
     ens = Ensemble.load(args.manifest, threads=1)

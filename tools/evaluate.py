@@ -1,9 +1,9 @@
 """Evaluate a slip detector (the ONNX ensemble or a heuristic baseline) with the method's metrics.
 
-A launcher: the code lives in ``slipd.lab.evaluate`` (the offline lab; ``pip install -e '.[train]'``).
+A launcher: the code lives in ``sliplab.evaluate`` (the offline lab; ``pip install -e '.[train]'``).
 """
 
-from slipd.lab.evaluate import main
+from sliplab.evaluate import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -1,9 +1,9 @@
 """Write a simulated data set: ``python tools/make_dataset.py --set offline --split test --out DIR``.
 
-A launcher: the code lives in ``slipd.lab.make_dataset`` (the offline lab; ``pip install -e '.[train]'``).
+A launcher: the code lives in ``sliplab.make_dataset`` (the offline lab; ``pip install -e '.[train]'``).
 """
 
-from slipd.lab.make_dataset import main
+from sliplab.make_dataset import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

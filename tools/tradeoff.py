@@ -50,10 +50,10 @@ from pathlib import Path
 import numpy as np
 
 from slipd.detect.features import FeatureSpec, FeatureStream
-from slipd.lab.evaluate import evaluate_paths
-from slipd.lab.metrics import summarize
-from slipd.lab.timing import realistic_windows, time_calls, torch_eager_step
 from slipd.recording import list_recordings
+from sliplab.evaluate import evaluate_paths
+from sliplab.metrics import summarize
+from sliplab.timing import realistic_windows, time_calls, torch_eager_step
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -94,7 +94,7 @@ def sweep_points(threshold: float, retrain: bool) -> list[Point]:
 
 # ------------------------------------------------------------------------------------------ models
 def _export(run_dir: Path, out: Path, precision: str, threshold: float) -> Path:
-    from slipd.lab.export import main as export_main
+    from sliplab.export import main as export_main
 
     args = ["--run", str(run_dir), "--out", str(out), "--threshold", str(threshold)]
     if precision != "fp32":
@@ -144,7 +144,7 @@ def _tuned_threshold(pt: Point, sub: Path, args: argparse.Namespace) -> float:
     Single members of a recipe with a weighted loss do not centre on 0.5, so one fixed threshold would
     compare thresholds, not configurations. Cached in ``<sub>/threshold.json``.
     """
-    from slipd.lab.tune import tune
+    from sliplab.tune import tune
 
     cached = sub / "threshold.json"
     if cached.exists():
@@ -201,12 +201,12 @@ def feature_time(spec: FeatureSpec, n: int = 4000) -> float:
 
 
 def torch_reference_step(ref: Path, n: int):
-    """The reference implementation's decision (``slipd.lab.timing.torch_eager_step`` on the authors'
+    """The reference implementation's decision (``sliplab.timing.torch_eager_step`` on the authors'
     checkpoints) as a callable ``step(i)`` over ``n`` windows; None without torch or checkpoints."""
     try:
         import torch
 
-        from slipd.lab.model import load_reference_ensemble
+        from sliplab.model import load_reference_ensemble
     except ImportError:
         return None
     if not ref.is_dir():

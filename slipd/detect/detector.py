@@ -20,7 +20,7 @@ initial state (h0 = 0), so a daemon started with the gripper open, or an arm mov
 cannot alarm on sensor noise, and every new contact starts from h0. A change of contact (made or lost)
 counts only once it persists beyond ``median // 2`` samples (a run the median filter would remove), so a
 dropout frame or a short glitch neither wipes the state in the middle of a grasp nor wakes the model in
-free air. ``ContactGate`` is that rule; training (``slipd.lab.train``) runs the same class over each
+free air. ``ContactGate`` is that rule; training (``sliplab.train``) runs the same class over each
 recording's windows, so the model learns exactly the sequences the gate lets through.
 """
 

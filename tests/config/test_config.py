@@ -239,7 +239,7 @@ def test_device_vocabularies_match_the_drivers():
 
 
 def test_fuzz_short():
-    from slipd.lab.fuzz_config import run
+    from sliplab.fuzz_config import run
 
     counts = run(150, seed=1)
     assert counts["total"] >= 135  # hypothesis may discard a few over-sized draws

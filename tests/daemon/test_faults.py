@@ -331,7 +331,7 @@ def test_arm_protective_stop_and_link_loss_are_noticed_and_the_link_comes_back(c
 # ------------------------------------------------------------------------------------------------ soak
 @pytest.mark.slow
 def test_soak_30_s_at_1_khz_loses_no_frame(controller, tiny_model_json) -> None:
-    from slipd.lab.soak_live import soak
+    from sliplab.soak_live import soak
 
     rep = soak(30.0, tiny_model_json, controller=controller, threshold=0.999)
     print("\n" + "\n".join(rep.lines()))
@@ -342,7 +342,7 @@ def test_soak_30_s_at_1_khz_loses_no_frame(controller, tiny_model_json) -> None:
 
 
 def test_reliability_report_cites_only_existing_tests() -> None:
-    from slipd.lab.reliability import FAULTS, missing_tests, table
+    from sliplab.reliability import FAULTS, missing_tests, table
 
     assert missing_tests() == []
     assert len(table()) == len(FAULTS) + 2

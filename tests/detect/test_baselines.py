@@ -20,8 +20,8 @@ from slipd.detect.baselines import (
     make_baseline,
     recent_max,
 )
-from slipd.lab.metrics import SceneTruth, offline_outcome
 from slipd.recording import Recording
+from sliplab.metrics import SceneTruth, offline_outcome
 
 
 def _stream(det, rec: Recording, use_disp: bool = True) -> list:
@@ -129,7 +129,7 @@ def test_parameters_are_validated_and_loaded(tmp_path: Path) -> None:
 
 
 def test_tuner_uses_the_train_split_and_writes_json(tmp_path: Path) -> None:
-    from slipd.lab.evaluate import main
+    from sliplab.evaluate import main
 
     train = tmp_path / "data" / "offline_train"
     for i, (kind, kw) in enumerate([("slip", {}), ("slip", {"direction_deg": 200.0, "speed": 3.0}),

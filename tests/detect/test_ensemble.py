@@ -13,8 +13,8 @@ import torch
 from slipd.detect.ensemble import Ensemble, NonFiniteInput, NonFiniteOutput
 from slipd.detect.features import FeatureSpec
 from slipd.detect.manifest import ModelError, load_manifest, sha256_file
-from slipd.lab.export import export, fold_member
-from slipd.lab.model import SlipNet, run_sequence
+from sliplab.export import export, fold_member
+from sliplab.model import SlipNet, run_sequence
 
 SPEC = FeatureSpec(pillars=(0, 1, 2), window=8)  # 48 inputs: a small, fast model
 Z = 3

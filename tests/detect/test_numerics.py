@@ -276,7 +276,7 @@ def test_soak_short_hidden_state_bounded_probability_does_not_drift(ens) -> None
 
     Catches: an unclipped or unstable recurrence (|h| growing, NaN after hours), a state shared between the
     batched sequences, and a bias that accumulates window after window."""
-    from slipd.lab.soak import CASES, soak
+    from sliplab.soak import CASES, soak
 
     res = {r.name: r for r in soak(ens, 20_000, pool_windows=500)}
     assert set(res) == set(CASES)
@@ -341,8 +341,8 @@ def test_ensemble_reset_mid_stream_equals_batch_from_zero(ens) -> None:
 @pytest.fixture(scope="module")
 def variants(tmp_path_factory) -> dict[str, Ensemble]:
     torch = pytest.importorskip("torch")
-    from slipd.lab.export import export, fold_member
-    from slipd.lab.model import SlipNet
+    from sliplab.export import export, fold_member
+    from sliplab.model import SlipNet
 
     nets = []
     for seed in range(3):
@@ -593,8 +593,8 @@ def test_parity_with_torch_at_10x_and_100x_and_overflowing_logits(tmp_path: Path
     torch = pytest.importorskip("torch")
     import onnxruntime as ort
 
-    from slipd.lab.export import export, fold_member
-    from slipd.lab.model import SlipNet, run_sequence
+    from sliplab.export import export, fold_member
+    from sliplab.model import SlipNet, run_sequence
 
     torch.manual_seed(7)
     nets = [SlipNet(input_size=SPEC.input_size, hidden=32, enc=64, pred=(32, 16)).eval() for _ in range(2)]

@@ -305,7 +305,7 @@ def test_commands() -> None:
 
 # ---------------------------------------------------------------------- fuzz (short)
 def test_short_fuzz_run() -> None:
-    from slipd.lab.fuzz_pts import fuzz
+    from sliplab.fuzz_pts import fuzz
 
     rep = fuzz(1500, seed=1)
     assert rep.exceptions == 0, rep.first_exception

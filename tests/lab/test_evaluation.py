@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from slipd.detect.decision import Detection
-from slipd.lab.metrics import (
+from slipd.recording import Recording
+from sliplab.metrics import (
     SceneResult,
     SceneTruth,
     Trace,
@@ -22,7 +23,6 @@ from slipd.lab.metrics import (
     online_outcome,
     summarize,
 )
-from slipd.recording import Recording
 
 
 def slip_truth(onset: float = 1.0, gross: float = 1.5, **kw) -> SceneTruth:
@@ -188,7 +188,7 @@ def scenes(tmp_path_factory) -> Path:
 
 
 def test_evaluate_baseline_end_to_end(scenes: Path, tmp_path: Path) -> None:
-    from slipd.lab.evaluate import main
+    from sliplab.evaluate import main
 
     out = tmp_path / "eval.json"
     assert main(["--baseline", "deceleration", "--baseline-params", str(_defaults(tmp_path)), "--recordings",
@@ -220,9 +220,9 @@ def test_evaluate_model_end_to_end(scenes: Path, tmp_path: Path) -> None:
     """A tiny real ONNX ensemble (random weights) through the daemon's Detector: the figures are consistent."""
     torch = pytest.importorskip("torch")
     from slipd.detect.features import FeatureSpec
-    from slipd.lab.evaluate import main
-    from slipd.lab.export import export, fold_member
-    from slipd.lab.model import SlipNet
+    from sliplab.evaluate import main
+    from sliplab.export import export, fold_member
+    from sliplab.model import SlipNet
 
     spec = FeatureSpec(pillars=(0, 1, 2), window=8)
     nets = []
@@ -252,10 +252,10 @@ def test_stride_override_decides_more_often_and_tune_threshold_runs(scenes: Path
     sweeps the same traces with either criterion."""
     torch = pytest.importorskip("torch")
     from slipd.detect.features import FeatureSpec
-    from slipd.lab.evaluate import ModelRunner
-    from slipd.lab.export import export, fold_member
-    from slipd.lab.model import SlipNet
-    from slipd.lab.tune import main as tune
+    from sliplab.evaluate import ModelRunner
+    from sliplab.export import export, fold_member
+    from sliplab.model import SlipNet
+    from sliplab.tune import main as tune
 
     spec = FeatureSpec(pillars=(0, 1, 2), window=8)
     torch.manual_seed(0)
@@ -274,7 +274,7 @@ def test_stride_override_decides_more_often_and_tune_threshold_runs(scenes: Path
 
 
 def test_noisy_displacements_touch_only_the_displacements(scenes: Path, tmp_path: Path) -> None:
-    from slipd.lab.noisy_displacements import main as noisy
+    from sliplab.noisy_displacements import main as noisy
 
     assert noisy(["--sigma", "0.01", "--src", str(scenes), "--out", str(tmp_path / "n")]) == 0
     for path in sorted(scenes.glob("*.npz")):

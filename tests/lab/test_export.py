@@ -12,8 +12,8 @@ import torch
 
 from slipd.detect.features import FeatureSpec
 from slipd.detect.manifest import load_manifest
-from slipd.lab.export import ExportError, export, fold_member, load_reference, main
-from slipd.lab.model import SlipNet, run_sequence
+from sliplab.export import ExportError, export, fold_member, load_reference, main
+from sliplab.model import SlipNet, run_sequence
 
 TOL = 1e-5
 
@@ -84,7 +84,7 @@ def test_parity_reference_checkpoints(reference_ckpt_dir: Path, tmp_path: Path) 
     m = export(members, spec, out, "reference-hexapod", prov)
     assert m.members == 5 and m.hidden == 128 and m.pillars == [0, 1, 2, 3, 5, 6, 7, 8]
     assert len(m.provenance["files"]) == 5
-    from slipd.lab.model import load_reference_ensemble
+    from sliplab.model import load_reference_ensemble
 
     nets = load_reference_ensemble(reference_ckpt_dir)
     for scale in (1.0, 10.0):
@@ -162,7 +162,7 @@ def test_run_directory_with_mixed_feature_specs_is_refused(tmp_path: Path) -> No
     nets = [_random_member(s, input_size=160, hidden=16, enc=32, pred=(16, 8)) for s in (1, 2)]
     _save_run(tmp_path / "run", nets, [spec, spec.with_(median=11)])
     with pytest.raises(ExportError, match="different feature specs"):
-        from slipd.lab.export import load_run
+        from sliplab.export import load_run
 
         load_run(tmp_path / "run")
     assert main(["--run", str(tmp_path / "empty"), "--out", str(tmp_path / "x.onnx")]) == 1

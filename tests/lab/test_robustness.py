@@ -26,7 +26,7 @@ def _tiny_robust(folder):
 
 
 def test_robustness_tool_runs_end_to_end(tmp_path, capsys):
-    from slipd.lab.robustness import main
+    from sliplab.robustness import main
 
     _tiny_robust(tmp_path / "robust")
     write_dataset("holds", "test", tmp_path / "holds", count=5, hold_s=0.3)

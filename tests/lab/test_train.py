@@ -11,10 +11,10 @@ import torch
 
 from slipd.detect.features import FeatureSpec, batch_windows, tare_offset
 from slipd.geometry import N_PILLARS, OUTER
-from slipd.lab import augment as A
-from slipd.lab import train as T
-from slipd.lab.model import SlipNet
 from slipd.recording import Recording, RecordingError
+from sliplab import augment as A
+from sliplab import train as T
+from sliplab.model import SlipNet
 
 TARE = (0, 100)
 

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from slipd.lab import make_dataset, realism
 from slipd.recording import Recording
 from slipd.sim.datasets import dataset_scenes, scene_seed, transfer_design, write_dataset
+from sliplab import make_dataset, realism
 
 
 def test_train_and_test_never_share_a_seed():

@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from slipd.lab.paths import ROOT
 from slipd.recording import Recording
+from sliplab.paths import ROOT
 
 DEFAULT_HOST = "127.0.0.6"  # tests use .2 .. .5
 TARE = 300
@@ -98,8 +98,8 @@ def random_model(out_dir: Path, members: int = 5, seed: int = 0) -> Path:
     import torch
 
     from slipd.detect.features import FeatureSpec
-    from slipd.lab.export import export, fold_member
-    from slipd.lab.model import SlipNet
+    from sliplab.export import export, fold_member
+    from sliplab.model import SlipNet
 
     spec = FeatureSpec()
     folded = []

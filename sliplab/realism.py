@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slipd.lab.paths import ROOT
+from sliplab.paths import ROOT
 
 DEFAULT_CKPT = ROOT.parent / "shared" / "reference" / "checkpoints" / "hexapod"
 
@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         import torch  # noqa: F401
 
-        from slipd.lab.model import load_reference_ensemble
+        from sliplab.model import load_reference_ensemble
     except ImportError:
         print("realism: torch is not installed; skipping")
         return 0

@@ -24,7 +24,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from slipd.lab.paths import ROOT
+from sliplab.paths import ROOT
 
 
 @dataclass(frozen=True)
@@ -263,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.model}: no such model manifest (pass --model, or --random-model)", file=sys.stderr)
         return 2
 
-    from slipd.lab import fuzz_config, fuzz_pts, soak_live
+    from sliplab import fuzz_config, fuzz_pts, soak_live
 
     ok = True
     print(f"fuzz_pts -n {args.fuzz_pts} ...", flush=True)

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from slipd.lab.evaluate import evaluate_paths
-from slipd.lab.metrics import scored_outcome
 from slipd.recording import list_recordings
+from sliplab.evaluate import evaluate_paths
+from sliplab.metrics import scored_outcome
 
 
 def sweep(runs: list, thresholds: np.ndarray, criterion: str = "auto") -> list[dict]:

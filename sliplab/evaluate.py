@@ -8,7 +8,7 @@
 
 Every recording is streamed sample by sample through the daemon's own decision path
 (``slipd.detect.detector.Detector``: features -> ensemble -> decision) or through the baseline detector, and
-scored by ``slipd.lab.metrics`` (offline success, confusion matrix, latency, online success and D_norm
+scored by ``sliplab.metrics`` (offline success, confusion matrix, latency, online success and D_norm
 for gripper scenes, false alarms per hour on no-slip scenes).
 
 Data sets follow ``tools/make_dataset.py``'s layout: ``<data-root>/<set>_<split>/*.npz``.
@@ -44,7 +44,8 @@ from slipd.detect.baselines import (
     save_params,
 )
 from slipd.detect.features import FeatureSpec, stretch_offset
-from slipd.lab.metrics import (
+from slipd.recording import Recording, list_recordings
+from sliplab.metrics import (
     SceneResult,
     SceneTruth,
     Summary,
@@ -54,8 +55,7 @@ from slipd.lab.metrics import (
     scored_outcome,
     summarize,
 )
-from slipd.lab.paths import ROOT
-from slipd.recording import Recording, list_recordings
+from sliplab.paths import ROOT
 
 DEFAULT_BASELINES_JSON = ROOT / "slipd" / "models" / "baselines.json"
 

@@ -7,5 +7,5 @@ through :mod:`slipd.models`, never through this path.
 
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
-"""The checkout holding this ``slipd/`` (``slipd/lab/paths.py`` -> the repository root)."""
+ROOT = Path(__file__).resolve().parents[1]
+"""The checkout holding this package (``sliplab/paths.py`` -> the repository root)."""

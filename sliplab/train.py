@@ -5,7 +5,7 @@
 
 What one member does per epoch:
     1. bootstrap: draw ``lambda`` = 40 % of the recordings with replacement (re-drawn every epoch);
-    2. augment the raw (tared) sequences with ``slipd.lab.augment`` (mixed sequences are added on top);
+    2. augment the raw (tared) sequences with ``sliplab.augment`` (mixed sequences are added on top);
     3. features through ``slipd.detect.features.batch_windows`` (the daemon's own pipeline) and window
        labels through ``window_labels``;
     4. truncated BPTT in "lanes": the epoch's sequences are packed end to end into B parallel lanes
@@ -57,7 +57,8 @@ from torch import nn
 
 from slipd.detect.detector import gate_windows
 from slipd.detect.features import FeatureSpec, batch_windows, stretch_offset, window_labels
-from slipd.lab.augment import (
+from slipd.recording import Recording, RecordingError, list_recordings
+from sliplab.augment import (
     SPEED_RATES,
     Seq,
     drop_samples,
@@ -67,8 +68,7 @@ from slipd.lab.augment import (
     shift_start,
     unload_pillars,
 )
-from slipd.lab.model import SlipNet
-from slipd.recording import Recording, RecordingError, list_recordings
+from sliplab.model import SlipNet
 
 ALL_AUGS = ("rotation", "speed", "unloaded", "mixing", "grid90", "shift")
 DEFAULT_AUGS = ("rotation", "speed", "unloaded", "mixing")

@@ -36,7 +36,7 @@ import numpy as np
 from slipd.detect.decision import Decision
 from slipd.detect.ensemble import Ensemble
 from slipd.detect.features import FeatureSpec, batch_windows
-from slipd.lab.paths import ROOT
+from sliplab.paths import ROOT
 
 CASES = ("steady_hold", "noise_only", "periodic_load")
 NOISE_N = np.array([0.01, 0.01, 0.02], np.float32)
