@@ -34,9 +34,10 @@ import zlib
 from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
 from slipd.geometry import HEIGHT_OFFSET_MM, N_PILLARS, PILLAR_XY_MM
+from slipd.sim.effects import scene_params
 from slipd.sim.physics import (
     DT_S,
     SensorParams,
@@ -156,13 +157,7 @@ def build_model(spec: dict[str, Any] | None, where: str = "physics") -> ContactM
     if name not in REGISTRY:
         raise ValueError(f"{where}.name: unknown contact model {name!r}; known: {sorted(REGISTRY)}")
     cls = REGISTRY[name]
-    try:
-        params = cls.Params(**{k: v for k, v in spec.items() if k != "name"})
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        loc = ".".join(str(x) for x in err["loc"])
-        raise ValueError(f"{where}.{loc}: {err['msg']}") from None
-    return cls(params)
+    return cls(scene_params(cls.Params, spec, where))
 
 
 def model_rng(seed: int, what: str) -> np.random.Generator:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -27,6 +27,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from slipd.geometry import FT_RANGE_N, FZ_RANGE_N, N_PILLARS, OUTER, PILLAR_XY_MM
 
 STAGES = ("contact", "motion", "load", "signal", "meta")
+
+_PT = TypeVar("_PT", bound=BaseModel)
 
 
 @dataclass
@@ -98,13 +100,18 @@ def build_effect(spec: dict[str, Any], where: str = "effects") -> Effect:
     if name not in REGISTRY:
         raise ValueError(f"{where}.name: unknown effect {name!r}; known: {sorted(REGISTRY)}")
     cls = REGISTRY[name]
+    return cls(scene_params(cls.Params, spec, where))
+
+
+def scene_params(params_cls: type[_PT], spec: dict[str, Any], where: str) -> _PT:
+    """The parameters of a registered class (an effect, a contact model) from its scene entry
+    ``{name: ..., <params>}``; a bad value raises ValueError naming the key path and reason."""
     try:
-        params = cls.Params(**{k: v for k, v in spec.items() if k != "name"})
+        return params_cls(**{k: v for k, v in spec.items() if k != "name"})
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = ".".join(str(x) for x in err["loc"])
         raise ValueError(f"{where}.{loc}: {err['msg']}") from None
-    return cls(params)
 
 
 def effect_rng(seed: int, name: str, index: int) -> np.random.Generator:
