@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +9,6 @@ import pytest
 
 from slipd.geometry import CENTRE, CORNERS, OUTER, PILLAR_XY_MM
 from slipd.recording import Recording
-from slipd.sim.devices.ur_controller import URControllerProcess
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
@@ -67,16 +65,6 @@ def detect_model_json(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("reference") / "reference.onnx"
     export(members, spec, out, "reference-hexapod", prov)
     return out.with_suffix(".json")
-
-
-@pytest.fixture(scope="module")
-def controller(request: pytest.FixtureRequest) -> Iterator[URControllerProcess]:
-    """One emulated UR controller process per test file (starting one costs about a second), on the file's
-    own loopback address (its ``HOST``), so files never share a controller's state."""
-    ur = URControllerProcess(request.module.HOST)
-    ur.start()
-    yield ur
-    ur.stop()
 
 
 # ------------------------------------------------------------------ a synthetic slip scene (shared helpers)

@@ -47,6 +47,15 @@ def quiet_hold(seconds: float = 2.0, seed: int = 0) -> Recording:
 
 
 @pytest.fixture(scope="module")
+def controller():
+    """One emulated UR controller process for the whole file (starting one costs about a second)."""
+    ur = URControllerProcess(HOST)
+    ur.start()
+    yield ur
+    ur.stop()
+
+
+@pytest.fixture(scope="module")
 def base_cfg(tiny_model_json):
     cfg = load_config(ROOT / "config" / "sim.yaml")
     return override(cfg, {

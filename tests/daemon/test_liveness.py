@@ -115,6 +115,14 @@ class Systemd:
 
 
 @pytest.fixture(scope="module")
+def controller():
+    ur = URControllerProcess(HOST)
+    ur.start()
+    yield ur
+    ur.stop()
+
+
+@pytest.fixture(scope="module")
 def base_cfg(tiny_model_json):
     cfg = load_config(ROOT / "config" / "sim.yaml")
     return override(cfg, {

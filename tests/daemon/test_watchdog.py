@@ -55,6 +55,14 @@ def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str) -> Path:
     return path
 
 
+@pytest.fixture(scope="module")
+def controller():
+    ur = URControllerProcess(HOST)
+    ur.start()
+    yield ur
+    ur.stop()
+
+
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP, signal.SIGABRT], ids=lambda s: s.name)
 def test_a_dead_or_frozen_daemon_halts_the_moving_arm_within_the_watchdog_period(
         controller: URControllerProcess, tiny_model_json: Path, tmp_path: Path, sig: signal.Signals) -> None:
