@@ -461,6 +461,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--momentum", type=float, default=0.95)
     p.add_argument("--weight-decay", type=float, default=1e-3)
+    p.add_argument("--lr-schedule", choices=("constant", "cosine"), default="constant",
+                   help="cosine: the learning rate decays to 0 over the epochs (per epoch), so the last epochs "
+                        "settle instead of ending wherever a noisy step left the weights")
     p.add_argument("--batch", type=int, help="windows per optimiser step (512)")
     p.add_argument("--chunk", type=int, default=9, help="windows per truncated-BPTT chunk (9 = 360 samples)")
     p.add_argument("--pos-weight", type=float, default=1.0,
@@ -552,6 +555,9 @@ def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureS
     t_member = time.perf_counter()
     for epoch in epochs:
         t0 = time.perf_counter()
+        if getattr(args, "lr_schedule", "constant") == "cosine":
+            for group in opt.param_groups:
+                group["lr"] = args.lr * 0.5 * (1 + np.cos(np.pi * epoch / args.epochs))
         idx = bootstrap_indices(len(pool), args.bootstrap, rng)
         items = featurize(augment_epoch(pool, idx, augs, rng, args.mix_frac, spec.window), spec, args.label_lead)
         lanes = pack_lanes(items, n_lanes, rng)
