@@ -35,8 +35,13 @@ Choices where the public text is ambiguous (encoder and decoder agree on all of 
   end marker is elsewhere is ``bad_length``. When the last block's type is unknown (not 1, 3-6) its
   size cannot be computed; then the first end marker after it whose checksum matches ends the frame.
 - Types 1 and 3 are required (no counter or no forces: ``bad_structure``); 4, 5, 6 are optional.
-- A :class:`Frame` holds one sensor: sensor 0 of a frame, which must have 9 pillars. Further sensors
-  (a controller with two arrays) are checked for structure and otherwise skipped.
+- A controller with two arrays (one per finger) sends both in every frame: every per-sensor block then
+  holds one record set per sensor. The decoder is built for ``sensors`` arrays (1 by default): it decodes
+  that many (sensor 0 must have 9 pillars, or the frame is ``bad_structure``); further sensors are checked
+  for structure and skipped. A configured sensor that a frame lacks (or that has other than 9 pillars)
+  reads NaN and is counted in ``missing_sensor``: the consumer sees that finger blind instead of a
+  silently shifted stream. The encoder writes ``1 + len(frame.others)`` sensors; the optional blocks of
+  the further sensors carry neutral values (wrench 0, slip state 0, friction -1, sensor state as sensor 0).
 - ISZ 1, 2 and 4 are accepted; anything else is ``bad_structure``.
 - Type 6 state: 0 slip detection off, 1 on, 2 on with the reference loaded (the vendor's reading).
 
@@ -51,7 +56,7 @@ from __future__ import annotations
 import itertools
 import struct
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -95,7 +100,7 @@ SLIP_INELIGIBLE, SLIP_LOST_CONTACT, SLIP_NONE, SLIP_CONTACT_AT_START, SLIP_TLOAD
 # ---------------------------------------------------------------------- frame
 @dataclass(slots=True)
 class Frame:
-    """One decoded sample of one sensor.
+    """One decoded sample: sensor 0, and the further sensors of the frame in ``others``.
 
     ``force`` and ``disp`` are [9, 3] float32 in SDK pillar order (fx fy fz in N; dx dy dz in mm).
     ``wrench`` is the global [6] Fx Fy Fz (N) Tx Ty Tz (N mm) of type 4; ``slip_state`` [9] int8 and
@@ -119,6 +124,53 @@ class Frame:
     target_grip_force: float | None = None
     dropped_before: int = 0
     discontinuity: bool = False
+    others: tuple[tuple[np.ndarray, np.ndarray], ...] = field(default=())
+    """(force, disp) [9, 3] of each further sensor (sensor 1, 2, ...): the second finger's array."""
+
+
+@dataclass(slots=True)
+class FrameBlock:
+    """The frames of one read as arrays (the hot path's form: no object per frame).
+
+    ``counter`` [k] int64 and ``t_us`` [k] uint64 (the wire's u64); ``force`` and ``disp`` [k, S, 9, 3]
+    float32 (S = the decoder's ``sensors``; a sensor a frame lacks reads NaN). The serial reader fills
+    ``dropped_before`` [k] and ``discontinuity`` [k] from the packet counter (see ``slipd.io.sensor``).
+    The arrays are views of the decoder's preallocated storage, valid until its next ``feed_block``: copy
+    what must outlive the call.
+    """
+
+    counter: np.ndarray
+    t_us: np.ndarray
+    force: np.ndarray
+    disp: np.ndarray
+    dropped_before: np.ndarray
+    discontinuity: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.counter)
+
+    @property
+    def sensors(self) -> int:
+        """Sensors per frame (S)."""
+        return int(self.force.shape[1])
+
+    def select(self, keep: np.ndarray) -> FrameBlock:
+        """The frames where ``keep`` (bool [k]) is set (copies; a rare path: repeated counters)."""
+        return FrameBlock(self.counter[keep], self.t_us[keep], self.force[keep], self.disp[keep],
+                          self.dropped_before[keep], self.discontinuity[keep])
+
+    def frames(self) -> list[Frame]:
+        """The block as Frame objects (tests and tools; the daemon reads the arrays)."""
+        force = self.force.copy()
+        disp = self.disp.copy()
+        out = []
+        for i in range(len(self)):
+            others = tuple((force[i, s], disp[i, s]) for s in range(1, self.sensors))
+            f = Frame(int(self.counter[i]), int(self.t_us[i]), force[i, 0], disp[i, 0], others=others)
+            f.dropped_before = int(self.dropped_before[i])
+            f.discontinuity = bool(self.discontinuity[i])
+            out.append(f)
+        return out
 
 
 # ---------------------------------------------------------------------- encoder
@@ -126,17 +178,17 @@ class _Layout(NamedTuple):
     template: bytes
     payload_len: int
     hub: int
-    pillars: int  # payload index of the first pillar record of sensor 0
-    glob: int  # -1 when absent
-    pillar_slip: int
-    sensor_slip: int
+    pillars: tuple[int, ...]  # payload index of the first pillar record, per sensor
+    glob: tuple[int, ...]  # per sensor; empty when the block is absent
+    pillar_slip: tuple[int, ...]
+    sensor_slip: tuple[int, ...]
 
 
-_LAYOUTS: dict[tuple[bool, bool, bool], _Layout] = {}
+_LAYOUTS: dict[tuple[int, bool, bool, bool], _Layout] = {}
 
 
-def _build_layout(has_global: bool, has_pillar_slip: bool, has_sensor_slip: bool) -> _Layout:
-    """Lay out one single-sensor payload (ISZ 2, records contiguous) and return a zero-filled template."""
+def _build_layout(sensors: int, has_global: bool, has_pillar_slip: bool, has_sensor_slip: bool) -> _Layout:
+    """Lay out one payload of ``sensors`` arrays (ISZ 2, records contiguous) and return a zero-filled template."""
     types = [TYPE_HUB, TYPE_PILLARS]
     if has_global:
         types.append(TYPE_GLOBAL)
@@ -145,12 +197,13 @@ def _build_layout(has_global: bool, has_pillar_slip: bool, has_sensor_slip: bool
     if has_sensor_slip:
         types.append(TYPE_SENSOR_SLIP)
     isz = 2
+    ns = sensors
     sizes = {
         TYPE_HUB: _HUB_SIZE,
-        TYPE_PILLARS: 2 + isz + 2 + N_PILLARS * isz + N_PILLARS * _PILLAR_REC,
-        TYPE_GLOBAL: 2 + isz + _GLOBAL_REC,
-        TYPE_PILLAR_SLIP: 2 + isz + 2 + N_PILLARS * isz + N_PILLARS * _PILLAR_SLIP_REC,
-        TYPE_SENSOR_SLIP: 2 + isz + _SENSOR_SLIP_REC,
+        TYPE_PILLARS: 2 + ns * isz + ns * (2 + N_PILLARS * isz + N_PILLARS * _PILLAR_REC),
+        TYPE_GLOBAL: 2 + ns * isz + ns * _GLOBAL_REC,
+        TYPE_PILLAR_SLIP: 2 + ns * isz + ns * (2 + N_PILLARS * isz + N_PILLARS * _PILLAR_SLIP_REC),
+        TYPE_SENSOR_SLIP: 2 + ns * isz + ns * _SENSOR_SLIP_REC,
     }
     offsets: dict[int, int] = {}
     pos = 1 + len(types) * (2 + isz)
@@ -162,34 +215,46 @@ def _build_layout(has_global: bool, has_pillar_slip: bool, has_sensor_slip: bool
     for k, t in enumerate(types):
         struct.pack_into("<HH", payload, 1 + k * (2 + isz), t, offsets[t])
 
-    def per_pillar(block: int, rec: int, tag: int) -> int:
-        """Write the sensor/pillar tables of a per-pillar block; return the first record's index."""
-        sensor = block + 2 + isz
-        first = sensor + 2 + N_PILLARS * isz
-        struct.pack_into("<HH", payload, block, 1, sensor)
-        _U16.pack_into(payload, sensor, N_PILLARS)
-        for p in range(N_PILLARS):
-            _U16.pack_into(payload, sensor + 2 + p * isz, first + p * rec)
-            _U16.pack_into(payload, first + p * rec, tag)
-        return first
+    def per_pillar(block: int, rec: int, tag: int) -> tuple[int, ...]:
+        """Write the sensor/pillar tables of a per-pillar block; return each sensor's first record index."""
+        _U16.pack_into(payload, block, ns)
+        sensor = block + 2 + ns * isz
+        firsts = []
+        for k in range(ns):
+            first = sensor + 2 + N_PILLARS * isz
+            _U16.pack_into(payload, block + 2 + k * isz, sensor)
+            _U16.pack_into(payload, sensor, N_PILLARS)
+            for p in range(N_PILLARS):
+                _U16.pack_into(payload, sensor + 2 + p * isz, first + p * rec)
+                _U16.pack_into(payload, first + p * rec, tag)
+            firsts.append(first)
+            sensor = first + N_PILLARS * rec
+        return tuple(firsts)
 
-    def per_sensor(block: int, tag: int) -> int:
-        rec = block + 2 + isz
-        struct.pack_into("<HHH", payload, block, 1, rec, tag)
-        return rec
+    def per_sensor(block: int, rec_len: int, tag: int) -> tuple[int, ...]:
+        _U16.pack_into(payload, block, ns)
+        recs = []
+        for k in range(ns):
+            rec = block + 2 + ns * isz + k * rec_len
+            _U16.pack_into(payload, block + 2 + k * isz, rec)
+            _U16.pack_into(payload, rec, tag)
+            recs.append(rec)
+        return tuple(recs)
 
     pillars = per_pillar(offsets[TYPE_PILLARS], _PILLAR_REC, _PILLAR_TAG)
-    glob = per_sensor(offsets[TYPE_GLOBAL], _GLOBAL_TAG) if has_global else -1
-    pslip = per_pillar(offsets[TYPE_PILLAR_SLIP], _PILLAR_SLIP_REC, _PILLAR_SLIP_TAG) if has_pillar_slip else -1
-    sslip = per_sensor(offsets[TYPE_SENSOR_SLIP], _SENSOR_SLIP_TAG) if has_sensor_slip else -1
+    glob = per_sensor(offsets[TYPE_GLOBAL], _GLOBAL_REC, _GLOBAL_TAG) if has_global else ()
+    pslip = per_pillar(offsets[TYPE_PILLAR_SLIP], _PILLAR_SLIP_REC, _PILLAR_SLIP_TAG) if has_pillar_slip else ()
+    sslip = per_sensor(offsets[TYPE_SENSOR_SLIP], _SENSOR_SLIP_REC, _SENSOR_SLIP_TAG) if has_sensor_slip else ()
     frame = START + bytes(payload) + b"\x00\x00" + END
     return _Layout(frame, len(payload), offsets[TYPE_HUB], pillars, glob, pslip, sslip)
 
 
-def _layout(has_global: bool, has_pillar_slip: bool, has_sensor_slip: bool) -> _Layout:
-    key = (has_global, has_pillar_slip, has_sensor_slip)
+def _layout(sensors: int, has_global: bool, has_pillar_slip: bool, has_sensor_slip: bool) -> _Layout:
+    key = (sensors, has_global, has_pillar_slip, has_sensor_slip)
     lay = _LAYOUTS.get(key)
     if lay is None:
+        if not 1 <= sensors <= _MAX_SENSORS:
+            raise ValueError(f"a frame carries 1..{_MAX_SENSORS} sensors; got {sensors}")
         lay = _LAYOUTS[key] = _build_layout(*key)
     return lay
 
@@ -202,10 +267,11 @@ def _as_f32(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
 
 
 def encode_frame(frame: Frame) -> bytes:
-    """Encode one frame as the controller sends it (single sensor, ISZ 2).
+    """Encode one frame as the controller sends it (ISZ 2; sensor 0 and ``frame.others``).
 
     Blocks 4, 5 and 6 are written when ``wrench``, ``slip_state``/``friction`` and ``sensor_state``
-    are set (a missing half of type 5 is sent as state 0 / friction -1; missing type 6 values as -1).
+    are set (a missing half of type 5 is sent as state 0 / friction -1; missing type 6 values as -1);
+    further sensors get neutral values there (module docstring).
     Raises ValueError for shapes or counter/timestamp values the wire format cannot carry.
     """
     if not 0 <= frame.counter < 2**32:
@@ -213,35 +279,41 @@ def encode_frame(frame: Frame) -> bytes:
     if not 0 <= frame.t_us < 2**64:
         raise ValueError(f"Frame.t_us must fit u64; got {frame.t_us}")
     has_pslip = frame.slip_state is not None or frame.friction is not None
-    lay = _layout(frame.wrench is not None, has_pslip, frame.sensor_state is not None)
+    ns = 1 + len(frame.others)
+    lay = _layout(ns, frame.wrench is not None, has_pslip, frame.sensor_state is not None)
     buf = bytearray(lay.template)
     p0 = len(START)
     _HUB.pack_into(buf, p0 + lay.hub, frame.counter, frame.t_us)
-    rec = np.ndarray((N_PILLARS, 6), dtype="<f4", buffer=buf, offset=p0 + lay.pillars + 2, strides=(_PILLAR_REC, 4))
-    rec[:, :3] = _as_f32("force", frame.force, (N_PILLARS, 3))
-    rec[:, 3:] = _as_f32("disp", frame.disp, (N_PILLARS, 3))
-    if lay.glob >= 0:
-        g = np.ndarray((6,), dtype="<f4", buffer=buf, offset=p0 + lay.glob + 2)
+    values = [(frame.force, frame.disp), *frame.others]
+    for k, (force, disp) in enumerate(values):
+        name = "" if k == 0 else f"others[{k - 1}]."
+        rec = np.ndarray(
+            (N_PILLARS, 6), dtype="<f4", buffer=buf, offset=p0 + lay.pillars[k] + 2, strides=(_PILLAR_REC, 4)
+        )
+        rec[:, :3] = _as_f32(name + "force", force, (N_PILLARS, 3))
+        rec[:, 3:] = _as_f32(name + "disp", disp, (N_PILLARS, 3))
+    if lay.glob:
+        g = np.ndarray((6,), dtype="<f4", buffer=buf, offset=p0 + lay.glob[0] + 2)
         g[:] = _as_f32("wrench", frame.wrench, (6,))
-    if lay.pillar_slip >= 0:
-        base = p0 + lay.pillar_slip + 2
+    for k, at in enumerate(lay.pillar_slip):
+        base = p0 + at + 2
         st = np.ndarray((N_PILLARS,), dtype="i1", buffer=buf, offset=base, strides=(_PILLAR_SLIP_REC,))
         fr = np.ndarray((N_PILLARS,), dtype="<f4", buffer=buf, offset=base + 1, strides=(_PILLAR_SLIP_REC,))
-        if frame.slip_state is None:
+        if frame.slip_state is None or k > 0:
             st[:] = 0
         else:
             states = np.asarray(frame.slip_state)
             if states.shape != (N_PILLARS,):
                 raise ValueError(f"Frame.slip_state must have shape (9,); got {states.shape}")
             st[:] = states.astype(np.int8)
-        fr[:] = -1.0 if frame.friction is None else _as_f32("friction", frame.friction, (N_PILLARS,))
-    if lay.sensor_slip >= 0:
+        fr[:] = -1.0 if frame.friction is None or k > 0 else _as_f32("friction", frame.friction, (N_PILLARS,))
+    for k, at in enumerate(lay.sensor_slip):
         state = int(frame.sensor_state)  # type: ignore[arg-type]
         if not 0 <= state < 256:
             raise ValueError(f"Frame.sensor_state must fit u8; got {state}")
-        fe = -1.0 if frame.friction_est is None else float(frame.friction_est)
-        tg = -1.0 if frame.target_grip_force is None else float(frame.target_grip_force)
-        _SENSOR_SLIP.pack_into(buf, p0 + lay.sensor_slip, _SENSOR_SLIP_TAG, state, fe, tg)
+        fe = -1.0 if frame.friction_est is None or k > 0 else float(frame.friction_est)
+        tg = -1.0 if frame.target_grip_force is None or k > 0 else float(frame.target_grip_force)
+        _SENSOR_SLIP.pack_into(buf, p0 + at, _SENSOR_SLIP_TAG, state, fe, tg)
     total = int(np.frombuffer(buf, dtype=np.uint8, count=lay.payload_len, offset=p0).sum()) & 0xFFFF
     _U16.pack_into(buf, p0 + lay.payload_len, total)
     return bytes(buf)
@@ -275,25 +347,43 @@ class FrameDecoder:
     corrupt frame is counted and skipped (never raised). Bytes live in one preallocated buffer that is
     compacted in place. The first frame (and any frame whose layout changes) is validated by walking its
     structure; the frames after it that lie back to back with the same layout are checked and decoded as
-    one block per read (see ``_decode_run``): the frames of one block share their value arrays (one
-    [k, 2, 9, 3] copy; each frame's ``force`` and ``disp`` are views of its rows).
+    one block per read (see ``_decode_run``). Values go straight from the byte buffer into preallocated
+    arrays (strided views, one copy per run of frames): ``feed_block`` hands them out as a ``FrameBlock``
+    (the daemon's path: no Python object per frame); ``feed`` wraps them in ``Frame`` objects.
+
+    ``sensors``: how many arrays the consumer reads from each frame (module docstring).
 
     Counters (cumulative): ``frames``, ``garbage_bytes``, ``bad_checksum``, ``bad_length``,
-    ``bad_structure``; ``errors()`` returns the three error counters by kind.
+    ``bad_structure``, ``missing_sensor`` (frames lacking a configured sensor); ``errors()`` returns the
+    three error counters by kind.
     """
 
     ERROR_KINDS = ("bad_checksum", "bad_length", "bad_structure")
 
-    def __init__(self) -> None:
+    def __init__(self, sensors: int = 1) -> None:
+        if not 1 <= sensors <= _MAX_SENSORS:
+            raise ValueError(f"sensors must be 1..{_MAX_SENSORS}, got {sensors}")
+        self.sensors = sensors
         self._buf = bytearray(_BUFFER_BYTES)
         self._u8 = np.frombuffer(self._buf, dtype=np.uint8)
         self._start = 0
         self._end = 0
         # (frame length, payload length, fixed byte indices, their values, block record positions) of the
         # last fully validated frame: the controller sends one layout, so later frames are checked against it.
-        self._run: tuple[int, int, np.ndarray, np.ndarray, dict[int, int]] | None = None
+        self._run: tuple[int, int, np.ndarray, np.ndarray, dict[int, tuple[int, ...]]] | None = None
         self._value_ranges: list[tuple[int, int]] = []
+        # Output storage, reused across feeds (grown only when one feed completes more frames than ever
+        # before; a serial read is bounded, so is this). _vals is [frame, sensor, force|disp, pillar, axis].
+        self._cap = 0
+        self._n = 0
+        self._counter = np.zeros(0, np.int64)
+        self._t = np.zeros(0, np.uint64)
+        self._vals = np.zeros((0, sensors, 2, N_PILLARS, 3), np.float32)
+        self._dropped = np.zeros(0, np.int64)
+        self._disc = np.zeros(0, bool)
+        self._frames_out: list[Frame] | None = None  # set while ``feed`` builds Frame objects
         self.frames = 0
+        self.missing_sensor = 0
         self.garbage_bytes = 0
         self.bad_checksum = 0
         self.bad_length = 0
@@ -315,6 +405,30 @@ class FrameDecoder:
     def feed(self, data: bytes | bytearray | memoryview) -> list[Frame]:
         """Add bytes from the port; return the frames completed by them, in order."""
         out: list[Frame] = []
+        self._frames_out = out
+        try:
+            self._feed(data)
+        finally:
+            self._frames_out = None
+        return out
+
+    def feed_block(self, data: bytes | bytearray | memoryview) -> FrameBlock:
+        """Add bytes from the port; return the frames completed by them as arrays (views, valid until the
+        next call; see ``FrameBlock``)."""
+        self._feed(data)
+        return self.block()
+
+    def block(self) -> FrameBlock:
+        """The frames completed by the latest ``feed`` or ``feed_block`` as arrays (views; see ``FrameBlock``)."""
+        n = self._n
+        self._dropped[:n] = 0
+        self._disc[:n] = False
+        vals = self._vals[:n]
+        return FrameBlock(self._counter[:n], self._t[:n], vals[:, :, 0], vals[:, :, 1], self._dropped[:n],
+                          self._disc[:n])
+
+    def _feed(self, data: bytes | bytearray | memoryview) -> None:
+        self._n = 0
         view = memoryview(data).cast("B")
         for i in range(0, len(view), _CHUNK_BYTES):
             chunk = view[i : i + _CHUNK_BYTES]
@@ -324,12 +438,11 @@ class FrameDecoder:
                 self._start, self._end = 0, n
             self._buf[self._end : self._end + len(chunk)] = chunk
             self._end += len(chunk)
-            self._scan(out)
-        return out
+            self._scan()
 
     # The scan keeps its state in self._start so that a _NeedMore leaves everything in place for the
     # next feed.
-    def _scan(self, out: list[Frame]) -> None:
+    def _scan(self) -> None:
         buf = self._buf
         while True:
             s = buf.find(START, self._start, self._end)
@@ -343,10 +456,10 @@ class FrameDecoder:
             if s > self._start:
                 self.garbage_bytes += s - self._start
                 self._start = s
-            if self._run is not None and self._decode_run(s, out):
+            if self._run is not None and self._decode_run(s):
                 continue
             try:
-                frame, length = self._decode_at(s)
+                found, length = self._decode_at(s)
             except _NeedMore:
                 return
             except _Reject as rej:
@@ -354,12 +467,12 @@ class FrameDecoder:
                 self.garbage_bytes += 1
                 self._start = s + 1
                 continue
-            out.append(frame)
+            self._emit(s + len(START), found, 1, length)
             self.frames += 1
             self._start = s + length
 
     # ------------------------------------------------------------ runs of frames
-    def _decode_run(self, s: int, out: list[Frame]) -> int:
+    def _decode_run(self, s: int) -> int:
         """Decode the frames lying back to back from ``s`` that have the cached layout, all in one pass.
 
         The controller sends one layout, so a read of k frames is k copies of one template whose value
@@ -380,20 +493,20 @@ class FrameDecoder:
         n = k if ok.all() else int(np.argmin(ok))
         if n == 0:
             return 0
-        out.extend(self._build(s + len(START), found, n, flen))
+        self._emit(s + len(START), found, n, flen)
         self.frames += n
         self._start = s + n * flen
         return n
 
     # ------------------------------------------------------------ one frame
-    def _decode_at(self, s: int) -> tuple[Frame, int]:
-        """Decode the frame starting at buffer index ``s`` (its start marker), walking its structure.
-        Returns it and its length; remembers its layout for ``_decode_run``."""
-        frame, total, found = self._decode_full(s + len(START))
+    def _decode_at(self, s: int) -> tuple[dict[int, tuple[int, ...]], int]:
+        """Validate the frame starting at buffer index ``s`` (its start marker), walking its structure.
+        Returns its record positions and its length; remembers its layout for ``_decode_run``."""
+        total, found = self._decode_full(s + len(START))
         self._remember_layout(s + len(START), total - len(START) - 2 - len(END), found)
-        return frame, total
+        return found, total
 
-    def _remember_layout(self, p0: int, payload_len: int, found: dict[int, int]) -> None:
+    def _remember_layout(self, p0: int, payload_len: int, found: dict[int, tuple[int, ...]]) -> None:
         """Cache which frame bytes are fixed (markers and structure: everything but values and checksum)."""
         mask = np.ones(payload_len, dtype=bool)
         for a, b in self._value_ranges:
@@ -404,8 +517,9 @@ class FrameDecoder:
         ]).astype(np.intp)
         self._run = (flen, payload_len, fixed, self._u8[p0 - len(START) + fixed].copy(), dict(found))
 
-    def _decode_full(self, p0: int) -> tuple[Frame, int, dict[int, int]]:
-        """Validate and decode a frame whose payload starts at buffer index ``p0``, walking its structure."""
+    def _decode_full(self, p0: int) -> tuple[int, dict[int, tuple[int, ...]]]:
+        """Validate a frame whose payload starts at buffer index ``p0``, walking its structure: its length and
+        the payload index of each block's first record, per sensor."""
         buf = self._buf
         avail = self._end - p0  # payload bytes (and beyond) present so far
         self._value_ranges = []
@@ -444,7 +558,7 @@ class FrameDecoder:
 
         # ---- block extents (sequential layout) and where the payload ends
         blocks = sorted(offsets.items(), key=lambda kv: kv[1])
-        found: dict[int, int] = {}  # type -> payload index of sensor 0's first record
+        found: dict[int, tuple[int, ...]] = {}  # type -> payload index of each sensor's first record (-1: unusable)
         payload_len = -1
         for k, (typ, off) in enumerate(blocks):
             nxt = blocks[k + 1][1] if k + 1 < len(blocks) else None
@@ -472,17 +586,18 @@ class FrameDecoder:
         self._check_sub_offsets(p0, offsets, isz, payload_len)
         if (int(self._u8[p0 : p0 + payload_len].sum()) & 0xFFFF) != _U16.unpack_from(buf, p0 + payload_len)[0]:
             raise _Reject("bad_checksum")
-        return self._build(p0, found, 1, total)[0], total, found
+        return total, found
 
     def _block_extent(
         self, p0: int, typ: int, off: int, isz: int, need: Callable[[int], None]
-    ) -> tuple[int, int]:
-        """End (payload index) of a known block and the index of sensor 0's first record."""
+    ) -> tuple[int, tuple[int, ...]]:
+        """End (payload index) of a known block and the index of each sensor's first record (-1 for a
+        sensor whose pillar count is not 9: it cannot be read as a [9, 3] array)."""
         buf = self._buf
         if typ == TYPE_HUB:
             need(off + _HUB_SIZE)
             self._value_ranges.append((off, off + _HUB_SIZE))
-            return off + _HUB_SIZE, off
+            return off + _HUB_SIZE, (off,)
         need(off + 2)
         ns = _U16.unpack_from(buf, p0 + off)[0]
         if not 1 <= ns <= _MAX_SENSORS:
@@ -497,10 +612,10 @@ class FrameDecoder:
                 if _U16.unpack_from(buf, p0 + pos + k * rec)[0] != tag:
                     raise _Reject("bad_structure")
                 self._value_ranges.append((pos + k * rec + 2, pos + (k + 1) * rec))
-            return end, pos
+            return end, tuple(pos + k * rec for k in range(ns))
         rec = _PILLAR_REC if typ == TYPE_PILLARS else _PILLAR_SLIP_REC
         tag = _PILLAR_TAG if typ == TYPE_PILLARS else _PILLAR_SLIP_TAG
-        first = -1
+        firsts = []
         for k in range(ns):
             need(pos + 2)
             npil = _U16.unpack_from(buf, p0 + pos)[0]
@@ -513,10 +628,9 @@ class FrameDecoder:
             if not (tags == tag).all():
                 raise _Reject("bad_structure")
             self._value_ranges.extend((recs + j * rec + 2, recs + (j + 1) * rec) for j in range(npil))
-            if k == 0:
-                first = recs
+            firsts.append(recs if npil == N_PILLARS else -1)
             pos = end
-        return pos, first
+        return pos, tuple(firsts)
 
     def _unknown_tail_length(self, p0: int, off: int) -> int:
         """Payload length when the last block's type is unknown: the first end marker with a valid checksum."""
@@ -555,23 +669,54 @@ class FrameDecoder:
                         raise _Reject("bad_structure")
                     pos += 2 + npil * isz + npil * rec
 
-    def _build(self, p0: int, found: dict[int, int], n: int, stride: int) -> list[Frame]:
-        """Frames from ``n`` payloads of one layout, the first at buffer index ``p0``, ``stride`` bytes apart.
-
-        Values are read through strided views of the buffer and copied once per block: ``force`` and
-        ``disp`` of all n frames share one [n, 2, 9, 3] array (each frame's are views of its rows), and
-        likewise the optional parts, so the cost per frame is the Frame object, not numpy calls.
-        """
+    def _emit(self, p0: int, found: dict[int, tuple[int, ...]], n: int, stride: int) -> None:
+        """Copy ``n`` payloads of one layout (the first at buffer index ``p0``, ``stride`` bytes apart) into the
+        output arrays: strided views of the byte buffer, one copy per array for the whole run."""
+        m = self._n
+        if m + n > self._cap:
+            self._grow(m + n)
         buf = self._buf
-        hub = p0 + found[TYPE_HUB]
-        counters = np.ndarray((n,), dtype="<u4", buffer=buf, offset=hub, strides=(stride,)).tolist()
-        stamps = np.ndarray((n,), dtype="<u8", buffer=buf, offset=hub + 4, strides=(stride,)).tolist()
-        rec = np.ndarray(
-            (n, N_PILLARS, 2, 3), dtype="<f4", buffer=buf, offset=p0 + found[TYPE_PILLARS] + 2,
-            strides=(stride, _PILLAR_REC, 12, 4),
-        )
-        fd = np.empty((n, 2, N_PILLARS, 3), dtype=np.float32)
-        np.copyto(fd, rec.transpose(0, 2, 1, 3))
+        hub = p0 + found[TYPE_HUB][0]
+        self._counter[m : m + n] = np.ndarray((n,), dtype="<u4", buffer=buf, offset=hub, strides=(stride,))
+        self._t[m : m + n] = np.ndarray((n,), dtype="<u8", buffer=buf, offset=hub + 4, strides=(stride,))
+        recs = found[TYPE_PILLARS]
+        missing = False
+        for k in range(self.sensors):
+            dst = self._vals[m : m + n, k]  # [n, 2, 9, 3]
+            if k < len(recs) and recs[k] >= 0:
+                src = np.ndarray(
+                    (n, N_PILLARS, 2, 3), dtype="<f4", buffer=buf, offset=p0 + recs[k] + 2,
+                    strides=(stride, _PILLAR_REC, 12, 4),
+                )
+                np.copyto(dst, src.transpose(0, 2, 1, 3))
+            else:
+                dst[...] = np.nan  # the configured finger is not in these frames: blind, not shifted
+                missing = True
+        if missing:
+            self.missing_sensor += n
+        if self._frames_out is not None:
+            self._frames_out.extend(self._build(p0, found, m, n, stride))
+        self._n = m + n
+
+    def _grow(self, need: int) -> None:
+        cap = max(need, 2 * self._cap, 64)
+        counter, t, vals = self._counter, self._t, self._vals
+        self._counter = np.zeros(cap, np.int64)
+        self._t = np.zeros(cap, np.uint64)
+        self._vals = np.zeros((cap, self.sensors, 2, N_PILLARS, 3), np.float32)
+        self._dropped = np.zeros(cap, np.int64)
+        self._disc = np.zeros(cap, bool)
+        m = self._n
+        self._counter[:m], self._t[:m], self._vals[:m] = counter[:m], t[:m], vals[:m]
+        self._cap = cap
+
+    def _build(self, p0: int, found: dict[int, tuple[int, ...]], m: int, n: int, stride: int) -> list[Frame]:
+        """Frame objects for the ``n`` frames just copied to output rows ``m..m+n`` (``feed``'s form), with the
+        optional blocks of sensor 0 read through strided views of the buffer."""
+        buf = self._buf
+        counters = self._counter[m : m + n].tolist()
+        stamps = self._t[m : m + n].tolist()
+        fd = self._vals[m : m + n].copy()  # the frames own their values: the storage is reused
         none = itertools.repeat(None)
         wrench: Iterable[Any] = none
         states: Iterable[Any] = none
@@ -581,12 +726,12 @@ class FrameDecoder:
         target: Iterable[Any] = none
         g = found.get(TYPE_GLOBAL)
         if g is not None:
-            wrench = np.ndarray((n, 6), dtype="<f4", buffer=buf, offset=p0 + g + 2, strides=(stride, 4)).astype(
+            wrench = np.ndarray((n, 6), dtype="<f4", buffer=buf, offset=p0 + g[0] + 2, strides=(stride, 4)).astype(
                 np.float32
             )
         ps = found.get(TYPE_PILLAR_SLIP)
         if ps is not None:
-            base = p0 + ps + 2
+            base = p0 + ps[0] + 2
             states = np.ndarray(
                 (n, N_PILLARS), dtype="i1", buffer=buf, offset=base, strides=(stride, _PILLAR_SLIP_REC)
             ).copy()
@@ -595,11 +740,13 @@ class FrameDecoder:
             ).astype(np.float32)
         ss = found.get(TYPE_SENSOR_SLIP)
         if ss is not None:
-            base = p0 + ss + 2
+            base = p0 + ss[0] + 2
             sensor = np.ndarray((n,), dtype="u1", buffer=buf, offset=base, strides=(stride,)).tolist()
             f_est = np.ndarray((n,), dtype="<f4", buffer=buf, offset=base + 1, strides=(stride,)).tolist()
             target = np.ndarray((n,), dtype="<f4", buffer=buf, offset=base + 5, strides=(stride,)).tolist()
-        return list(map(Frame, counters, stamps, fd[:, 0], fd[:, 1], wrench, states, friction, sensor, f_est, target))
+        others = [tuple((fd[i, k, 0], fd[i, k, 1]) for k in range(1, self.sensors)) for i in range(n)]
+        return list(map(Frame, counters, stamps, fd[:, 0, 0], fd[:, 0, 1], wrench, states, friction, sensor, f_est,
+                        target, itertools.repeat(0), itertools.repeat(False), others))
 
 
 # ---------------------------------------------------------------------- commands

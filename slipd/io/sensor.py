@@ -1,16 +1,18 @@
 """Serial reader of the PapillArray: PTSCOM 2.0 frames into the asyncio loop, with reconnects.
 
 The port is read on the loop's own thread: ``loop.add_reader`` wakes us when bytes are waiting, one
-non-blocking ``readv`` fills a preallocated buffer, the decoder turns it into frames and
-``on_frames(frames)`` gets them at once. No thread hop per sample, no allocation per read beyond the
-frames themselves.
+non-blocking ``readv`` fills a preallocated buffer, the decoder turns it into frames and the consumer
+gets them at once: ``on_block(block)`` with a ``FrameBlock`` (arrays in the decoder's preallocated
+storage: the daemon's path, no object per frame), or ``on_frames(frames)`` with ``Frame`` objects. No
+thread hop per sample.
 
 Opening: pyserial with ``exclusive=True`` (an flock, so a second daemon cannot interleave reads),
 then the kernel's low-latency flag (TIOCSSERIAL ASYNC_LOW_LATENCY) where the driver supports it, and a
 warning when an FTDI adapter's latency timer would batch frames (the PapillArray itself is USB CDC ACM,
 which has none).
 
-Packet counter accounting, per frame:
+Packet counter accounting, per frame (vectorised over a read; the loop below runs only when a read holds
+something other than consecutive counters):
     counter + 1                  normal
     counter + 2 .. + max_gap     ``dropped_before`` = missing frames, counted in ``dropped_frames``
     equal                        a repeated sample, not a new one: dropped before ``on_frames`` and
@@ -22,6 +24,11 @@ Packet counter accounting, per frame:
                                  ``discontinuities``; nothing counted as dropped
 The first frame after a reconnect is flagged as a discontinuity too (the link was down; how many frames
 that cost is unknowable when the controller restarts its counter). The counter wraps at 2**32.
+
+Arrival clock: the reader keeps an estimate of when the latest frame reached the host (a periodic model
+of the packet counter, tightened by every read: a frame arrived no later than the read that found it),
+so a consumer that pauses the reader (``pause``) can resume just before the frame it waits for
+(``expected_arrival``) instead of waking for every frame on the way.
 
 On EOF, EIO or hangup the reader closes the port, calls ``on_disconnect(reason)`` and retries the open
 with exponential backoff (``reconnect_initial_s`` doubling up to ``reconnect_max_s``); each success
@@ -43,9 +50,10 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import serial
 
-from slipd.io.pts import Frame, FrameDecoder
+from slipd.io.pts import Frame, FrameBlock, FrameDecoder
 from slipd.metrics import Metrics
 
 log = logging.getLogger(__name__)
@@ -64,6 +72,11 @@ PAUSE_BUFFER_FRACTION = 0.75
 """Share of ``TTY_BUFFER_BYTES`` a pause may fill: 7 frames of 433 bytes at 1 kHz, leaving ~2 ms of slack for a
 late timer before the kernel throttles the device (which delays frames, never drops them silently: the packet
 counter would show it). Half the buffer cost ~1.5 points more CPU (more reads per second)."""
+ARRIVAL_REANCHOR_S = 0.003
+"""A read this much later than the arrival clock predicts re-anchors it (a stall, a restarted stream)."""
+ARRIVAL_LEAK = 0.01
+"""The arrival clock may run this fraction slower than the nominal period between reads (sensor and host
+clocks differ by ~1e-4); a read that finds a frame earlier than predicted pulls it back at once."""
 
 
 class SensorError(RuntimeError):
@@ -110,15 +123,20 @@ def check_latency_timer(port: str, sysfs_root: str | Path = FTDI_SYSFS) -> int |
 class SerialSensor:
     """Reads PTSCOM 2.0 frames from a serial port inside the running asyncio loop.
 
-    ``on_frames(frames)`` and ``on_disconnect(reason)`` are called on the loop's thread; an exception
-    they raise is logged and does not stop the reader. ``baudrate`` is nominal (CDC ignores it).
+    ``on_block(block)`` (or ``on_frames(frames)``) and ``on_disconnect(reason)`` are called on the loop's
+    thread; an exception they raise is logged and does not stop the reader. ``baudrate`` is nominal (CDC
+    ignores it). ``sensors``: the arrays read from each frame (``slipd.io.pts``); ``rate_hz`` the nominal
+    frame rate (the arrival clock's period).
     """
 
     def __init__(
         self,
         port: str,
-        on_frames: Callable[[list[Frame]], None],
+        on_frames: Callable[[list[Frame]], None] | None = None,
         *,
+        on_block: Callable[[FrameBlock], None] | None = None,
+        sensors: int = 1,
+        rate_hz: float = 1000.0,
         baudrate: int = 115200,
         on_disconnect: Callable[[str], None] | None = None,
         reconnect_initial_s: float = 0.05,
@@ -129,6 +147,8 @@ class SerialSensor:
         sysfs_root: str | Path = FTDI_SYSFS,
         low_latency: bool = True,
     ) -> None:
+        if (on_frames is None) == (on_block is None):
+            raise ValueError("give exactly one of on_frames (Frame objects) and on_block (FrameBlock arrays)")
         if reconnect_initial_s <= 0 or reconnect_max_s < reconnect_initial_s:
             raise ValueError(
                 f"reconnect backoff needs 0 < initial ({reconnect_initial_s}) <= max ({reconnect_max_s})"
@@ -136,12 +156,14 @@ class SerialSensor:
         self.port = port
         self.baudrate = baudrate
         self.on_frames = on_frames
+        self.on_block = on_block
+        self.period_s = 1.0 / rate_hz
         self.on_disconnect = on_disconnect
         self.reconnect_initial_s = reconnect_initial_s
         self.reconnect_max_s = reconnect_max_s
         self.max_gap = max_gap
         self.sysfs_root = sysfs_root
-        self.decoder = FrameDecoder()
+        self.decoder = FrameDecoder(sensors)
         self._rbuf = bytearray(read_bytes)
         self._rview = memoryview(self._rbuf)
         self._serial: serial.Serial | None = None
@@ -171,6 +193,7 @@ class SerialSensor:
         self._watching = False  # the fd is registered with the loop (add_reader)
         self.last_frame_time: float | None = None
         """time.monotonic() of the read that delivered the latest frame (None before the first)."""
+        self._arrival: float | None = None  # estimated time.monotonic() at which the latest frame arrived
         self._metrics = metrics
         self._seen_errors = dict.fromkeys(FrameDecoder.ERROR_KINDS, 0)
         self._seen_garbage = 0
@@ -289,6 +312,25 @@ class SerialSensor:
         except OSError:
             return 0
 
+    def expected_arrival(self, frames_ahead: int) -> float | None:
+        """Estimated ``time.monotonic()`` at which the frame ``frames_ahead`` after the latest one arrives
+        (None before the first frame): the arrival clock of the module docstring."""
+        if self._arrival is None:
+            return None
+        return self._arrival + frames_ahead * self.period_s
+
+    def _tick_arrival(self, now: float, new: int) -> None:
+        """Advance the arrival clock by ``new`` frames read at ``now`` (an upper bound on their arrival)."""
+        est = self._arrival
+        if est is None:
+            self._arrival = now
+            return
+        pred = est + new * self.period_s
+        if now < pred or now - pred > ARRIVAL_REANCHOR_S:
+            self._arrival = now
+        else:
+            self._arrival = min(now, pred + ARRIVAL_LEAK * new * self.period_s)
+
     def _resume(self) -> None:
         """End of a pause: read what piled up at once (no wait for the loop to report the fd readable);
         watch the port again unless that read's consumer paused once more (then it stays unwatched,
@@ -365,60 +407,91 @@ class SerialSensor:
         if n == 0:
             self._lost("EOF")
             return
-        frames = self.decoder.feed(self._rview[:n])
+        frames: list[Frame] | None = None
+        if self.on_block is not None:
+            block = self.decoder.feed_block(self._rview[:n])
+        else:
+            frames = self.decoder.feed(self._rview[:n])
+            block = self.decoder.block()
         if self._metrics is not None:
             self._update_error_metrics()
-        if not frames:
+        k = len(block)
+        if not k:
             return
-        self.last_frame_time = time.monotonic()
-        self.frame_bytes = n // len(frames)
-        frames = self._account(frames)
-        if not frames:
-            return
+        now = time.monotonic()
+        self.last_frame_time = now
+        self.frame_bytes = n // k
+        if self._after_reconnect or self._last_counter is None:
+            self._arrival = None
+        self._tick_arrival(now, k)
+        keep = self._account(block)
+        if frames is not None:
+            for f, d, b in zip(frames, block.dropped_before.tolist(), block.discontinuity.tolist()):
+                f.dropped_before, f.discontinuity = d, b
+            if keep is not None:
+                frames = [f for f, ok in zip(frames, keep.tolist()) if ok]
+            if not frames:
+                return
+        elif keep is not None:
+            block = block.select(keep)
+            if not len(block):
+                return
         try:
-            self.on_frames(frames)
+            if frames is not None:
+                assert self.on_frames is not None
+                self.on_frames(frames)
+            else:
+                assert self.on_block is not None
+                self.on_block(block)
         except Exception:
             log.exception("on_frames callback failed")
 
-    def _account(self, frames: list[Frame]) -> list[Frame]:
-        """Gap and discontinuity detection from the packet counter; returns the frames without repeats."""
+    def _account(self, block: FrameBlock) -> np.ndarray | None:
+        """Gap and discontinuity detection from the packet counter: fills ``block.dropped_before`` and
+        ``block.discontinuity``; returns the mask of frames to keep (None: all; repeats are dropped)."""
+        c = block.counter
+        k = len(c)
         last = self._last_counter
-        dropped = 0
-        breaks = 0
-        repeats = 0
-        kept = frames
-        for k, f in enumerate(frames):
-            c = f.counter
-            if last is None:
-                pass
-            elif self._after_reconnect:
-                f.discontinuity = True
-                breaks += 1
-            else:
-                diff = (c - last) & 0xFFFFFFFF
-                if diff == 0:
-                    if not repeats:  # rare outside a fault: only then is the list copied
-                        kept = frames[:k]
-                    repeats += 1
-                    continue
-                if diff != 1:
-                    if 1 < diff <= self.max_gap:
-                        f.dropped_before = diff - 1
-                        dropped += diff - 1
-                    else:
-                        f.discontinuity = True
-                        breaks += 1
-            self._after_reconnect = False
-            last = c
-            if repeats:
-                kept.append(f)
+        ok = last is not None and not self._after_reconnect and (c[0] - last) & 0xFFFFFFFF == 1
+        if ok and k > 1:
+            ok = bool(((c[1:] - c[:-1]) & 0xFFFFFFFF == 1).all())
+        keep = None
+        dropped = breaks = repeats = 0
+        if ok:
+            last = int(c[-1])
+        else:
+            # Something other than consecutive counters (start, reconnect, gap, repeat): frame by frame.
+            keep = np.ones(k, bool)
+            for i, ci in enumerate(c.tolist()):
+                if last is None:
+                    pass
+                elif self._after_reconnect:
+                    block.discontinuity[i] = True
+                    breaks += 1
+                else:
+                    diff = (ci - last) & 0xFFFFFFFF
+                    if diff == 0:
+                        keep[i] = False
+                        repeats += 1
+                        continue
+                    if diff != 1:
+                        if 1 < diff <= self.max_gap:
+                            block.dropped_before[i] = diff - 1
+                            dropped += diff - 1
+                        else:
+                            block.discontinuity[i] = True
+                            breaks += 1
+                self._after_reconnect = False
+                last = ci
+            if not repeats:
+                keep = None
         self._last_counter = last
-        self.frames += len(frames)
+        self.frames += k
         self.dropped_frames += dropped
         self.discontinuities += breaks
         m = self._metrics
         if m is not None:
-            m.frames.inc(len(frames))
+            m.frames.inc(k)
             if dropped:
                 m.dropped_frames.inc(dropped)
             if breaks:
@@ -428,7 +501,7 @@ class SerialSensor:
         if repeats:
             self.repeated_frames += repeats
             self.last_repeat_time = self.last_frame_time
-        return kept
+        return keep
 
     def _update_error_metrics(self) -> None:
         d = self.decoder

@@ -348,3 +348,43 @@ def test_block_decode_equals_frame_by_frame() -> None:
     assert a.force.base is b.force.base  # decoded as one block
     a.force[0, 0] = 123.0
     assert np.array_equal(b.force, simple_frame(3).force) and np.array_equal(b.disp, simple_frame(3).disp)
+
+
+# ---------------------------------------------------------------------- two arrays (issue 15)
+def two_sensor_frame(counter: int) -> Frame:
+    f = simple_frame(counter)
+    f.friction_est, f.target_grip_force = 0.5, 3.0
+    rng = np.random.default_rng(1000 + counter)
+    f.others = ((rng.normal(size=(9, 3)).astype(np.float32), rng.normal(size=(9, 3)).astype(np.float32)),)
+    return f
+
+
+def test_two_sensor_frames_round_trip_as_frames_and_as_a_block() -> None:
+    fs = [two_sensor_frame(c) for c in range(5)]
+    data = b"".join(encode_frame(f) for f in fs)
+    assert len(encode_frame(fs[0])) > 433  # the second array's records are on the wire
+    out = FrameDecoder(sensors=2).feed(data)
+    assert len(out) == 5
+    for a, b in zip(fs, out):
+        assert_same(a, b)
+        assert np.array_equal(a.others[0][0], b.others[0][0]) and np.array_equal(a.others[0][1], b.others[0][1])
+    dec = FrameDecoder(sensors=2)
+    block = dec.feed_block(data[:-10])  # the last frame incomplete: four now ...
+    assert len(block) == 4 and block.force.shape == (4, 2, 9, 3) and block.sensors == 2
+    assert block.counter.tolist() == [0, 1, 2, 3]
+    assert np.array_equal(block.force[3, 1], fs[3].others[0][0]) and np.array_equal(block.disp[2, 0], fs[2].disp)
+    block = dec.feed_block(data[-10:])  # ... and the fifth with the rest
+    assert block.counter.tolist() == [4] and np.array_equal(block.force[0, 1], fs[4].others[0][0])
+
+
+def test_one_sensor_decoder_reads_sensor_0_of_a_two_sensor_frame() -> None:
+    f = two_sensor_frame(3)
+    out = FrameDecoder().feed(encode_frame(f))
+    assert len(out) == 1 and out[0].others == () and np.array_equal(out[0].force, f.force)
+
+
+def test_a_configured_sensor_the_frames_lack_reads_nan_and_is_counted() -> None:
+    dec = FrameDecoder(sensors=2)
+    block = dec.feed_block(b"".join(encode_frame(simple_frame(c)) for c in range(3)))
+    assert len(block) == 3 and dec.missing_sensor == 3
+    assert np.isfinite(block.force[:, 0]).all() and np.isnan(block.force[:, 1]).all()
