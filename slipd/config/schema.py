@@ -115,6 +115,11 @@ class SensorConfig(_Section):
     rate_hz: Literal[100, 250, 500, 1000] = Field(
         1000, description="sample rate commanded at start-up (f100/f250/f500/f1000); must equal the model's rate"
     )
+    sensors: int = Field(
+        1, ge=1, le=2, description="sensor arrays the controller streams in each frame, one per sensorised finger "
+        "(2: both fingers of a parallel gripper); each gets its own features, tare, model state and decision, an "
+        "alarm on either reacts, and being blind on either fails safe"
+    )
     tare: Literal["bias_command", "startup", "none"] = Field(
         "bias_command",
         description="bias_command: send 'z' (sensor zeroes itself, offset 0); startup: average the first "

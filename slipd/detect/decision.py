@@ -81,7 +81,8 @@ class Decision:
 
 @dataclass(frozen=True, slots=True)
 class Detection:
-    """One decision: made after sample ``index`` (counted since the detector started)."""
+    """One decision: made after sample ``index`` (counted since the detector started), on sensor ``sensor``
+    (0, or 1 for the second finger's array)."""
 
     index: int
     t_us: int
@@ -90,3 +91,4 @@ class Detection:
     alarm: bool
     rising_edge: bool
     valid: bool = True
+    sensor: int = 0

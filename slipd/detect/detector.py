@@ -47,10 +47,18 @@ if TYPE_CHECKING:
 class SlipDetector(Protocol):
     """What the loop, replay and evaluation need of a detector: the ensemble and the heuristics alike."""
 
-    windows: int
-    resets: int
     last_step_s: float | None
     step_seconds: list[float | None]
+
+    @property
+    def windows(self) -> int:
+        """Windows the model stepped on since the last contact change."""
+        ...
+
+    @property
+    def resets(self) -> int:
+        """Contact losses and restarts."""
+        ...
 
     def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
         """Feed one raw sample [9, 3]; a Detection when a decision is made."""
@@ -139,7 +147,13 @@ def gate_windows(force_tared: np.ndarray, spec: FeatureSpec) -> np.ndarray:
 
 
 class Detector:
-    """Streams samples through the shared feature pipeline, the ensemble and the decision rule."""
+    """Streams samples through the shared feature pipeline, the ensemble and the decision rule.
+
+    ``row``/``rows``: this detector is sensor ``row`` of ``rows`` that share the ensemble
+    (``slipd.detect.multisensor``): its GRU states are row ``row`` of the streams stepped with
+    ``Ensemble.step_rows``, a stream per window phase (the phase follows from the sample count, the same
+    for every sensor), and a contact change resets its row only. None: the one sensor, as before.
+    """
 
     def __init__(
         self,
@@ -149,8 +163,14 @@ class Detector:
         offset: np.ndarray | None = None,
         tare_samples: int = 0,
         contact_gate: bool = True,
+        *,
+        row: int | None = None,
+        rows: int = 1,
     ) -> None:
         self.ensemble = ensemble
+        self.row = row
+        self.rows = rows
+        self.sensor = row or 0
         self.decision = decision
         self.spec = spec or ensemble.feature_spec
         if self.spec.window % self.spec.step:
@@ -263,36 +283,65 @@ class Detector:
 
     def _decide(self, window: np.ndarray, force: np.ndarray, t_us: int, index: int) -> Detection:
         """A completed window (its last sample ``force``, ``index``): contact gate, model step, decision."""
-        if self.contact_gate:
-            # Checked once per window, on its last sample (tared, as the model sees it).
-            fz = np.asarray(force, np.float32).reshape(9, 3)[:, 2] - self.features._offset[2::3]
-            was_open = self.gate.open
-            is_open, changed = self.gate.check(fz, index)
-            if changed:
-                # Made or lost: either way the next contact's first window meets h0, as in training.
-                self.ensemble.reset()
-                self.windows = 0
-                if was_open:
-                    self.resets += 1
-            if not is_open:
-                d = self.decision.update(0.0)
-                self.last_step_s = None
-                return Detection(index, t_us, 0.0, float(d.risk), bool(d.alarm), bool(d.rising_edge))
-        stream = self.windows % self.n_streams
-        self.windows += 1
+        det = self._gate(force, t_us, index)
+        if det is not None:
+            return det
         t0 = time.perf_counter()
-        try:
-            result = self.ensemble.step(window, stream=stream)
-            valid = result.valid
-        except StepError:
-            valid = False
+        if self.row is None:
+            stream = self.windows % self.n_streams
+            try:
+                result = self.ensemble.step(window, stream=stream)
+                p, pm, valid = result.p_slip, result.p_members, result.valid
+            except StepError:
+                p, pm, valid = float("nan"), None, False
+        else:
+            x = np.zeros((self.rows, len(window)), np.float32)
+            x[self.row] = window
+            active = np.arange(self.rows) == self.row
+            ps, pms, ok = self.ensemble.step_rows(x, self.phase(self.features.samples_seen), active)
+            p, pm, valid = ps[self.row], pms[:, self.row], bool(ok[self.row])
         self.last_step_s = time.perf_counter() - t0
+        return self._finish(float(p), pm, valid, t_us, index)
+
+    def phase(self, samples: int) -> int:
+        """The stream (window phase) of the window that ends at the ``samples``-th sample since the restart."""
+        return ((samples - self.spec.window) // self.spec.step) % self.n_streams
+
+    def _gate(self, force: np.ndarray, t_us: int, index: int) -> Detection | None:
+        """The contact gate on a completed window: its Detection (p 0) while closed, None when the model
+        must step."""
+        if not self.contact_gate:
+            return None
+        # Checked once per window, on its last sample (tared, as the model sees it).
+        fz = np.asarray(force, np.float32).reshape(9, 3)[:, 2] - self.features._offset[2::3]
+        was_open = self.gate.open
+        is_open, changed = self.gate.check(fz, index)
+        if changed:
+            # Made or lost: either way the next contact's first window meets h0, as in training.
+            if self.row is None:
+                self.ensemble.reset()
+            else:
+                self.ensemble.reset_row(self.row)
+            self.windows = 0
+            if was_open:
+                self.resets += 1
+        if is_open:
+            return None
+        d = self.decision.update(0.0)
+        self.last_step_s = None
+        return Detection(index, t_us, 0.0, float(d.risk), bool(d.alarm), bool(d.rising_edge), sensor=self.sensor)
+
+    def _finish(self, p_slip: float, p_members: np.ndarray | None, valid: bool, t_us: int, index: int) -> Detection:
+        """The decision on a model step's output (``valid`` False: refused input or non-finite output)."""
+        self.windows += 1
         if not valid:
             # Refused (non-finite window: state kept) or non-finite output (stream reset): no decision.
             self.step_errors += 1
-            return Detection(index, t_us, float("nan"), 0.0, bool(self.decision.alarm), False, valid=False)
-        d = self.decision.update(float(result.p_slip), result.p_members)
-        return Detection(index, t_us, float(result.p_slip), float(d.risk), bool(d.alarm), bool(d.rising_edge))
+            return Detection(index, t_us, float("nan"), 0.0, bool(self.decision.alarm), False, valid=False,
+                             sensor=self.sensor)
+        d = self.decision.update(float(p_slip), p_members)
+        return Detection(index, t_us, float(p_slip), float(d.risk), bool(d.alarm), bool(d.rising_edge),
+                         sensor=self.sensor)
 
 
 class HeuristicDetector:
@@ -340,9 +389,15 @@ class HeuristicDetector:
 
 
 def run_recording(detector: SlipDetector, force: np.ndarray, t_us: np.ndarray | None = None) -> list[Detection]:
-    """Push a whole recording through ``detector`` (replay and evaluation); returns every Detection."""
+    """Push a whole recording through ``detector`` (replay and evaluation); returns every Detection.
+
+    A recording of several sensors (force [N, S, 9, 3]) goes through ``push_many`` in one block: every
+    sensor's detections, in sample then sensor order.
+    """
     out = []
     ts = np.arange(len(force), dtype=np.int64) * 1000 if t_us is None else t_us
+    if np.ndim(force) == 4:
+        return [det for _, det in detector.push_many(force, ts)]
     for i in range(len(force)):
         det = detector.push(force[i], int(ts[i]))
         if det is not None:
@@ -351,13 +406,20 @@ def run_recording(detector: SlipDetector, force: np.ndarray, t_us: np.ndarray | 
 
 
 def build_detector(
-    cfg: SlipdConfig | None, ensemble: Ensemble, *, offset: np.ndarray | None = None, tare_samples: int | None = None
+    cfg: SlipdConfig | None,
+    ensemble: Ensemble,
+    *,
+    offset: np.ndarray | None = None,
+    tare_samples: int | None = None,
+    sensors: int | None = None,
 ) -> SlipDetector:
     """The one place a detector is built from a config: the daemon, replay and the rig all call it.
 
     ``cfg`` None means the model's own settings (stride, threshold, no hysteresis). The tare: an explicit
-    ``offset`` wins; else ``tare_samples`` (a start-up tare of that many samples; 0 means the sensor
-    zeroes itself, offset 0); else the config's ``sensor.tare``.
+    ``offset`` ([9, 3], or [S, 9, 3] one per sensor) wins; else ``tare_samples`` (a start-up tare of that
+    many samples; 0 means the sensor zeroes itself, offset 0); else the config's ``sensor.tare``.
+    ``sensors``: the arrays per frame (default: the config's ``sensor.sensors``, else 1); with more than
+    one, a ``slipd.detect.multisensor.MultiDetector`` of one ``Detector`` per sensor, one model call for all.
     """
     from slipd.detect.decision import Decision
 
@@ -376,9 +438,24 @@ def build_detector(
         if tare_samples == 0:
             offset = np.zeros((9, 3), np.float32)
     if cfg is not None and cfg.model.detector != "onnx":
+        if (sensors or cfg.sensor.sensors) > 1:
+            raise ValueError(f"model.detector {cfg.model.detector!r} reads one sensor; sensor.sensors is "
+                             f"{sensors or cfg.sensor.sensors} (use the onnx detector for two fingers)")
         # A published heuristic instead of the ensemble (comparisons on the rig); it has no start-up tare of
         # its own, so it expects a zeroed sensor (tare: bias_command).
         params = cfg.model.baseline_params or cfg.model.manifest.parent / "baselines.json"
         return HeuristicDetector(cfg.model.detector, params, offset)
+    if sensors is None:
+        sensors = cfg.sensor.sensors if cfg is not None else 1
+    if sensors > 1:
+        from slipd.detect.multisensor import MultiDetector
+
+        offsets = None if offset is None else np.broadcast_to(np.asarray(offset, np.float32), (sensors, 9, 3))
+        return MultiDetector([
+            Detector(ensemble, Decision(threshold=threshold, hysteresis=hysteresis, min_consecutive=consecutive),
+                     spec, offset=None if offsets is None else offsets[s], tare_samples=tare_samples or 0,
+                     row=s, rows=sensors)
+            for s in range(sensors)
+        ])
     decision = Decision(threshold=threshold, hysteresis=hysteresis, min_consecutive=consecutive)
     return Detector(ensemble, decision, spec, offset=offset, tare_samples=tare_samples or 0)

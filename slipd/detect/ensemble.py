@@ -225,6 +225,65 @@ class Ensemble:
             return StepResult(float(st.p_slip[0]), st.p_members[:, 0].copy())
         return StepResult(st.p_slip.copy(), st.p_members.copy())
 
+    def step_rows(
+        self, windows: np.ndarray, stream: int, active: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One model call for B independent sequences kept side by side in ``stream`` (the sensors of a
+        gripper: one row each), where not every row steps every time.
+
+        ``windows`` [B, T*C]; only rows with ``active`` set and a finite window advance. The others keep
+        their state and take no part in the call: while it runs they hold a copy of the first stepped
+        row's window and state (the int8 graph quantises each tensor with one scale over the whole batch,
+        so a stale or zero row would shift the others' values; a copy leaves the range as it is, and a
+        single stepped row gets the values ``step`` gives it alone). A non-finite window is refused
+        (state kept), a row whose output or next state is non-finite is reset to zeros, each counted as
+        in ``step``. Returns copies of (p_slip [B], p_members [Z, B], valid [B]); rows that did not step
+        read NaN.
+        """
+        w = np.asarray(windows)
+        act = np.asarray(active, bool)
+        if w.ndim != 2 or w.shape[1] != self._d or act.shape != (len(w),):
+            raise ValueError(f"windows must be [B, {self._d}] with active [B], got {w.shape} and {act.shape}")
+        b = len(w)
+        finite = np.isfinite(w).all(axis=1)
+        run = act & finite
+        self.refused_inputs += int(np.count_nonzero(act & ~finite))
+        p = np.full(b, np.nan, np.float32)
+        pm = np.full((self._z, b), np.nan, np.float32)
+        if not run.any():
+            return p, pm, run
+        st = self._streams.get(stream)
+        if st is None:
+            st = self._streams[stream] = _Stream(self._session, b, self._z, self._d, self._h)
+        elif st.batch != b:
+            raise ValueError(f"stream {stream} holds {st.batch} sequences, windows has {b}; reset it first")
+        idle = ~run
+        h_cur, h_next = st.h[st.cur], st.h[1 - st.cur]
+        kept = h_cur[:, idle].copy() if idle.any() else None
+        np.copyto(st.x, w, casting="same_kind")
+        if kept is not None:
+            first = int(np.argmax(run))
+            st.x[idle] = st.x[first]
+            h_cur[:, idle] = h_cur[:, first : first + 1]
+        self._session.run_with_iobinding(st.bindings[st.cur])
+        ok = run & np.isfinite(st.p_slip) & np.isfinite(st.p_members).all(axis=0) & np.isfinite(h_next).all(axis=(0, 2))
+        bad = run & ~ok
+        if bad.any():
+            h_next[:, bad] = 0.0
+            self.nonfinite_outputs += int(np.count_nonzero(bad))
+        if kept is not None:
+            h_next[:, idle] = kept
+        st.cur = 1 - st.cur
+        p[ok] = st.p_slip[ok]
+        pm[:, ok] = st.p_members[:, ok]
+        return p, pm, ok
+
+    def reset_row(self, row: int) -> None:
+        """Forget one row's state (one sensor of ``step_rows``) in every stream; the other rows keep theirs."""
+        for st in self._streams.values():
+            if row < st.batch:
+                st.h[st.cur][:, row] = 0.0
+
     def _invalid(self, batch: int, single: bool, status: str) -> StepResult:
         if single:
             return StepResult(float("nan"), np.full(self._z, np.nan, np.float32), status)

@@ -1,0 +1,128 @@
+"""Several sensors, one model call: a gripper whose two fingers each carry a PapillArray.
+
+Each sensor has its own ``Detector`` (feature stream, tare, contact gate, decision: the one detection
+path of ``slipd.detect.detector``), and its own GRU states: row ``s`` of the ensemble's streams. Both
+sensors arrive in the same frames, so their windows end on the same samples; for each such sample the
+windows of the sensors whose contact gate is open go through the ensemble in **one** call
+(``Ensemble.step_rows``, batch B = number of sensors) instead of one call per sensor.
+
+A slip on either finger is a slip of the grasp: every ``Detection`` names its ``sensor``, and the loop
+reacts to a rising edge on any of them.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from slipd.detect.decision import Detection
+from slipd.detect.detector import Detector
+from slipd.detect.features import FeatureStream
+
+
+class MultiDetector:
+    """The detectors of ``len(detectors)`` sensors (``Detector(row=s, rows=S)``) behind the ``SlipDetector``
+    interface; samples are [.., S, 9, 3]."""
+
+    def __init__(self, detectors: Sequence[Detector]) -> None:
+        if not detectors or any(d.row != s or d.rows != len(detectors) for s, d in enumerate(detectors)):
+            raise ValueError("detectors must be rows 0..S-1 of S sharing one ensemble")
+        self.detectors = list(detectors)
+        self.sensors = len(detectors)
+        self.ensemble = detectors[0].ensemble
+        self.last_step_s: float | None = None
+        self.step_seconds: list[float | None] = []
+        """Model call time behind each returned detection: on the first stepped sensor of a call, None on
+        the others (one call, one observation)."""
+
+    @property
+    def windows(self) -> int:
+        """Windows the model stepped on since the last contact change, fewest over the sensors."""
+        return min(d.windows for d in self.detectors)
+
+    @property
+    def resets(self) -> int:
+        """Contact losses and restarts, all sensors together."""
+        return sum(d.resets for d in self.detectors)
+
+    @property
+    def feature_streams(self) -> list[FeatureStream]:
+        """Each sensor's feature stream (its non-finite and clipped counters)."""
+        return [d.features for d in self.detectors]
+
+    def samples_to_decision(self) -> int:
+        """Samples still to push until the next decision (the same for every sensor)."""
+        return min(d.samples_to_decision() for d in self.detectors)
+
+    def restart(self, retare: bool = False) -> None:
+        """Forget every sensor's history and state (reconnect, counter discontinuity)."""
+        for d in self.detectors:
+            d.restart(retare)
+
+    def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
+        """Feed one sample [S, 9, 3]; the most urgent of the sensors' detections (a rising edge, then an
+        alarm, then the highest p_slip), or None. ``push_many`` returns all of them."""
+        dets = [d for _, d in self.push_many(np.asarray(force)[None], [t_us])]
+        if not dets:
+            return None
+        return max(dets, key=lambda d: (d.rising_edge, d.alarm, d.valid, d.p_slip if d.valid else -1.0))
+
+    def push_many(
+        self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: Sequence[np.ndarray] | None = None
+    ) -> list[tuple[int, Detection]]:
+        """Feed a block [k, S, 9, 3]; ``(i, detection)`` for each sensor's decision on sample ``i``, in sample
+        then sensor order (``disp`` unused, as in ``Detector``)."""
+        x = np.asarray(force, dtype=np.float32)
+        subs = self.detectors
+        if x.ndim != 4 or x.shape[1:] != (self.sensors, 9, 3):
+            raise ValueError(f"force must be [k, {self.sensors}, 9, 3], got {x.shape}")
+        k = len(x)
+        out: list[tuple[int, Detection]] = []
+        self.step_seconds = []
+        i = 0
+        while i < k and not all(d._tared for d in subs):
+            # The start-up tare holds samples back and replays them: rare, sample by sample (each sensor's
+            # replayed windows step its own row).
+            for s, d in enumerate(subs):
+                det = d.push(x[i, s], int(t_us[i]))
+                if det is not None:
+                    out.append((i, det))
+                    self.step_seconds.append(d.last_step_s)
+            i += 1
+        if i == k:
+            return out
+        base = subs[0].index + 1 - i  # sample index of x[0]
+        n0 = subs[0].features.samples_seen
+        wins = []
+        for s, d in enumerate(subs):
+            d.index += k - i
+            wins.append(d.features.push_many(x[i:, s]))
+        # Same samples into every stream: the windows end on the same samples.
+        for m, (j, _) in enumerate(wins[0]):
+            kk = i + j
+            t, idx = int(t_us[kk]), base + kk
+            gated = [d._gate(x[kk, s], t, idx) for s, d in enumerate(subs)]
+            active = np.array([g is None for g in gated])
+            p = pm = ok = None
+            step_s: float | None = None
+            if active.any():
+                t0 = time.perf_counter()
+                p, pm, ok = self.ensemble.step_rows(
+                    np.stack([w[m][1] for w in wins]), subs[0].phase(n0 + j + 1), active
+                )
+                step_s = time.perf_counter() - t0
+                self.last_step_s = step_s
+            for s, d in enumerate(subs):
+                det = gated[s]
+                if det is None:
+                    assert p is not None and pm is not None and ok is not None
+                    det = d._finish(float(p[s]), pm[:, s], bool(ok[s]), t, idx)
+                    d.last_step_s = step_s
+                    self.step_seconds.append(step_s)
+                    step_s = None
+                else:
+                    self.step_seconds.append(None)
+                out.append((kk, det))
+        return out
