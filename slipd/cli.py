@@ -17,6 +17,7 @@ import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from slipd import __version__
 
@@ -117,18 +118,29 @@ def cmd_replay(args: argparse.Namespace) -> int:
     alarms = [d for d in dets if d.rising_edge]
     t0 = int(rec.t_us[0]) if len(rec) else 0
     print(f"{args.recording}: {len(rec)} samples, {len(dets)} decisions, {len(alarms)} alarm(s)")
+    finger = rec.sensors > 1
     for d in alarms:
-        print(f"  alarm at sample {d.index}  t={(d.t_us - t0) / 1e6:.3f} s  p_slip={d.p_slip:.3f}  risk={d.risk:.2f}")
+        on = f" on sensor {d.sensor}" if finger else ""
+        print(f"  alarm{on} at sample {d.index}  t={(d.t_us - t0) / 1e6:.3f} s  p_slip={d.p_slip:.3f}"
+              f"  risk={d.risk:.2f}")
     onset = rec.onset_index()
     if onset is not None:
         print(f"  labelled onset at sample {onset}  t={(int(rec.t_us[onset]) - t0) / 1e6:.3f} s")
     if args.json:
-        out = {
+        decisions: list[dict[str, Any]] = [
+            {"index": d.index, "t_us": d.t_us, "p_slip": d.p_slip, "alarm": d.alarm} for d in dets
+        ]
+        out: dict[str, Any] = {
             "recording": str(args.recording),
             "model": str(model),
             "alarms": [d.index for d in alarms],
-            "decisions": [{"index": d.index, "t_us": d.t_us, "p_slip": d.p_slip, "alarm": d.alarm} for d in dets],
+            "decisions": decisions,
         }
+        if finger:
+            out["sensors"] = rec.sensors
+            out["alarm_sensors"] = [d.sensor for d in alarms]
+            for entry, d in zip(decisions, dets):
+                entry["sensor"] = d.sensor
         Path(args.json).write_text(json.dumps(out, indent=1))
     return EXIT_OK
 

@@ -2,6 +2,9 @@
 
 Modules import the objects they update from here; nothing else creates metrics. The registry is
 private (not prometheus_client's global one) so tests can create several daemons in one process.
+
+Per-finger metrics carry a ``sensor`` label, "0" or "1" (``sensor.sensors`` arrays; bounded by the
+config: never a value from the wire).
 """
 
 from __future__ import annotations
@@ -40,7 +43,8 @@ class Metrics:
             registry=r,
         )
         self.step_errors = Counter(
-            "slipd_model_step_errors", "Windows that produced no decision (refused or non-finite output)", registry=r
+            "slipd_model_step_errors", "Windows that produced no decision (refused or non-finite output)", ["sensor"],
+            registry=r,
         )
         self.loop_seconds = Histogram(
             "slipd_loop_duration_seconds", "Work per control-loop iteration", buckets=FAST_BUCKETS, registry=r
@@ -55,10 +59,10 @@ class Metrics:
             registry=r,
         )
         self.overruns = Counter("slipd_loop_overruns", "Loop iterations that missed their deadline", registry=r)
-        self.p_slip = Gauge("slipd_slip_probability", "Latest ensemble slip probability", registry=r)
-        self.risk = Gauge("slipd_slip_risk", "Continuous slip risk level (0..1)", registry=r)
-        self.alarms = Counter("slipd_alarms", "Incipient-slip alarms raised", registry=r)
-        self.decisions = Counter("slipd_decisions", "Model decisions made", registry=r)
+        self.p_slip = Gauge("slipd_slip_probability", "Latest ensemble slip probability", ["sensor"], registry=r)
+        self.risk = Gauge("slipd_slip_risk", "Continuous slip risk level (0..1)", ["sensor"], registry=r)
+        self.alarms = Counter("slipd_alarms", "Incipient-slip alarms raised", ["sensor"], registry=r)
+        self.decisions = Counter("slipd_decisions", "Model decisions made", ["sensor"], registry=r)
         self.failsafe = Counter("slipd_failsafe_stops", "Fail-safe arm stops by reason", ["reason"], registry=r)
         self.device_errors = Counter(
             "slipd_device_errors", "Errors talking to a device", ["device", "kind"], registry=r

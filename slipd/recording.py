@@ -5,8 +5,8 @@ that recordings made with Contactile's own tools replay through the same code.
 
 Arrays (N samples, 9 pillars in SDK order):
     t_us            [N] int64        sample time, microseconds
-    force           [N, 9, 3] f32    fx, fy, fz (N)
-    disp            [N, 9, 3] f32    dx, dy, dz (mm)
+    force           [N, 9, 3] f32    fx, fy, fz (N); [N, S, 9, 3] for S sensor arrays (two fingers)
+    disp            [N, 9, 3] f32    dx, dy, dz (mm); [N, S, 9, 3] likewise
     slip            [N, 9] bool      optional truth: pillar tip sliding
     label           [N] uint8        optional truth: 1 = incipient slip
     object_motion   [N, 3] f32       optional truth: object motion relative to the finger (mm, mm, deg)
@@ -28,6 +28,8 @@ import numpy as np
 from slipd.geometry import N_PILLARS, PILLAR_XY_MM
 
 _AXES = ("X", "Y", "Z")
+MAX_SENSORS = 8
+"""Sensor arrays one recording may hold (the PTSCOM frame's limit)."""
 
 
 class RecordingError(ValueError):
@@ -56,8 +58,12 @@ class Recording:
         n = len(self.t_us)
         for name in ("force", "disp"):
             shape = getattr(self, name).shape
-            if shape != (n, N_PILLARS, 3):
-                raise RecordingError(f"{name}: shape {shape}, expected [{n}, {N_PILLARS}, 3] (N from t_us)")
+            several = len(shape) == 4 and 2 <= shape[1] <= MAX_SENSORS and shape[2:] == (N_PILLARS, 3)
+            if shape != (n, N_PILLARS, 3) and not (several and shape[0] == n):
+                alt = f" or [{n}, S, {N_PILLARS}, 3] for S = 2..{MAX_SENSORS} sensors" if len(shape) == 4 else ""
+                raise RecordingError(f"{name}: shape {shape}, expected [{n}, {N_PILLARS}, 3]{alt} (N from t_us)")
+        if self.force.shape != self.disp.shape:
+            raise RecordingError(f"disp: shape {self.disp.shape} differs from force {self.force.shape}")
         if self.slip is not None:
             self.slip = _array("slip", self.slip, bool)
             if self.slip.shape != (n, N_PILLARS):
@@ -73,6 +79,20 @@ class Recording:
 
     def __len__(self) -> int:
         return len(self.t_us)
+
+    @property
+    def sensors(self) -> int:
+        """Sensor arrays in the recording (1, or S of a [N, S, 9, 3] recording)."""
+        return 1 if self.force.ndim == 3 else int(self.force.shape[1])
+
+    def sensor(self, s: int) -> Recording:
+        """Sensor ``s`` alone as a one-sensor recording (evaluation per finger); truth and meta are shared."""
+        if not 0 <= s < self.sensors:
+            raise IndexError(f"sensor {s} of a {self.sensors}-sensor recording")
+        if self.sensors == 1:
+            return self
+        return Recording(self.t_us, self.force[:, s], self.disp[:, s], self.slip, self.label, self.object_motion,
+                         {**self.meta, "sensor": s})
 
     @property
     def rate_hz(self) -> float:
@@ -214,17 +234,27 @@ def read_npz(path: str | Path) -> Recording:
 
 
 # ---------------------------------------------------------------------- SDK CSV
-def sdk_csv_columns() -> list[str]:
-    """Column names of the Contactile SDK log layout for one sensor (S0)."""
+def sdk_csv_columns(sensors: int = 1) -> list[str]:
+    """Column names of the Contactile SDK log layout: ``T_us``, then each sensor's block (S0, S1, ...)."""
     cols = ["T_us"]
-    for p in range(N_PILLARS):
-        cols += [f"S0_P{p}_D{a}" for a in _AXES] + [f"S0_P{p}_F{a}" for a in _AXES]
-    cols += [f"S0_GG_F{a}" for a in _AXES] + [f"S0_GG_T{a}" for a in _AXES]
-    cols += ["S0_isSDActive", "S0_isRefLoad"]
-    for p in range(N_PILLARS):
-        cols += [f"S0_P{p}_isInContact", f"S0_P{p}_slipState"]
-    cols += ["S0_FrictionEst"]
+    for s in range(sensors):
+        cols += _sensor_columns(f"S{s}")
     return cols
+
+
+def _sensor_columns(sn: str) -> list[str]:
+    cols = []
+    for p in range(N_PILLARS):
+        cols += [f"{sn}_P{p}_D{a}" for a in _AXES] + [f"{sn}_P{p}_F{a}" for a in _AXES]
+    cols += [f"{sn}_GG_F{a}" for a in _AXES] + [f"{sn}_GG_T{a}" for a in _AXES]
+    cols += [f"{sn}_isSDActive", f"{sn}_isRefLoad"]
+    for p in range(N_PILLARS):
+        cols += [f"{sn}_P{p}_isInContact", f"{sn}_P{p}_slipState"]
+    cols += [f"{sn}_FrictionEst"]
+    return cols
+
+
+_SENSOR_COLS = len(_sensor_columns("S0"))
 
 
 # Our own extra columns carry simulator truth so a CSV round trip loses nothing.
@@ -252,20 +282,23 @@ def write_sdk_csv(rec: Recording, path: str | Path, contact_threshold_n: float =
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     n = len(rec)
-    cols = sdk_csv_columns()
+    ns = rec.sensors
+    cols = sdk_csv_columns(ns)
     block = np.empty((n, len(cols)), dtype=np.float64)
     block[:, 0] = rec.t_us
-    per_pillar = np.concatenate([rec.disp, rec.force], axis=2).reshape(n, N_PILLARS * 6)
-    block[:, 1 : 1 + 54] = per_pillar
-    block[:, 55:61] = global_wrench(rec.force)
-    block[:, 61] = 0
-    block[:, 62] = 0
-    contact = rec.force[:, :, 2] > contact_threshold_n
-    states = block[:, 63 : 63 + 18].reshape(n, N_PILLARS, 2)
-    states[:, :, 0] = contact
-    states[:, :, 1] = 0
-    block[:, 63 : 63 + 18] = states.reshape(n, 18)
-    block[:, 81] = -1
+    float32_cols: set[int] = set()
+    for s in range(ns):
+        one = rec.sensor(s)
+        b = block[:, 1 + s * _SENSOR_COLS : 1 + (s + 1) * _SENSOR_COLS]
+        float32_cols.update(range(1 + s * _SENSOR_COLS, 1 + s * _SENSOR_COLS + 54))
+        b[:, 0:54] = np.concatenate([one.disp, one.force], axis=2).reshape(n, N_PILLARS * 6)
+        b[:, 54:60] = global_wrench(one.force)
+        b[:, 60] = 0
+        b[:, 61] = 0
+        states = np.zeros((n, N_PILLARS, 2))
+        states[:, :, 0] = one.force[:, :, 2] > contact_threshold_n
+        b[:, 62 : 62 + 18] = states.reshape(n, 18)
+        b[:, 80] = -1
     extra_cols: list[str] = []
     extra: list[np.ndarray] = []
     if rec.slip is not None:
@@ -281,8 +314,8 @@ def write_sdk_csv(rec: Recording, path: str | Path, contact_threshold_n: float =
         block = np.concatenate([block, *extra], axis=1)
         cols = cols + extra_cols
     tmp = path.with_name(path.name + ".tmp")
-    int_cols = {i for i, c in enumerate(cols) if c == "T_us" or c.startswith("S0_is") or c.endswith(
-        ("isInContact", "slipState", "_slip", "_label"))}
+    int_cols = {i for i, c in enumerate(cols) if c == "T_us" or "_is" in c[:4] or c.endswith(
+        ("isInContact", "slipState", "_slip", "_label", "isSDActive", "isRefLoad"))}
     with open(tmp, "w", newline="") as fh:
         if rec.meta:
             # A comment line keeps scene metadata; the SDK reader of slipd skips lines starting with '#'.
@@ -292,7 +325,7 @@ def write_sdk_csv(rec: Recording, path: str | Path, contact_threshold_n: float =
         for row in block:
             # repr of float32 values round-trips exactly through float().
             w.writerow(
-                [str(int(v)) if i in int_cols else repr(float(np.float32(v))) if 1 <= i < 55 else repr(float(v))
+                [str(int(v)) if i in int_cols else repr(float(np.float32(v))) if i in float32_cols else repr(float(v))
                  for i, v in enumerate(row)]
             )
     tmp.replace(path)
@@ -300,7 +333,8 @@ def write_sdk_csv(rec: Recording, path: str | Path, contact_threshold_n: float =
 
 
 def read_sdk_csv(path: str | Path) -> Recording:
-    """Read a Contactile SDK CSV log (one sensor, S0). Unknown columns are ignored.
+    """Read a Contactile SDK CSV log: sensor S0, and S1, S2, ... when their columns are there (a [N, S, 9, 3]
+    recording). Unknown columns are ignored.
 
     Raises RecordingError with one line naming the file and the part at fault: a missing column, the
     line and column of a value that is not a number, a row of the wrong length, timestamps that go
@@ -354,12 +388,17 @@ def read_sdk_csv(path: str | Path) -> Recording:
     if not np.isfinite(t).all():
         k = int(np.argmin(np.isfinite(t)))
         raise RecordingError(f"{path}:{rows[k][0]}: T_us: missing or not finite (sample {k})")
-    force = np.stack(
-        [np.stack([col(f"S0_P{p}_F{a}") for a in _AXES], -1) for p in range(N_PILLARS)], 1
-    )
-    disp = np.stack(
-        [np.stack([col(f"S0_P{p}_D{a}") for a in _AXES], -1) for p in range(N_PILLARS)], 1
-    )
+    ns = 1
+    while ns < MAX_SENSORS and all(f"S{ns}_P{p}_{q}{a}" in index
+                                   for p in range(N_PILLARS) for q in "DF" for a in _AXES):
+        ns += 1
+
+    def values(q: str) -> np.ndarray:
+        per = [np.stack([np.stack([col(f"S{s}_P{p}_{q}{a}") for a in _AXES], -1) for p in range(N_PILLARS)], 1)
+               for s in range(ns)]
+        return per[0] if ns == 1 else np.stack(per, 1)
+
+    force, disp = values("F"), values("D")
     slip = None
     if all(c in index for c in _TRUTH_SLIP):
         slip = np.stack([col(c) for c in _TRUTH_SLIP], 1) > 0.5

@@ -193,7 +193,7 @@ def test_every_referenced_metric_exists_in_a_running_daemon(tmp_path):
             out, _ = proc.communicate(timeout=30)
     assert proc.returncode == 0, out[-2000:]
     names, values = _exposed(text)
-    assert values["slipd_frames_received_total"] > 1000 and values["slipd_decisions_total"] > 0
+    assert values["slipd_frames_received_total"] > 1000 and values['slipd_decisions_total{sensor="0"}'] > 0
     assert values["slipd_dropped_frames_total"] >= 5
     assert any(s.startswith("slipd_failsafe_stops_total{") and 'reason="sensor_' in s for s in values), \
         [s for s in values if "failsafe" in s]

@@ -5,9 +5,11 @@ layout) are checked, the session warmed up, and only then are devices opened. A 
 model therefore never touches hardware (exit codes in ``slipd.cli``).
 
 The hot path is event-driven: the sensor reader (``slipd.io.sensor``) calls ``_on_frames`` on the loop
-thread as soon as bytes arrive; each frame goes through the shared ``Detector`` (features ->
-ensemble -> decision) and, on a rising alarm edge, ``Reaction`` hands the arm stop and the gripper
-tighten to their device threads at once. Nothing on this path blocks.
+thread as soon as bytes arrive, with the frames of the read as arrays (``slipd.io.pts.FrameBlock``: no
+object per frame); each block goes through the shared ``Detector`` (features -> ensemble -> decision) in
+one call and, on a rising alarm edge, ``Reaction`` hands the arm stop and the gripper tighten to their
+device threads at once. Nothing on this path blocks. With two sensors (``sensor.sensors: 2``, one array
+per finger) each finger has its own decisions and a rising edge on either reacts.
 
 A supervision task runs on absolute deadlines (``next = start + k * period``; a late tick is counted
 as an overrun and the schedule is not shifted). It owns **liveness**, defined once here
@@ -19,7 +21,9 @@ one log line and ``slipd_failsafe_stops_total{reason=...}``: ``sensor_lost`` (po
 ``sensor_silent`` (no frame since start-up), ``sensor_stall`` (frames stopped), ``sensor_counter_stuck``,
 ``sensor_frozen`` (frames arrive, none fresh), ``sensor_nonfinite`` (non-finite samples for longer than
 ``NONFINITE_BRIDGE_S``, what the feature stage may bridge by holding the last value) and
-``no_decisions`` (fresh frames, but no valid decision when one was due). An episode ends with the first
+``no_decisions`` (fresh frames, but no valid decision when one was due). With two sensors every rule holds
+per finger: fresh samples and valid decisions are needed on both, and a blind finger is a blind daemon
+(the detail names the sensor). An episode ends with the first
 valid decision on fresh data; a loss followed by a stall is one episode, one stop. Only while live is
 the systemd watchdog pinged and the arm's controller-side watchdog (ur_rtde ``kickWatchdog``) kicked, so
 a wedged or dead loop, or a blind one, halts the arm; ``READY=1`` goes out with the first live decision.
@@ -58,7 +62,7 @@ if TYPE_CHECKING:
     from slipd.detect.ensemble import Ensemble
     from slipd.io.arm import Arm
     from slipd.io.gripper import DynamixelGripper
-    from slipd.io.pts import Frame
+    from slipd.io.pts import FrameBlock
 
 log = logging.getLogger("slipd.daemon.loop")
 
@@ -96,9 +100,9 @@ class LoopStats:
 
     frames: int = 0
     decisions: int = 0
-    alarms: deque[tuple[int, int, float]] = field(default_factory=lambda: deque(maxlen=MAX_KEPT))
-    """(sample index since start, sensor t_us, monotonic time of the decision) per rising edge; the latest
-    ``MAX_KEPT`` (``slipd_alarms_total`` counts them all)."""
+    alarms: deque[tuple[int, int, float, int]] = field(default_factory=lambda: deque(maxlen=MAX_KEPT))
+    """(sample index since start, sensor t_us, monotonic time of the decision, sensor) per rising edge; the
+    latest ``MAX_KEPT`` (``slipd_alarms_total`` counts them all)."""
     overruns: int = 0
     failsafes: int = 0
     restarts: int = 0
@@ -159,121 +163,144 @@ class Daemon:
         """The cause of the current blind episode (one fail-safe each), None while live or starting."""
         self._stall_s = cfg.sensor.stall_timeout_ms / 1e3
         self._nonfinite_bridge = max(1, round(NONFINITE_BRIDGE_S * cfg.sensor.rate_hz))
-        self._nonfinite_run = 0  # consecutive non-finite samples up to the latest frame
+        self.sensors = cfg.sensor.sensors
+        ns = self.sensors
+        self._nonfinite_run = np.zeros(ns, np.int64)  # per sensor: consecutive non-finite samples up to now
         self._nonfinite_burst = False  # a run beyond the bridge since the supervisor last looked
-        self._prev_sample: np.ndarray | None = None  # the latest frame's values read, flattened
+        self._nonfinite_sensor = 0  # the sensor of the latest such run (the log line names it)
+        self._prev_sample: np.ndarray | None = None  # the latest frame's values read, [S, 27 or 54]
         self._reads_disp = cfg.model.detector != "onnx"  # the ensemble reads forces only
         now = time.monotonic()
-        self._fresh_t = now  # when the latest fresh sample was handled (re-based when the loop starts)
+        self._fresh_ts = np.full(ns, now)  # per sensor: when its latest fresh sample was handled
+        self._fresh_t = now  # the oldest of them (re-based when the loop starts)
         self._decided_t: float | None = None  # latest valid decision on fresh data (None: none this episode)
         self._decision_due = now  # a valid decision is overdue after this (re-based on every restart)
         self._nonfinite_seen = 0
+        streams = getattr(self.detector, "feature_streams", None)
+        feats = getattr(self.detector, "features", None)  # the ensemble's pipeline; the heuristics have none
+        self._feature_streams = list(streams) if streams is not None else [feats] if feats is not None else []
         m = self.metrics
+        # Bounded label values: one child per configured sensor, made once (no label lookup per decision).
+        self._m_sensor = [
+            (m.decisions.labels(sensor=str(k)), m.p_slip.labels(sensor=str(k)), m.risk.labels(sensor=str(k)),
+             m.alarms.labels(sensor=str(k)), m.step_errors.labels(sensor=str(k)))
+            for k in range(ns)
+        ]
         m.model.info({"name": str(cfg.model.manifest.name), "sha256": ensemble.manifest.sha256})
 
     # ----------------------------------------------------------------- hot path
-    def _on_frames(self, frames: list[Frame]) -> None:
+    def _on_frames(self, block: FrameBlock) -> None:
         t0 = time.perf_counter()
-        n = len(frames)
+        n = len(block)
+        breaks = np.flatnonzero(block.discontinuity) if block.discontinuity.any() else ()
         start = 0
-        while start < n:
+        for end in (*(int(b) for b in breaks if b > 0), n):
             # A block runs to the next discontinuity (counter went backwards or the sensor reconnected):
             # the history is not continuous there, so the detector restarts before that frame.
-            end = start + 1
-            while end < n and not getattr(frames[end], "discontinuity", False):
-                end += 1
-            if getattr(frames[start], "discontinuity", False):
+            if block.discontinuity[start]:
                 self._restart()
-            self._on_block(frames[start:end] if start or end < n else frames)
+            self._on_block(block.t_us[start:end], block.force[start:end], block.disp[start:end])
             start = end
         self.metrics.loop_seconds.observe(time.perf_counter() - t0)
         self._coalesce()
 
-    def _on_block(self, frames: list[Frame]) -> None:
-        """Frames without a discontinuity: through the detector in one call, then each decision in order.
+    def _on_block(self, t_us: np.ndarray, force: np.ndarray, disp: np.ndarray) -> None:
+        """Frames without a discontinuity (``t_us`` [k]; ``force``, ``disp`` [k, S, 9, 3]): through the detector
+        in one call, then each decision in order.
 
-        Per frame semantics are kept: the recorder gets each frame before the decision made on it, and
-        an alarm carries the sample index and t_us of the frame that completed its window.
+        Per frame semantics are kept: the recorder gets the frames up to a decision before that decision,
+        and an alarm carries the sample index and t_us of the frame that completed its window.
         """
         m = self.metrics
         rec = self.recorder
         det_ = self.detector
-        force = np.stack([f.force for f in frames])
-        self._check_samples(force, frames)
-        dets = det_.push_many(force, [f.t_us for f in frames], [f.disp for f in frames])
-        self.stats.frames += len(frames)
-        decided = False
+        k = len(t_us)
+        self._check_samples(force, disp)
+        one = self.sensors == 1
+        stamps = t_us.astype(np.int64)
+        dets = det_.push_many(force[:, 0] if one else force, stamps)
+        self.stats.frames += k
+        valid = np.zeros(self.sensors, bool)
         recorded = 0
         for (i, det), step_s in zip(dets, det_.step_seconds):
-            f = frames[i]
-            if rec is not None:
-                for g in frames[recorded : i + 1]:
-                    rec.push_frame(g.t_us, g.force, g.disp)
+            s = det.sensor
+            m_dec, m_p, m_risk, m_alarms, m_err = self._m_sensor[s]
+            if rec is not None and recorded <= i:
+                rec.push_frames(stamps[recorded : i + 1], force[recorded : i + 1], disp[recorded : i + 1])
                 recorded = i + 1
             if step_s is not None:
                 m.inference_seconds.observe(step_s)
             if not det.valid:
                 self.stats.step_errors += 1
-                m.step_errors.inc()
+                m_err.inc()
                 continue
             self.stats.decisions += 1
-            decided = True
-            m.decisions.inc()
-            m.p_slip.set(det.p_slip)
-            m.risk.set(det.risk)
+            valid[s] = True
+            m_dec.inc()
+            m_p.set(det.p_slip)
+            m_risk.set(det.risk)
             if rec is not None:
-                rec.push_decision(f.t_us, det.p_slip, det.alarm)
+                if det.alarm and not rec.recording:
+                    # The recording this alarm starts replays with the offset the daemon used (slipd replay).
+                    offset = getattr(det_, "offset", None)
+                    if offset is not None:
+                        rec.meta["tare_offset"] = np.asarray(offset).tolist()
+                rec.push_decision(det.t_us, det.p_slip, det.alarm, s)
             if det.rising_edge:
                 t_dec = time.monotonic()
                 self.reaction.on_alarm(det.risk, t_dec)
-                m.alarms.inc()
-                self.stats.alarms.append((det.index, det.t_us, t_dec))
-                log.warning("ALARM: incipient slip (p=%.3f risk=%.2f) at t=%.3f s", det.p_slip, det.risk,
-                            det.t_us / 1e6)
+                m_alarms.inc()
+                self.stats.alarms.append((det.index, det.t_us, t_dec, s))
+                log.warning("ALARM: incipient slip on sensor %d (p=%.3f risk=%.2f) at t=%.3f s", s, det.p_slip,
+                            det.risk, det.t_us / 1e6)
                 if rec is not None:
-                    rec.trigger(f.t_us, "alarm", p_slip=det.p_slip)
-        if rec is not None:
-            for g in frames[recorded:]:
-                rec.push_frame(g.t_us, g.force, g.disp)
-        if decided and not self._nonfinite_burst:
-            # A decision on held values beyond the bridge is no sign of life.
+                    rec.trigger(det.t_us, "alarm", p_slip=det.p_slip, sensor=s)
+        if rec is not None and recorded < k:
+            rec.push_frames(stamps[recorded:], force[recorded:], disp[recorded:])
+        if valid.all() and not self._nonfinite_burst:
+            # A valid decision on every sensor (a blind finger is a blind daemon); one on held values beyond
+            # the bridge is no sign of life.
             now = time.monotonic()
             self._decided_t = now
             self._decision_due = now + self._stall_s + det_.samples_to_decision() / self.cfg.sensor.rate_hz
-        feats = getattr(det_, "features", None)  # the ensemble's pipeline; the heuristics have none
-        bad = feats.nonfinite_count + feats.clipped_count if feats is not None else 0
-        if bad != self._nonfinite_seen:  # counted once per block, not per sample
-            m.nonfinite.inc(bad - self._nonfinite_seen)
-            self._nonfinite_seen = bad
+        if self._feature_streams:
+            bad = sum(f.nonfinite_count + f.clipped_count for f in self._feature_streams)
+            if bad != self._nonfinite_seen:  # counted once per block, not per sample
+                m.nonfinite.inc(bad - self._nonfinite_seen)
+                self._nonfinite_seen = bad
 
-    def _check_samples(self, force: np.ndarray, frames: list[Any]) -> None:
-        """Freshness of a block (vectorised, once per block): finite, and not bit-identical to the sample
-        before, in what the detector reads (forces; displacements too for the heuristics). Updates
-        ``_fresh_t`` and the run of non-finite samples up to the block's end."""
-        n = len(frames)
-        vals = force.reshape(n, -1)
-        if self._reads_disp:  # stacking the displacements costs more than the whole check: only when read
-            vals = np.concatenate([vals, np.stack([f.disp for f in frames]).reshape(n, -1)], axis=1)
-        finite = np.isfinite(vals).all(axis=1)
+    def _check_samples(self, force: np.ndarray, disp: np.ndarray) -> None:
+        """Freshness of a block, per sensor (vectorised, once per block): finite, and not bit-identical to the
+        sample before, in what the detector reads (forces; displacements too for the heuristics). Updates
+        each sensor's fresh time and its run of non-finite samples up to the block's end."""
+        n = len(force)
+        vals = force.reshape(n, self.sensors, -1)
+        if self._reads_disp:
+            vals = np.concatenate([vals, disp.reshape(n, self.sensors, -1)], axis=2)
+        finite = np.isfinite(vals).all(axis=2)  # [n, S]
         prev = self._prev_sample
-        changed = np.empty(n, bool)
-        changed[0] = prev is None or bool((vals[0] != prev).any())
+        changed = np.empty((n, self.sensors), bool)
+        changed[0] = True if prev is None else (vals[0] != prev).any(axis=1)
         if n > 1:
-            changed[1:] = (vals[1:] != vals[:-1]).any(axis=1)
+            changed[1:] = (vals[1:] != vals[:-1]).any(axis=2)
         self._prev_sample = vals[-1].copy()
-        if (finite & changed).any():
-            self._fresh_t = time.monotonic()
+        fresh = (finite & changed).any(axis=0)
+        if fresh.any():
+            self._fresh_ts[fresh] = time.monotonic()
+            self._fresh_t = float(self._fresh_ts.min())
         if finite.all():
-            self._nonfinite_run = 0
+            self._nonfinite_run[:] = 0
             return
-        # Rare (a fault): follow the run of non-finite samples across blocks; a run longer than the
+        # Rare (a fault): follow each sensor's run of non-finite samples across blocks; a run longer than the
         # bridge is remembered until the supervisor has seen it, even when it ended inside this block.
-        run = self._nonfinite_run
-        for ok in finite:
-            run = 0 if ok else run + 1
-            if run > self._nonfinite_bridge:
-                self._nonfinite_burst = True
-        self._nonfinite_run = run
+        for s in range(self.sensors):
+            run = int(self._nonfinite_run[s])
+            for ok in finite[:, s].tolist():
+                run = 0 if ok else run + 1
+                if run > self._nonfinite_bridge:
+                    self._nonfinite_burst = True
+                    self._nonfinite_sensor = s
+            self._nonfinite_run[s] = run
 
     def _coalesce(self) -> None:
         """Pause the sensor reader until shortly before the next decision's last sample is due.
@@ -286,7 +313,11 @@ class Daemon:
         if margin is None or sensor is None:
             return
         due = self.detector.samples_to_decision()  # the next deciding sample is `due` frames away
-        wait_s = (due - 1) / self.cfg.sensor.rate_hz - margin / 1e3
+        arrival = sensor.expected_arrival(due)
+        if arrival is None:
+            wait_s = (due - 1) / self.cfg.sensor.rate_hz - margin / 1e3
+        else:  # resume `margin` before the deciding frame is due (the reader's arrival clock)
+            wait_s = arrival - margin / 1e3 - time.monotonic()
         # Never hide frames from the stall check for more than half its timeout.
         wait_s = min(wait_s, self.cfg.sensor.stall_timeout_ms / 2e3)
         if wait_s >= 1e-3:  # shorter pauses save nothing over one wake-up per frame
@@ -327,8 +358,10 @@ class Daemon:
         sensor = self.sensor
         if sensor is not None and not sensor.connected:
             return "sensor_lost", "sensor port closed"
-        if self._nonfinite_burst or self._nonfinite_run > self._nonfinite_bridge:
-            return "sensor_nonfinite", f"non-finite samples for more than {self._nonfinite_bridge} frames"
+        if self._nonfinite_burst or (self._nonfinite_run > self._nonfinite_bridge).any():
+            worst = int(np.argmax(self._nonfinite_run)) if not self._nonfinite_burst else self._nonfinite_sensor
+            return "sensor_nonfinite", (f"non-finite samples for more than {self._nonfinite_bridge} frames"
+                                        + self._which(worst))
         if now - self._fresh_t > stall:
             ms = (now - self._fresh_t) * 1e3
             last = sensor.last_frame_time if sensor is not None else None
@@ -339,10 +372,15 @@ class Daemon:
             repeat = sensor.last_repeat_time
             if repeat is not None and repeat >= self._fresh_t:
                 return "sensor_counter_stuck", f"packet counter not advancing for {ms:.0f} ms"
-            return "sensor_frozen", f"bit-identical frames for {ms:.0f} ms"
+            return "sensor_frozen", f"bit-identical frames for {ms:.0f} ms" + self._which(
+                int(np.argmin(self._fresh_ts)))
         if now > self._decision_due:
             return "no_decisions", "frames arrive but no valid decision came when due"
         return None
+
+    def _which(self, sensor: int) -> str:
+        """`` on sensor N`` when there are several (the log line says which finger is blind)."""
+        return f" on sensor {sensor}" if self.sensors > 1 else ""
 
     # -------------------------------------------------------------- supervision
     async def _supervise(self) -> None:
@@ -352,6 +390,7 @@ class Daemon:
         start = time.monotonic()
         # The first frame, and the first decision, are due from now on (the tare wait is over).
         self._fresh_t = start
+        self._fresh_ts[:] = start
         self._decision_due = start + stall_s + self.detector.samples_to_decision() / self.cfg.sensor.rate_hz
         k = 0
         last_ping = 0.0
@@ -526,7 +565,9 @@ class Daemon:
         cfg = self.cfg.sensor
         self.sensor = SerialSensor(
             sensor_port or cfg.port,
-            self._on_frames,
+            on_block=self._on_frames,
+            sensors=cfg.sensors,
+            rate_hz=cfg.rate_hz,
             baudrate=cfg.baudrate,
             on_disconnect=self._on_disconnect,
             reconnect_initial_s=cfg.reconnect_initial_s,

@@ -1,7 +1,9 @@
 """Recordings around alarms: a ring buffer of raw frames and decisions, dumped off the control loop.
 
-The control loop calls ``push_frame`` for every sensor frame and ``push_decision`` for every model
-decision. Both copy into preallocated ring buffers (no allocation per sample). The ring holds
+The control loop calls ``push_frames`` for every block of sensor frames (``push_frame`` for one) and
+``push_decision`` for every model decision. Both copy into preallocated ring buffers, frames by slices
+(no allocation, no Python work per sample). With ``sensors`` > 1 the rings hold every finger's array
+([.., S, 9, 3]) and each decision its ``sensor``; the recording then carries all of them. The ring holds
 ``seconds_before + seconds_after`` of frames, so when an alarm (a decision with ``alarm=True``, or
 ``trigger()`` for a fail-safe event) has been followed by ``seconds_after`` of frames, the ring holds
 exactly the stretch [alarm - before, alarm + after). That stretch is copied once and handed to the
@@ -90,6 +92,7 @@ class Recorder:
         worker: DeviceWorker | None = None,
         max_pending: int = 4,
         max_episode_s: float = MAX_EPISODE_S,
+        sensors: int = 1,
     ) -> None:
         if rate_hz <= 0 or seconds_before < 0 or seconds_after < 0:
             raise ValueError(f"rate_hz > 0 and non-negative seconds required, got {rate_hz}, "
@@ -107,14 +110,17 @@ class Recorder:
         self.before = math.ceil(seconds_before * rate_hz)
         self.after = math.ceil(seconds_after * rate_hz)
         self.capacity = max(1, self.before + self.after)
+        self.sensors = int(sensors)
         n = self.capacity
         self._t = np.zeros(n, dtype=np.int64)
-        self._force = np.zeros((n, N_PILLARS, 3), dtype=np.float32)
-        self._disp = np.zeros((n, N_PILLARS, 3), dtype=np.float32)
-        # At most one decision per frame, so the same capacity covers the same stretch of time.
-        self._dt = np.zeros(n, dtype=np.int64)
-        self._dp = np.zeros(n, dtype=np.float32)
-        self._da = np.zeros(n, dtype=bool)
+        self._force = np.zeros((n, self.sensors, N_PILLARS, 3), dtype=np.float32)
+        self._disp = np.zeros((n, self.sensors, N_PILLARS, 3), dtype=np.float32)
+        # At most one decision per frame and sensor, so this capacity covers the same stretch of time.
+        nd = n * self.sensors
+        self._dt = np.zeros(nd, dtype=np.int64)
+        self._dp = np.zeros(nd, dtype=np.float32)
+        self._da = np.zeros(nd, dtype=bool)
+        self._ds = np.zeros(nd, dtype=np.int8)
         self.frames_seen = 0
         self.decisions_seen = 0
         self._pending_end: int | None = None  # frames_seen at which the current dump is complete
@@ -141,7 +147,8 @@ class Recorder:
 
     @classmethod
     def from_config(
-        cls, cfg: Any, rate_hz: float, meta: Mapping[str, Any] | None = None, worker: DeviceWorker | None = None
+        cls, cfg: Any, rate_hz: float, meta: Mapping[str, Any] | None = None, worker: DeviceWorker | None = None,
+        sensors: int = 1,
     ) -> Recorder:
         """Build from a ``slipd.config.RecorderConfig``."""
         return cls(
@@ -153,6 +160,7 @@ class Recorder:
             formats=tuple(cfg.formats),
             meta=meta,
             worker=worker,
+            sensors=sensors,
         )
 
     # ------------------------------------------------------------------ control-loop side
@@ -162,30 +170,48 @@ class Recorder:
         return self._pending_end is not None
 
     def push_frame(self, t_us: int, force: np.ndarray, disp: np.ndarray) -> None:
-        """Add one raw frame (``force``/``disp`` shaped [9, 3]); completes a dump when one is due."""
-        if self._pending_end is not None and self.frames_seen - self._copied >= self.capacity:
-            self._spill()  # a long episode: the frame about to be overwritten is still to be written
-        i = self.frames_seen % self.capacity
-        self._t[i] = t_us
-        self._force[i] = force
-        self._disp[i] = disp
-        self.frames_seen += 1
-        if self._pending_end is not None and self.frames_seen >= self._pending_end:
-            self._dump()
+        """Add one raw frame (``force``/``disp`` [9, 3], or [S, 9, 3]); completes a dump when one is due."""
+        self.push_frames(np.array([t_us], np.int64), np.asarray(force)[None], np.asarray(disp)[None])
 
-    def push_decision(self, t_us: int, p_slip: float, alarm: bool) -> None:
-        """Add one model decision; an alarm starts a recording unless one is already running."""
-        i = self.decisions_seen % self.capacity
+    def push_frames(self, t_us: np.ndarray, force: np.ndarray, disp: np.ndarray) -> None:
+        """Add a block of raw frames (``t_us`` [k]; ``force``/``disp`` [k, 9, 3] or [k, S, 9, 3]) by slices of
+        the ring; completes a dump when one is due (exactly at the frame that ends it)."""
+        k = len(t_us)
+        shape = (k, self.sensors, N_PILLARS, 3)
+        force = np.asarray(force).reshape(shape)
+        disp = np.asarray(disp).reshape(shape)
+        cap = self.capacity
+        done = 0
+        while done < k:
+            m = k - done
+            if self._pending_end is not None:
+                if self.frames_seen - self._copied >= cap:
+                    self._spill()  # a long episode: the frames about to be overwritten are still to be written
+                m = min(m, cap - (self.frames_seen - self._copied), self._pending_end - self.frames_seen)
+            i = self.frames_seen % cap
+            m = min(m, cap - i)  # one contiguous slice of the ring
+            self._t[i : i + m] = t_us[done : done + m]
+            self._force[i : i + m] = force[done : done + m]
+            self._disp[i : i + m] = disp[done : done + m]
+            self.frames_seen += m
+            done += m
+            if self._pending_end is not None and self.frames_seen >= self._pending_end:
+                self._dump()
+
+    def push_decision(self, t_us: int, p_slip: float, alarm: bool, sensor: int = 0) -> None:
+        """Add one model decision (of ``sensor``); an alarm starts a recording unless one is already running."""
+        i = self.decisions_seen % len(self._dt)
         self._dt[i] = t_us
         self._dp[i] = p_slip
         self._da[i] = alarm
+        self._ds[i] = sensor
         self.decisions_seen += 1
         if not alarm:
             self._latched = False
         elif self._pending_end is not None:
             self._pending_end = min(max(self._pending_end, self.frames_seen + self.after), self._limit)
         elif not self._latched:
-            self.trigger(t_us, "alarm", p_slip=float(p_slip))
+            self.trigger(t_us, "alarm", p_slip=float(p_slip), sensor=int(sensor))
 
     def trigger(self, t_us: int, reason: str, **details: Any) -> bool:
         """Start a recording around now (an alarm, a fail-safe event); False if one is already running.
@@ -198,7 +224,7 @@ class Recorder:
         self._pending_end = self.frames_seen + self.after
         self._limit = self.frames_seen + self.max_episode
         self._copied = max(0, self.frames_seen - self.before)
-        self._dcopied = max(0, self.decisions_seen - self.capacity)
+        self._dcopied = max(0, self.decisions_seen - len(self._dt))
         self._chunks, self._dchunks = [], []
         if self.after == 0:
             self._dump()
@@ -224,15 +250,18 @@ class Recorder:
 
     def _ordered(self, count: int, t: np.ndarray, *arrays: np.ndarray, since: int = 0) -> list[np.ndarray]:
         """Copies of the ring entries from ``since`` to ``count``, oldest first (one allocation per call)."""
-        n = min(count - since, self.capacity)
-        start = (count - n) % self.capacity
-        idx = (np.arange(n) + start) % self.capacity
+        size = len(t)
+        n = min(count - since, size)
+        start = (count - n) % size
+        idx = (np.arange(n) + start) % size
         return [a[idx] for a in (t, *arrays)]
 
     def _spill(self) -> None:
         """Copy the episode's frames and decisions still in the rings out before they are overwritten."""
         self._chunks.append(self._ordered(self.frames_seen, self._t, self._force, self._disp, since=self._copied))
-        self._dchunks.append(self._ordered(self.decisions_seen, self._dt, self._dp, self._da, since=self._dcopied))
+        self._dchunks.append(
+            self._ordered(self.decisions_seen, self._dt, self._dp, self._da, self._ds, since=self._dcopied)
+        )
         self._copied, self._dcopied = self.frames_seen, self.decisions_seen
 
     def _dump(self) -> None:
@@ -249,10 +278,12 @@ class Recorder:
             log.warning("recorder: %d writes pending, recording of %s dropped", len(self._futures), trig)
             return
         t, force, disp = (np.concatenate(a) for a in zip(*chunks))
-        dt, dp, da = (np.concatenate(a) for a in zip(*dchunks))
+        dt, dp, da, ds = (np.concatenate(a) for a in zip(*dchunks))
         if len(t):
             keep = (dt >= t[0]) & (dt <= t[-1])
-            dt, dp, da = dt[keep], dp[keep], da[keep]
+            dt, dp, da, ds = dt[keep], dp[keep], da[keep], ds[keep]
+        if self.sensors == 1:
+            force, disp = force[:, 0], disp[:, 0]  # the one-sensor layout: [N, 9, 3]
         meta = dict(self.meta)
         meta.update(
             source="slipd-recorder",
@@ -260,7 +291,9 @@ class Recorder:
             seconds_before=self.seconds_before,
             seconds_after=self.seconds_after,
             trigger=trig,
-            decisions={"t_us": dt.tolist(), "p_slip": [round(float(p), 6) for p in dp], "alarm": da.tolist()},
+            decisions={"t_us": dt.tolist(), "p_slip": [round(float(p), 6) for p in dp], "alarm": da.tolist(),
+                       "sensor": ds.tolist()},
+            sensors=self.sensors,
         )
         if len(t):
             meta["events"] = {trig.get("reason", "alarm"): (trig.get("t_us", int(t[0])) - int(t[0])) / 1e6}

@@ -148,7 +148,7 @@ def prepare(config_path: str | os.PathLike[str]) -> Service:
         if cfg.recorder.enabled:
             from slipd.daemon.recorder import Recorder
 
-            daemon.recorder = Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz,
+            daemon.recorder = Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz, sensors=cfg.sensor.sensors,
                                                    meta={"model_sha256": ensemble.manifest.sha256})
     except BaseException:
         native.close()

@@ -48,6 +48,11 @@ class MultiDetector:
         return sum(d.resets for d in self.detectors)
 
     @property
+    def offset(self) -> np.ndarray:
+        """The tare offsets in use ([S, 9, 3])."""
+        return np.stack([d.offset for d in self.detectors])
+
+    @property
     def feature_streams(self) -> list[FeatureStream]:
         """Each sensor's feature stream (its non-finite and clipped counters)."""
         return [d.features for d in self.detectors]

@@ -4,6 +4,10 @@ The recording's samples go through the same ``Detector`` (features -> ensemble -
 the live loop feeds from the serial reader, as fast as possible, so the alarms printed here are the
 alarms the daemon raises on the same frames (a test checks it against the live loop on a pty).
 
+A recording of two sensors (one per finger, ``force`` [N, 2, 9, 3]) replays through the two-sensor
+detector whatever the configuration says, as the daemon that recorded it ran: each decision names its
+sensor.
+
 Tare, in order of precedence: the offset the daemon used (``meta["tare_offset"]``, written by the
 recorder), the configuration's tare (``--config``), the recording's unloaded stretch
 (``meta["tare_samples"]``), the model's default stretch.
@@ -27,14 +31,15 @@ if TYPE_CHECKING:
 
 def detector_for(rec: Recording, ensemble: Ensemble, cfg: SlipdConfig | None = None) -> SlipDetector:
     """The detector the daemon would build for this recording (see the module docstring for the tare)."""
+    n = rec.sensors
     if "tare_offset" in rec.meta:
-        return build_detector(cfg, ensemble, offset=np.asarray(rec.meta["tare_offset"], np.float32))
+        return build_detector(cfg, ensemble, offset=np.asarray(rec.meta["tare_offset"], np.float32), sensors=n)
     if cfg is not None:
-        return build_detector(cfg, ensemble)
+        return build_detector(cfg, ensemble, sensors=n)
     a, b = rec.meta.get("tare_samples", ensemble.feature_spec.tare_samples)
     if a == 0:
-        return build_detector(None, ensemble, tare_samples=int(b))
-    return build_detector(None, ensemble, offset=tare_offset(rec.force, int(a), int(b)))
+        return build_detector(None, ensemble, tare_samples=int(b), sensors=n)
+    return build_detector(None, ensemble, offset=tare_offset(rec.force, int(a), int(b)), sensors=n)
 
 
 def replay(rec: Recording, ensemble: Ensemble, cfg: SlipdConfig | None = None) -> list[Detection]:

@@ -53,6 +53,8 @@ class EmulatedDevices:
     def overrides(self) -> dict[str, Any]:
         """Dotted config keys for ``slipd.config.override``."""
         out: dict[str, Any] = {"sensor.port": self.sensor.port, "gripper.port": self.servo.port}
+        if self.sensor.sensors > 1:
+            out["sensor.sensors"] = self.sensor.sensors
         if self.ur is not None:
             out["arm.host"] = self.host
         else:

@@ -8,7 +8,9 @@ writes every frame that fell due (catch-up), so the long-run rate is exact and t
 
 Samples come from a :class:`~slipd.recording.Recording` (the sample nearest the device time, so a
 lower rate decimates; ``loop=True`` replays it forever) or from a callable ``source(i)`` returning
-``(force[9, 3], disp[9, 3])`` or None when done; ``i`` counts the frames produced since ``start``
+``(force[9, 3], disp[9, 3])`` or None when done. A controller with two arrays (one per finger) is a
+two-sensor recording ([N, 2, 9, 3]) or a source returning [2, 9, 3] arrays with ``sensors=2``: every
+frame then carries both (``slipd.io.pts``); ``i`` counts the frames produced since ``start``
 (the closed-loop rig supplies its physics that way).
 
 Commands read from the pty: ``z`` zeroes the current reading (later frames have it subtracted),
@@ -76,10 +78,13 @@ class EmulatedPapillArray:
         max_pending_bytes: int = 256 * 1024,
         reset_counter_on_replug: bool = True,
         seed: int = 0,
+        sensors: int | None = None,
     ) -> None:
         if rate_hz not in RATES_HZ:
             raise ValueError(f"rate_hz {rate_hz} not supported by the PapillArray; choose one of {RATES_HZ}")
         self._source = source
+        self.sensors = sensors or (source.sensors if isinstance(source, Recording) else 1)
+        """Sensor arrays in each frame."""
         # Recording.rate_hz takes a median over the whole recording: compute it once, not per frame.
         self._source_rate = source.rate_hz if isinstance(source, Recording) else 0.0
         self.loop = loop
@@ -103,8 +108,8 @@ class EmulatedPapillArray:
         self._stop = threading.Event()
         self._stall_until = 0.0
         self._counter = 0
-        self._bias_force = np.zeros((N_PILLARS, 3), np.float32)
-        self._bias_disp = np.zeros((N_PILLARS, 3), np.float32)
+        self._bias_force = np.zeros((self.sensors, N_PILLARS, 3), np.float32)
+        self._bias_disp = np.zeros((self.sensors, N_PILLARS, 3), np.float32)
         self._last_raw: tuple[np.ndarray, np.ndarray] | None = None
         self.slip_detection = False
         self.finished = threading.Event()
@@ -284,13 +289,17 @@ class EmulatedPapillArray:
         sample = self._sample(i, t_s)
         if sample is None:
             return None
+        shape = (self.sensors, N_PILLARS, 3)
         raw_f = np.asarray(sample[0], dtype=np.float32)
         raw_d = np.asarray(sample[1], dtype=np.float32)
-        if raw_f.shape != (N_PILLARS, 3) or raw_d.shape != (N_PILLARS, 3):
-            raise ValueError(f"source sample {i}: force/disp must be [9, 3]; got {raw_f.shape}, {raw_d.shape}")
+        if raw_f.size != raw_d.size or raw_f.size != self.sensors * N_PILLARS * 3:
+            want = "[9, 3]" if self.sensors == 1 else f"[{self.sensors}, 9, 3]"
+            raise ValueError(f"source sample {i}: force/disp must be {want}; got {raw_f.shape}, {raw_d.shape}")
+        raw_f, raw_d = raw_f.reshape(shape), raw_d.reshape(shape)
         self._last_raw = (raw_f, raw_d)
-        force = raw_f - self._bias_force
-        disp = raw_d - self._bias_disp
+        forces = raw_f - self._bias_force
+        disps = raw_d - self._bias_disp
+        force, disp = forces[0], disps[0]
         if self.slip_detection:
             state = np.where(force[:, 2] > CONTACT_THRESHOLD_N, SLIP_CONTACT_AT_START, SLIP_INELIGIBLE)
         else:
@@ -316,6 +325,7 @@ class EmulatedPapillArray:
             slip_state=state.astype(np.int8),
             friction=np.full(N_PILLARS, -1.0, np.float32),
             sensor_state=1 if self.slip_detection else 0,
+            others=tuple(zip(forces[1:], disps[1:])),
         )
         self._counter = (counter + 1) % 2**32
         data = encode_frame(frame)
