@@ -200,7 +200,16 @@ def run(args) -> dict:
         if holds:
             res = evaluate_paths(holds, det["kind"], det["args"], workers=w, progress=False)
             thr = det["threshold"] if det["kind"] == "model" else None
-            types = {h: holds_figures(rs, thr) for h, rs in group(res, htag, "scenario").items()}
+            # Per hold type, then per hold type and sensor version (the issue asks for both v1 and v2).
+            by_sensor = {stem: {"k": f"{t.get('scenario', '')} / {t.get('sensor', '') or '-'}"}
+                         for stem, t in htag.items()}
+            types = {}
+            split = group(res, by_sensor, "k")
+            for h, rs in group(res, htag, "scenario").items():
+                types[h] = holds_figures(rs, thr)
+                for k, rk in split.items():
+                    if k.startswith(f"{h} / "):
+                        types[k] = holds_figures(rk, thr)
             types["all"] = holds_figures(res, thr)
             report["holds"][det["name"]] = types
         print(f"  {det['name']}: done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
