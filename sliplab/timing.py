@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
@@ -51,3 +52,22 @@ def torch_eager_step(nets: list, wins: np.ndarray) -> tuple[Callable[[int], floa
         h[:] = [torch.zeros(1, net.hidden) for net in nets]
 
     return step, reset
+
+
+def model_cost(onnx_path: Path) -> tuple[int, int]:
+    """(bytes of weights, FLOPs per decision at B = 1) of an exported graph.
+
+    FLOPs count 2 per weight element of every MatMul (a matrix-vector product at B = 1); the element-wise
+    work (biases, gates) is a few thousand operations and left out.
+    """
+    import onnx
+    from onnx import numpy_helper
+
+    model = onnx.load(str(onnx_path))
+    inits = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
+    weight_bytes = sum(a.nbytes for a in inits.values())
+    flops = 0
+    for node in model.graph.node:
+        if node.op_type in ("MatMul", "MatMulInteger") and node.input[1] in inits:
+            flops += 2 * inits[node.input[1]].size
+    return weight_bytes, flops

@@ -1,32 +1,42 @@
-"""Daemon benchmarks: reaction latency and CPU share at 1 kHz, against the emulated devices.
+"""Daemon benchmarks: reaction latency and CPU share at 1 kHz against the emulated devices, one and two sensors,
+decision strides 40 / 20 / 10, the decode-only baseline and the machine's floor for this work, side by side.
 
-    python tools/bench_daemon.py [--model slipd/models/slip_ensemble_int8.json] [--seconds 20]
+    python tools/bench_daemon.py [--seconds 30] [--model slipd/models/slip_ensemble_int8.json] [--json FILE]
+
+Per configuration (sensors x stride):
 
 1. **Reaction latency**: the last sample of the deciding window written to the sensor pty -> the tighten
    command's bytes read from the servo pty. The daemon (`slipd.daemon.loop.Daemon`, real pyserial reader,
-   real ONNX session, real dynamixel-sdk driver) runs in this process; the emulated PapillArray and
-   MX-28 run in a child process, as real devices would (``--shared-process`` puts them in the daemon's
-   interpreter instead: their GIL contention then inflates the figures). To get many samples, the
-   benchmark sets the threshold to 0 and clears the alarm after each decision, so *every* window raises
-   an alarm and a tighten (the arm is left out: it has its own thread).
-2. **CPU share**: ``slipd run`` as its own process, fed 1 kHz frames of a quiet hold, the model stepping
-   every window; CPU seconds per wall second from /proc, side by side with the same daemon reading every
-   frame as it arrives (``sensor.coalesce_margin_ms: null``) and with a baseline process that only reads
-   and decodes the same frames (``--decode-only`` mode of this script), so each part's share shows.
-Prints median, p99 and max latency against the 5 ms target, and the CPU shares with their ratio.
+   real ONNX session, real dynamixel-sdk driver) runs in this process; the emulated PapillArray and MX-28
+   run in a child process, as real devices would. To get many samples every window of one sensor raises an
+   alarm and a tighten (the threshold is set to 0 and the alarm cleared after each decision; with two
+   sensors on sensor 1, the second finger, while sensor 0 decides normally). ``frames_sent`` /
+   ``frames_lost`` count this run's stream: frames the emulator wrote, and those the daemon never decided on.
+2. **CPU share**: ``slipd run`` as its own process, fed 1 kHz frames of a quiet hold (in contact, so the model
+   steps on every window of every sensor), CPU seconds per wall second from /proc (process CPU time: valid on
+   a loaded machine; the load average is printed beside it).
+
+Beside them: a process that only reads and decodes the same frames (``--decode-only``, one and two sensors,
+reading every frame as it arrives), and the floor of the work on this machine: the bytes (frames read once,
+decoded once) over the measured memory bandwidth plus the FLOPs (model steps, median filter) over the
+measured float32 matrix rate.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import logging
+import multiprocessing
 import os
+import socket
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -35,55 +45,62 @@ from slipd.recording import Recording
 
 ROOT = Path(__file__).resolve().parents[1]
 
-TARGET_P99_MS = 5.0
-TARGET_CPU = 0.15
+TARGET_P99_MS = 3.0
+TARGET_CPU = {1: 0.08, 2: 0.12}  # stride 10, of one core (issue 15)
+STRIDES = (40, 20, 10)
 
 
-def quiet_hold(n: int, seed: int = 0) -> Recording:
-    """A steady grasp with sensor noise: the daemon's everyday input."""
+def quiet_hold(n: int, sensors: int = 1, seed: int = 0) -> Recording:
+    """A steady grasp with sensor noise on every finger: the daemon's everyday input."""
     rng = np.random.default_rng(seed)
-    force = rng.normal(0, 0.01, (n, 9, 3)).astype(np.float32)
-    force[:, :, 2] += 1.5
-    force[:300] = rng.normal(0, 0.01, (300, 9, 3))  # unloaded start for the tare
-    return Recording(t_us=np.arange(n) * 1000, force=force, disp=np.zeros((n, 9, 3)))
+    force = rng.normal(0, 0.01, (n, sensors, 9, 3)).astype(np.float32)
+    force[:, :, :, 2] += 1.5
+    force[:300] = rng.normal(0, 0.01, (300, sensors, 9, 3))  # unloaded start for the tare
+    if sensors == 1:
+        force = force[:, 0]
+    return Recording(t_us=np.arange(n) * 1000, force=force, disp=np.zeros_like(force))
 
 
-def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str, coalesce: bool = True) -> Path:
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str, sensors: int, stride: int) -> Path:
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
-    cfg["model"]["manifest"] = str(model.resolve())
-    cfg["model"]["detector"] = "onnx"
-    cfg["sensor"].update(port=sensor_port, tare="startup", tare_samples=300, stall_timeout_ms=1000)
-    if not coalesce:
-        cfg["sensor"]["coalesce_margin_ms"] = None
+    cfg["model"].update(manifest=str(model.resolve()), detector="onnx", stride=stride)
+    cfg["sensor"].update(port=sensor_port, tare="startup", tare_samples=300, stall_timeout_ms=1000, sensors=sensors)
     cfg["gripper"]["port"] = servo_port
     cfg["arm"]["enabled"] = False
     cfg["reaction"].update(actions=["tighten_gripper"], on_failsafe="log_only", rearm_after_s=0.0)
     cfg["recorder"]["enabled"] = False
-    path = tmp / "bench.yaml"
+    path = tmp / f"bench-{sensors}-{stride}.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
 
 
-def _emulator_process(conn, n: int) -> None:
+# ---------------------------------------------------------------------------------------------- latency
+def _emulator_process(conn: Any, n: int, sensors: int) -> None:
     """Child process: the emulated PapillArray (1 kHz quiet hold) and MX-28, driven over ``conn``.
 
-    Sends the two port paths, streams on "start", and on "stop" sends back the monotonic time each
-    frame was written and the servo's accepted writes. ``time.monotonic`` is one system-wide clock, so
-    the parent can subtract the two.
+    Sends the two port paths, streams on "start", and on "stop" sends back the monotonic time each frame
+    was written, the frames written and the servo's accepted writes. ``time.monotonic`` is one system-wide
+    clock, so the parent can subtract the two.
     """
     from slipd.sim.devices.mx28 import EmulatedMX28
     from slipd.sim.devices.papillarray import EmulatedPapillArray
 
-    rec = quiet_hold(n)
+    rec = quiet_hold(n, sensors)
     written = np.zeros(n)
 
-    def source(i: int):
+    def source(i: int) -> tuple[np.ndarray, np.ndarray] | None:
         if i >= n:
             return None
         written[i] = time.monotonic()  # the frame is encoded and written right after this returns
         return rec.force[i], rec.disp[i]
 
-    with EmulatedMX28() as servo, EmulatedPapillArray(source) as sensor:
+    with EmulatedMX28() as servo, EmulatedPapillArray(source, sensors=sensors) as sensor:
         conn.send((sensor.port, servo.port))
         assert conn.recv() == "clear"
         servo.clear_writes()
@@ -91,17 +108,12 @@ def _emulator_process(conn, n: int) -> None:
         assert conn.recv() == "start"
         sensor.start()
         assert conn.recv() == "stop"
-        conn.send((written, [(w.t, w.address, bytes(w.data)) for w in servo.writes()]))
+        conn.send((written, sensor.frames_written, [(w.t, w.address, bytes(w.data)) for w in servo.writes()]))
 
 
-def reaction_latency(model: Path, seconds: float, separate: bool = True, coalesce: bool = True) -> np.ndarray:
-    """Latencies (s) from the window's last sample written to the tighten bytes parsed by the servo.
-
-    With ``separate`` (default) the emulators run in their own process, as real devices would: the
-    figures are the daemon's own. Without it they share this interpreter (and its GIL) with the daemon.
-    """
-    import multiprocessing
-
+def reaction_latency(model: Path, seconds: float, sensors: int, stride: int) -> dict[str, float]:
+    """Latency figures (ms) from the window's last sample written to the tighten bytes parsed by the servo,
+    and the stream's frames sent and lost."""
     from slipd.config import load_config
     from slipd.daemon.devices import build_devices
     from slipd.daemon.loop import Daemon
@@ -111,34 +123,30 @@ def reaction_latency(model: Path, seconds: float, separate: bool = True, coalesc
     n = int(seconds * 1000) + 1000
     ctx = multiprocessing.get_context("spawn")
     parent, child = ctx.Pipe()
-    proc = None
-    if separate:
-        proc = ctx.Process(target=_emulator_process, args=(child, n), daemon=True)
-        proc.start()
-    else:
-        import threading
-
-        threading.Thread(target=_emulator_process, args=(child, n), daemon=True).start()
+    proc = ctx.Process(target=_emulator_process, args=(child, n, sensors), daemon=True)
+    proc.start()
     with tempfile.TemporaryDirectory() as tmp:
         sensor_port, servo_port = parent.recv()
-        cfg = load_config(_config(Path(tmp), model, sensor_port, servo_port, coalesce))
+        cfg = load_config(_config(Path(tmp), model, sensor_port, servo_port, sensors, stride))
         metrics = Metrics()
         ens = Ensemble.load(cfg.model.manifest)
         _, gripper = build_devices(cfg, metrics)
         daemon = Daemon(cfg, ens, metrics=metrics, gripper=gripper)
-        daemon.decision.threshold = 1e-9  # every window alarms ...
-        update = daemon.decision.update
+        subs = getattr(daemon.detector, "detectors", [daemon.detector])
+        decision = subs[-1].decision  # one sensor's decisions: the second finger's when there are two
+        decision.threshold = 1e-9  # every window alarms ...
+        update = decision.update
 
-        def always_rising(p, pm=None):
-            daemon.decision.reset()  # ... and rises again
+        def always_rising(p: float, pm: Any = None) -> Any:
+            decision.reset()  # ... and rises again
             return update(p, pm)
 
-        daemon.decision.update = always_rising  # type: ignore[method-assign]
+        decision.update = always_rising  # type: ignore[method-assign]
         parent.send("clear")
         parent.recv()
 
-        async def main():
-            task = asyncio.create_task(daemon.run(duration_s=seconds + 1.0))
+        async def main() -> Any:
+            task = asyncio.create_task(daemon.run(duration_s=n / 1000 + 0.5))
             await daemon.ready.wait()
             parent.send("start")
             return await task
@@ -147,32 +155,31 @@ def reaction_latency(model: Path, seconds: float, separate: bool = True, coalesc
         time.sleep(0.3)
         daemon.close()
         parent.send("stop")
-        written, writes = parent.recv()
-        if proc is not None:
-            proc.join(10)
+        written, sent, writes = parent.recv()
+        proc.join(10)
         secure = cfg.gripper.secure_position
         tightens = [t for t, address, data in writes if address == 116 and int.from_bytes(data[:4], "little") == secure]
-    lat, split = [], []
-    for (end, _, t_dec), t_write in zip(stats.alarms, tightens):
-        lat.append(t_write - written[end])
-        split.append((t_dec - written[end], t_write - t_dec))
-    split_ms = np.array(split[1:]) * 1e3
-    print(f"  split (median / p99 ms): sample written -> decision {np.median(split_ms[:, 0]):.2f} / "
-          f"{np.percentile(split_ms[:, 0], 99):.2f}; decision -> tighten at the servo "
-          f"{np.median(split_ms[:, 1]):.2f} / {np.percentile(split_ms[:, 1], 99):.2f}")
-    return np.array(lat[1:])  # the first includes the tare replay
+    lat = [t_write - written[end] for (end, _, _, _), t_write in zip(stats.alarms, tightens)][1:]  # 1st: tare replay
+    ms = np.array(lat) * 1e3
+    return {"latency_p50_ms": float(np.median(ms)), "latency_p99_ms": float(np.percentile(ms, 99)),
+            "latency_max_ms": float(ms.max()), "alarms": len(ms), "frames_sent": int(sent),
+            "frames_lost": int(sent - stats.frames)}
 
 
-def cpu_share(model: Path, seconds: float, baseline: bool, coalesce: bool = True) -> float:
-    """CPU seconds per wall second of one process reading the 1 kHz stream (daemon or decode-only)."""
+# ---------------------------------------------------------------------------------------------- CPU
+def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None) -> float:
+    """CPU seconds per wall second of one process reading the 1 kHz stream (``slipd run``; decode-only when
+    ``stride`` is None)."""
     from slipd.sim.devices.mx28 import EmulatedMX28
     from slipd.sim.devices.papillarray import EmulatedPapillArray
 
-    rec = quiet_hold(int((seconds + 30) * 1000))
+    rec = quiet_hold(int((seconds + 30) * 1000), sensors)
     with tempfile.TemporaryDirectory() as tmp, EmulatedMX28() as servo, EmulatedPapillArray(rec) as sensor:
-        cfg = _config(Path(tmp), model, sensor.port, servo.port, coalesce)
-        cmd = ([sys.executable, __file__, "--decode-only", sensor.port] if baseline else
-               [sys.executable, "-m", "slipd", "run", "--config", str(cfg)])
+        if stride is None:
+            cmd = [sys.executable, __file__, "--decode-only", sensor.port, "--sensors", str(sensors)]
+        else:
+            cfg = _config(Path(tmp), model, sensor.port, servo.port, sensors, stride)
+            cmd = [sys.executable, "-m", "slipd", "run", "--config", str(cfg)]
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
             time.sleep(4.0)  # start-up (imports, warm-up) is not the steady state
@@ -192,46 +199,116 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def decode_only(port: str) -> None:
-    """Baseline process: the same serial reader and decoder, no model."""
+def decode_only(port: str, sensors: int) -> None:
+    """Baseline process: the same serial reader and decoder, no model, every frame read as it arrives."""
     from slipd.io.sensor import SerialSensor
 
-    async def main():
-        s = SerialSensor(port, lambda frames: None)
+    async def main() -> None:
+        s = SerialSensor(port, on_block=lambda block: None, sensors=sensors)
         await s.start()
         await asyncio.Event().wait()
 
     asyncio.run(main())
 
 
+# ---------------------------------------------------------------------------------------------- floor
+_RATES = """
+import time, numpy as np
+a = np.ones(16 << 20, np.float32); b = np.empty_like(a); best = 9.0
+for _ in range(5):
+    t0 = time.perf_counter(); np.copyto(b, a); best = min(best, time.perf_counter() - t0)
+bw = 2 * a.nbytes / best
+n = 512; x = np.ones((n, n), np.float32); best = 9.0
+for _ in range(10):
+    t0 = time.perf_counter(); x @ x; best = min(best, time.perf_counter() - t0)
+print(bw, 2 * n**3 / best)
+"""
+
+
+def machine_rates() -> tuple[float, float]:
+    """(bytes/s of a copy, float32 FLOP/s of a 512^3 matrix product), best of a few, one thread (a child
+    process with the BLAS limited to one thread: the daemon's model runs on one)."""
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-c", _RATES], env=env, capture_output=True, text=True, check=True)
+    bw, flops = (float(v) for v in out.stdout.split())
+    return bw, flops
+
+
+def floor_share(model: Path, sensors: int, stride: int, bw: float, flops_rate: float) -> tuple[float, float, float]:
+    """(bytes/s, FLOP/s, share of one core) of the work itself: every frame's bytes read from the port and
+    decoded into arrays once, the 5-sample median of each sensor's 27 channels per sample, a model step per
+    sensor every ``stride`` samples."""
+    from slipd.detect.manifest import load_manifest, onnx_path_of
+    from slipd.io.pts import Frame, encode_frame
+    from sliplab.timing import model_cost
+
+    manifest = load_manifest(model, check_graph=False)
+    _, step_flops = model_cost(onnx_path_of(manifest, model))
+    z = np.zeros((9, 3), np.float32)
+    frame = encode_frame(Frame(0, 0, z, z, wrench=np.zeros(6, np.float32), slip_state=np.zeros(9, np.int8),
+                               friction=np.zeros(9, np.float32), sensor_state=0, others=((z, z),) * (sensors - 1)))
+    rate = 1000.0
+    byte_rate = len(frame) * rate * 2  # read from the port, written into the arrays
+    median_flops = sensors * 27 * 7 * rate  # a 5-wide min/max network: 7 comparisons per channel and sample
+    flop_rate = median_flops + sensors * step_flops * rate / stride
+    return byte_rate, flop_rate, byte_rate / bw + flop_rate / flops_rate
+
+
+# ---------------------------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
-    """Run both benchmarks and print the figures."""
+    """Run every configuration and print them side by side."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", type=Path, default=ROOT / "slipd" / "models" / "slip_ensemble_int8.json",
                    help="model manifest (default: the one config/slipd.yaml runs)")
-    p.add_argument("--seconds", type=float, default=20.0)
-    p.add_argument("--shared-process", action="store_true",
-                   help="latency: run the emulators in the daemon's own process (GIL shared: an upper bound)")
-    p.add_argument("--no-coalesce", action="store_true",
-                   help="latency: read every frame as it arrives (sensor.coalesce_margin_ms: null)")
+    p.add_argument("--seconds", type=float, default=20.0, help="measured seconds per run and figure")
+    p.add_argument("--sensors", type=int, nargs="*", default=[1, 2], help="sensor counts to run")
+    p.add_argument("--strides", type=int, nargs="*", default=list(STRIDES), help="decision strides to run")
+    p.add_argument("--json", type=Path, help="also write the figures as JSON: {runs: [...]}")
     p.add_argument("--decode-only", metavar="PORT", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.decode_only:
-        decode_only(args.decode_only)
+        decode_only(args.decode_only, args.sensors[0])
         return 0
     logging.getLogger("slipd").setLevel(logging.ERROR)  # one alarm per window here: keep the log quiet
-    lat = reaction_latency(args.model, args.seconds, separate=not args.shared_process,
-                           coalesce=not args.no_coalesce) * 1e3
-    print(f"reaction latency (window's last sample written -> tighten bytes at the servo), {len(lat)} alarms:")
-    print(f"  median {np.median(lat):.2f} ms   p99 {np.percentile(lat, 99):.2f} ms   max {lat.max():.2f} ms"
-          f"   p99 / target {np.percentile(lat, 99) / TARGET_P99_MS:.2f} (target {TARGET_P99_MS} ms)")
-    daemon = cpu_share(args.model, args.seconds, baseline=False)
-    per_frame = cpu_share(args.model, args.seconds, baseline=False, coalesce=False)
-    base = cpu_share(args.model, args.seconds, baseline=True)
-    print("CPU share of one core at 1 kHz (steady state):")
-    print(f"  slipd run {daemon * 100:.1f} %   same, reading every frame {per_frame * 100:.1f} %"
-          f" (ratio {daemon / per_frame:.2f})   decode-only baseline {base * 100:.1f} % (ratio {daemon / base:.2f})"
-          f"   daemon / target {daemon / TARGET_CPU:.2f} (target {TARGET_CPU * 100:.0f} %)")
+    load0 = os.getloadavg()[0]
+    runs: list[dict[str, Any]] = []
+    for sensors in args.sensors:
+        for stride in args.strides:
+            run: dict[str, Any] = {"sensors": sensors, "stride": stride}
+            run.update(reaction_latency(args.model, args.seconds, sensors, stride))
+            run["cpu_percent"] = 100 * cpu_share(args.model, args.seconds, sensors, stride)
+            runs.append(run)
+            print(f"  {sensors} sensor(s) stride {stride}: {run['cpu_percent']:.1f} % CPU, p99 "
+                  f"{run['latency_p99_ms']:.2f} ms", flush=True)
+    base = {s: 100 * cpu_share(args.model, args.seconds, s, None) for s in args.sensors}
+    bw, flops_rate = machine_rates()
+    load1 = os.getloadavg()[0]
+
+    print(f"\nslipd daemon at 1 kHz, {args.seconds:g} s per figure, model {args.model.name}, load average "
+          f"{load0:.2f} -> {load1:.2f} on {os.cpu_count()} cores (CPU is the process's own time)")
+    print(f"{'sensors':>7} {'stride':>6} {'CPU %':>7} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'alarms':>7} "
+          f"{'sent':>7} {'lost':>5} {'floor %':>8}  target")
+    for r in runs:
+        byte_rate, flop_rate, floor = floor_share(args.model, r["sensors"], r["stride"], bw, flops_rate)
+        r.update(floor_percent=100 * floor, floor_bytes_per_s=byte_rate, floor_flops_per_s=flop_rate)
+        target = ""
+        if r["stride"] == 10:
+            cpu_t = TARGET_CPU.get(r["sensors"], 0.12) * 100
+            ok = r["cpu_percent"] <= cpu_t and r["latency_p99_ms"] <= TARGET_P99_MS and r["frames_lost"] == 0
+            target = f"CPU <= {cpu_t:.0f} %, p99 <= {TARGET_P99_MS:g} ms, 0 lost: {'met' if ok else 'NOT met'}"
+        print(f"{r['sensors']:>7} {r['stride']:>6} {r['cpu_percent']:>7.1f} {r['latency_p50_ms']:>7.2f} "
+              f"{r['latency_p99_ms']:>7.2f} {r['latency_max_ms']:>7.2f} {r['alarms']:>7} {r['frames_sent']:>7} "
+              f"{r['frames_lost']:>5} {r['floor_percent']:>8.3f}  {target}")
+    for s, cpu in base.items():
+        print(f"{s:>7} {'decode-only (every frame as it arrives)':<40} {cpu:>5.1f} % CPU")
+    print(f"floor: bytes over {bw / 1e9:.1f} GB/s (copy) + FLOPs over {flops_rate / 1e9:.1f} GFLOP/s (float32 "
+          "matrix product), one thread")
+    if args.json:
+        out = {"runs": runs, "decode_only": [{"sensors": s, "cpu_percent": c} for s, c in base.items()],
+               "machine": {"copy_bytes_per_s": bw, "flops_per_s": flops_rate, "load_average": [load0, load1],
+                           "cores": os.cpu_count()},
+               "seconds": args.seconds, "model": str(args.model)}
+        args.json.write_text(json.dumps(out, indent=1))
     return 0
 
 

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sliplab.timing import realistic_windows, time_calls, torch_eager_step
+from sliplab.timing import model_cost, realistic_windows, time_calls, torch_eager_step
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -66,25 +66,6 @@ def measure_matmul_rate(n: int = 1024, repeats: int = 5) -> float:
         torch.mm(a, b)
         best = min(best, time.perf_counter() - t0)
     return 2 * n**3 / best
-
-
-def model_cost(onnx_path: Path) -> tuple[int, int]:
-    """(bytes of weights, FLOPs per decision at B = 1) of an exported graph.
-
-    FLOPs count 2 per weight element of every MatMul (a matrix-vector product at B = 1); the element-wise
-    work (biases, gates) is a few thousand operations and left out.
-    """
-    import onnx
-    from onnx import numpy_helper
-
-    model = onnx.load(str(onnx_path))
-    inits = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
-    weight_bytes = sum(a.nbytes for a in inits.values())
-    flops = 0
-    for node in model.graph.node:
-        if node.op_type in ("MatMul", "MatMulInteger") and node.input[1] in inits:
-            flops += 2 * inits[node.input[1]].size
-    return weight_bytes, flops
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -138,10 +138,11 @@ class SensorConfig(_Section):
     )
     low_latency: bool = Field(True, description="set the serial port's ASYNC_LOW_LATENCY flag (ftdi/cdc latency)")
     coalesce_margin_ms: float | None = Field(
-        2.0, ge=0.0, le=100.0, description="coalesce frame reads: between decisions the loop stops watching the "
-        "port and reads the buffered frames in one go, resuming this many ms before the next decision's last "
-        "sample is due (about 5x fewer wake-ups at 1 kHz; the deciding frame is still read at once). "
-        "null: read every frame as it arrives",
+        1.0, ge=0.0, le=100.0, description="coalesce frame reads: between decisions the loop stops watching the "
+        "port, reads the buffered frames in one go and holds them undecoded until the deciding frame is in, "
+        "resuming this many ms before that frame is due (by the reader's arrival clock; 1 ms covers the event "
+        "loop's 1 ms timer granularity, so the deciding frame is still read at once). null: read and handle "
+        "every frame as it arrives",
     )
 
     @model_validator(mode="after")

@@ -303,23 +303,29 @@ class Daemon:
             self._nonfinite_run[s] = run
 
     def _coalesce(self) -> None:
-        """Pause the sensor reader until shortly before the next decision's last sample is due.
+        """Pause the sensor reader until shortly before the next decision's last sample is due, and have it
+        hold the frames back until then.
 
-        Frames keep arriving into the kernel's buffer and are read in one go on resume, so no frame is
-        lost or reordered; only the samples that end a window must be handled the moment they arrive.
+        Frames keep arriving into the kernel's buffer and are read in one go on resume (a pause is capped by
+        that buffer, so a decision may take a few reads); the reader keeps what it decoded until the deciding
+        frame is in and hands the frames over in one block, so the per-block work runs once per decision. No
+        frame is lost or reordered; only the samples that end a window must be handled the moment they
+        arrive. Frames are never kept from the stall check for more than half its timeout.
         """
         margin = self.cfg.sensor.coalesce_margin_ms
         sensor = self.sensor
         if margin is None or sensor is None:
             return
         due = self.detector.samples_to_decision()  # the next deciding sample is `due` frames away
+        half_stall = self.cfg.sensor.stall_timeout_ms / 2e3
+        if due > 1:
+            sensor.hold_for(due, half_stall, margin / 1e3)
         arrival = sensor.expected_arrival(due)
         if arrival is None:
             wait_s = (due - 1) / self.cfg.sensor.rate_hz - margin / 1e3
         else:  # resume `margin` before the deciding frame is due (the reader's arrival clock)
             wait_s = arrival - margin / 1e3 - time.monotonic()
-        # Never hide frames from the stall check for more than half its timeout.
-        wait_s = min(wait_s, self.cfg.sensor.stall_timeout_ms / 2e3)
+        wait_s = min(wait_s, half_stall)
         if wait_s >= 1e-3:  # shorter pauses save nothing over one wake-up per frame
             sensor.pause(wait_s, self.cfg.sensor.rate_hz)
 

@@ -401,6 +401,7 @@ class FrameDecoder:
     def reset(self) -> None:
         """Drop buffered bytes (after a reconnect the old tail belongs to a dead stream). Counters stay."""
         self._start = self._end = 0
+        self._n = 0
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[Frame]:
         """Add bytes from the port; return the frames completed by them, in order."""
@@ -413,10 +414,25 @@ class FrameDecoder:
         return out
 
     def feed_block(self, data: bytes | bytearray | memoryview) -> FrameBlock:
-        """Add bytes from the port; return the frames completed by them as arrays (views, valid until the
-        next call; see ``FrameBlock``)."""
+        """Add bytes from the port; return the frames completed by them (and by bytes ``stash`` kept) as
+        arrays (views, valid until the next call; see ``FrameBlock``)."""
         self._feed(data)
         return self.block()
+
+    def stash(self, data: bytes | bytearray | memoryview) -> bool:
+        """Keep bytes from the port without looking at them yet (the next ``feed``/``feed_block`` decodes them
+        with its own): a reader that holds frames back until its consumer wants them decodes them all in
+        one pass. False (nothing kept) when the buffer has no room for them: feed them instead."""
+        view = memoryview(data).cast("B")
+        n = self._end - self._start
+        if n + len(view) > _CHUNK_BYTES:
+            return False  # undecoded bytes stay below a chunk: ``_feed`` always has room for the next one
+        if self._end + len(view) > _BUFFER_BYTES:
+            self._buf[:n] = self._buf[self._start : self._end]
+            self._start, self._end = 0, n
+        self._buf[self._end : self._end + len(view)] = view
+        self._end += len(view)
+        return True
 
     def block(self) -> FrameBlock:
         """The frames completed by the latest ``feed`` or ``feed_block`` as arrays (views; see ``FrameBlock``)."""
@@ -430,15 +446,20 @@ class FrameDecoder:
     def _feed(self, data: bytes | bytearray | memoryview) -> None:
         self._n = 0
         view = memoryview(data).cast("B")
-        for i in range(0, len(view), _CHUNK_BYTES):
-            chunk = view[i : i + _CHUNK_BYTES]
-            if self._end + len(chunk) > _BUFFER_BYTES:
+        i = 0
+        while i < len(view):
+            if self._end + min(len(view) - i, _CHUNK_BYTES) > _BUFFER_BYTES:
                 n = self._end - self._start
                 self._buf[:n] = self._buf[self._start : self._end]  # same length: no resize, views stay valid
                 self._start, self._end = 0, n
-            self._buf[self._end : self._end + len(chunk)] = chunk
-            self._end += len(chunk)
+            # What fits (a scan leaves at most a partial frame behind, so there is always room after one).
+            take = min(len(view) - i, _CHUNK_BYTES, _BUFFER_BYTES - self._end)
+            self._buf[self._end : self._end + take] = view[i : i + take]
+            self._end += take
+            i += take
             self._scan()
+        if not len(view):
+            self._scan()  # stashed bytes only
 
     # The scan keeps its state in self._start so that a _NeedMore leaves everything in place for the
     # next feed.
@@ -700,14 +721,15 @@ class FrameDecoder:
 
     def _grow(self, need: int) -> None:
         cap = max(need, 2 * self._cap, 64)
-        counter, t, vals = self._counter, self._t, self._vals
+        counter, t, vals, dropped, disc = self._counter, self._t, self._vals, self._dropped, self._disc
         self._counter = np.zeros(cap, np.int64)
         self._t = np.zeros(cap, np.uint64)
         self._vals = np.zeros((cap, self.sensors, 2, N_PILLARS, 3), np.float32)
         self._dropped = np.zeros(cap, np.int64)
         self._disc = np.zeros(cap, bool)
-        m = self._n
+        m = self._n  # frames already in the output move along
         self._counter[:m], self._t[:m], self._vals[:m] = counter[:m], t[:m], vals[:m]
+        self._dropped[:m], self._disc[:m] = dropped[:m], disc[:m]
         self._cap = cap
 
     def _build(self, p0: int, found: dict[int, tuple[int, ...]], m: int, n: int, stride: int) -> list[Frame]:

@@ -25,6 +25,14 @@ something other than consecutive counters):
 The first frame after a reconnect is flagged as a discontinuity too (the link was down; how many frames
 that cost is unknowable when the controller restarts its counter). The counter wraps at 2**32.
 
+Holding frames back: between decisions the consumer needs no frame the moment it lands, only the one that
+completes its next window. ``hold_for(n, ...)`` makes the reader keep the bytes it reads in the decoder's
+buffer, undecoded (``FrameDecoder.stash``), until about ``n`` frames' worth have gathered, pausing itself
+between reads, and then decode them and hand them over as one block: one decode and one pass of the
+consumer's per-block work per decision instead of one per read (a read is capped by the kernel's tty
+buffer, see ``pause``). More than ``max_s`` since the first held byte, ``HOLD_MAX_FRAMES``, or a buffer
+without room deliver at once; counters and metrics are updated when the frames are decoded.
+
 Arrival clock: the reader keeps an estimate of when the latest frame reached the host (a periodic model
 of the packet counter, tightened by every read: a frame arrived no later than the read that found it),
 so a consumer that pauses the reader (``pause``) can resume just before the frame it waits for
@@ -72,6 +80,8 @@ PAUSE_BUFFER_FRACTION = 0.75
 """Share of ``TTY_BUFFER_BYTES`` a pause may fill: 7 frames of 433 bytes at 1 kHz, leaving ~2 ms of slack for a
 late timer before the kernel throttles the device (which delays frames, never drops them silently: the packet
 counter would show it). Half the buffer cost ~1.5 points more CPU (more reads per second)."""
+HOLD_MAX_FRAMES = 256
+"""Most frames held back at once (a bound on the decoder storage a hold may use)."""
 ARRIVAL_REANCHOR_S = 0.003
 """A read this much later than the arrival clock predicts re-anchors it (a stall, a restarted stream)."""
 ARRIVAL_LEAK = 0.01
@@ -194,6 +204,11 @@ class SerialSensor:
         self.last_frame_time: float | None = None
         """time.monotonic() of the read that delivered the latest frame (None before the first)."""
         self._arrival: float | None = None  # estimated time.monotonic() at which the latest frame arrived
+        self._held = 0  # bytes stashed in the decoder, not decoded yet
+        self._hold_frames = 0  # deliver once this many are held (0: at once)
+        self._hold_max_s = 0.0
+        self._hold_margin_s = 0.0
+        self._hold_since = 0.0
         self._metrics = metrics
         self._seen_errors = dict.fromkeys(FrameDecoder.ERROR_KINDS, 0)
         self._seen_garbage = 0
@@ -303,6 +318,14 @@ class SerialSensor:
         self.pauses += 1
         return True
 
+    def hold_for(self, frames: int, max_s: float, margin_s: float) -> None:
+        """Hold the next frames back until ``frames`` have gathered (or ``max_s`` passed since the first), then
+        deliver them as one block; meanwhile pause between reads, resuming ``margin_s`` before the frame
+        that completes the hold is due (module docstring). ``frames`` <= 1: deliver every read."""
+        self._hold_frames = min(int(frames), HOLD_MAX_FRAMES)
+        self._hold_max_s = max_s
+        self._hold_margin_s = margin_s
+
     def pending_bytes(self) -> int:
         """Bytes received by the kernel and not read yet (FIONREAD); 0 when closed or unknown."""
         if self._fd < 0:
@@ -361,6 +384,7 @@ class SerialSensor:
                 self._serial.close()
         self._serial, self._fd = None, -1
         self._connected.clear()
+        self._held = self._hold_frames = 0
 
     def _lost(self, reason: str) -> None:
         """The link died: close, tell the consumer, and start reconnecting."""
@@ -407,6 +431,10 @@ class SerialSensor:
         if n == 0:
             self._lost("EOF")
             return
+        now = time.monotonic()
+        if self.on_block is not None and self._hold(n, now):
+            return
+        held, self._held = self._held, 0
         frames: list[Frame] | None = None
         if self.on_block is not None:
             block = self.decoder.feed_block(self._rview[:n])
@@ -418,12 +446,13 @@ class SerialSensor:
         k = len(block)
         if not k:
             return
-        now = time.monotonic()
         self.last_frame_time = now
-        self.frame_bytes = n // k
+        ticked = held // self.frame_bytes if held and self.frame_bytes else 0  # while the bytes were stashed
+        self.frame_bytes = (held + n) // k
         if self._after_reconnect or self._last_counter is None:
             self._arrival = None
-        self._tick_arrival(now, k)
+        if k > ticked:
+            self._tick_arrival(now, k - ticked)
         keep = self._account(block)
         if frames is not None:
             for f, d, b in zip(frames, block.dropped_before.tolist(), block.discontinuity.tolist()):
@@ -445,6 +474,30 @@ class SerialSensor:
                 self.on_block(block)
         except Exception:
             log.exception("on_frames callback failed")
+
+    def _hold(self, n: int, now: float) -> bool:
+        """Whether to stash the ``n`` bytes just read instead of decoding them (``hold_for``); when so, pause
+        until shortly before the frame that completes the hold is due."""
+        want, fb = self._hold_frames, self.frame_bytes
+        if want <= 1 or fb <= 0 or self._arrival is None:
+            return False
+        if self._held == 0:
+            self._hold_since = now
+        gathered = (self._held + n) // fb
+        if gathered >= want or now - self._hold_since >= self._hold_max_s or not self.decoder.stash(
+            self._rview[:n]
+        ):
+            self._hold_frames = 0
+            return False
+        # The arrival clock follows the frames these bytes complete (a frame is written whole, so the
+        # bytes of a read are whole frames unless a write was split).
+        if gathered > self._held // fb:
+            self._tick_arrival(now, gathered - self._held // fb)
+        self._held += n
+        due = self.expected_arrival(want - gathered)
+        if due is not None:
+            self.pause(due - self._hold_margin_s - now, 1.0 / self.period_s)
+        return True
 
     def _account(self, block: FrameBlock) -> np.ndarray | None:
         """Gap and discontinuity detection from the packet counter: fills ``block.dropped_before`` and

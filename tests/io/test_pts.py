@@ -388,3 +388,22 @@ def test_a_configured_sensor_the_frames_lack_reads_nan_and_is_counted() -> None:
     block = dec.feed_block(b"".join(encode_frame(simple_frame(c)) for c in range(3)))
     assert len(block) == 3 and dec.missing_sensor == 3
     assert np.isfinite(block.force[:, 0]).all() and np.isnan(block.force[:, 1]).all()
+
+
+def test_stashed_bytes_decode_as_if_fed() -> None:
+    # A reader holding frames back stashes raw bytes and decodes them later in one pass: the same frames,
+    # in order, whatever the split; the undecoded bytes stay bounded (a stash that does not fit is refused).
+    rng = np.random.default_rng(0)
+    data = b"".join(encode_frame(simple_frame(i)) + (b"\x55\x66" if i % 7 == 0 else b"") for i in range(3000))
+    ref = FrameDecoder().feed_block(data).counter.tolist()
+    dec, got, pos, refused = FrameDecoder(), [], 0, 0
+    while pos < len(data):
+        step = int(rng.integers(1, 30000))
+        chunk, pos = data[pos : pos + step], pos + step
+        if rng.random() < 0.6:
+            if dec.stash(chunk):
+                continue
+            refused += 1
+        got += dec.feed_block(chunk).counter.tolist()
+    got += dec.feed_block(b"").counter.tolist()
+    assert got == ref and refused > 0 and dec.garbage_bytes == 2 * len(range(0, 3000, 7))
