@@ -209,6 +209,7 @@ class SerialSensor:
         self._hold_max_s = 0.0
         self._hold_margin_s = 0.0
         self._hold_since = 0.0
+        self._flush_handle: asyncio.TimerHandle | None = None
         self._metrics = metrics
         self._seen_errors = dict.fromkeys(FrameDecoder.ERROR_KINDS, 0)
         self._seen_garbage = 0
@@ -385,6 +386,9 @@ class SerialSensor:
         self._serial, self._fd = None, -1
         self._connected.clear()
         self._held = self._hold_frames = 0
+        if self._flush_handle is not None:
+            self._flush_handle.cancel()
+            self._flush_handle = None
 
     def _lost(self, reason: str) -> None:
         """The link died: close, tell the consumer, and start reconnecting."""
@@ -434,7 +438,21 @@ class SerialSensor:
         now = time.monotonic()
         if self.on_block is not None and self._hold(n, now):
             return
+        self._deliver(n, now)
+
+    def _flush_held(self) -> None:
+        """The hold's time is up and no read ended it (the stream stopped, or slowed): hand over what is held."""
+        self._flush_handle = None
+        if self._held and self._fd >= 0:
+            self._hold_frames = 0
+            self._deliver(0, time.monotonic())
+
+    def _deliver(self, n: int, now: float) -> None:
+        """Decode the held bytes and the ``n`` just read, account for them and hand them to the consumer."""
         held, self._held = self._held, 0
+        if self._flush_handle is not None:
+            self._flush_handle.cancel()
+            self._flush_handle = None
         frames: list[Frame] | None = None
         if self.on_block is not None:
             block = self.decoder.feed_block(self._rview[:n])
@@ -493,6 +511,9 @@ class SerialSensor:
         # bytes of a read are whole frames unless a write was split).
         if gathered > self._held // fb:
             self._tick_arrival(now, gathered - self._held // fb)
+        if self._held == 0 and self._loop is not None:
+            # However the stream goes on (or stops), what is held reaches the consumer within max_s.
+            self._flush_handle = self._loop.call_later(self._hold_max_s, self._flush_held)
         self._held += n
         due = self.expected_arrival(want - gathered)
         if due is not None:

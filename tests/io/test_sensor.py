@@ -433,3 +433,36 @@ def test_pause_is_refused_while_bytes_wait(emulator_factory) -> None:
 
     refused, pending = asyncio.run(main())
     assert pending > 0 and refused is False
+
+
+def test_held_frames_come_in_one_block_per_hold_and_none_is_lost_when_the_stream_stops(emulator_factory) -> None:
+    # The daemon holds frames back between decisions (hold_for): the reader stashes the bytes and hands them
+    # over once `n` frames have gathered, as one block; when the stream stops in the middle of a hold, what is
+    # held still arrives within max_s. Two arrays per frame, every value intact.
+    rec = synthetic_recording(1200)
+    two = Recording(rec.t_us, np.stack([rec.force, -rec.force], 1), np.stack([rec.disp, rec.disp], 1))
+    emu = emulator_factory(two)
+    blocks: list[tuple[np.ndarray, np.ndarray]] = []
+    sizes: list[int] = []
+
+    async def main() -> SerialSensor:
+        s: SerialSensor
+
+        def on_block(block) -> None:
+            blocks.append((block.counter.copy(), block.force.copy()))
+            sizes.append(len(block))
+            s.hold_for(10, 0.3, 0.001)  # as the daemon does after each decision (stride 10)
+
+        s = SerialSensor(emu.port, on_block=on_block, sensors=2)
+        await s.start()
+        emu.start()
+        await until(lambda: emu.finished.is_set() and sum(sizes) >= emu.frames_written)
+        await s.stop()
+        return s
+
+    asyncio.run(main())
+    counters = np.concatenate([c for c, _ in blocks])
+    assert counters.tolist() == list(range(1200))
+    assert np.array_equal(np.concatenate([f for _, f in blocks]), two.force)
+    # Held: far fewer hand-overs than frames, and a full hold is at least the 10 frames asked for.
+    assert len(blocks) < 1200 / 5 and np.median(sizes[1:-1]) >= 10
