@@ -419,20 +419,24 @@ class FrameDecoder:
         self._feed(data)
         return self.block()
 
-    def stash(self, data: bytes | bytearray | memoryview) -> bool:
-        """Keep bytes from the port without looking at them yet (the next ``feed``/``feed_block`` decodes them
+    def stash(self, data: bytes | bytearray | memoryview) -> int | None:
+        """Keep bytes from the port without decoding them yet (the next ``feed``/``feed_block`` decodes them
         with its own): a reader that holds frames back until its consumer wants them decodes them all in
-        one pass. False (nothing kept) when the buffer has no room for them: feed them instead."""
+        one pass. Returns how many end markers these bytes complete (the frames they complete, unless
+        corrupt input or a value that happens to spell the marker says otherwise), or None (nothing kept)
+        when the buffer has no room for them: feed them instead."""
         view = memoryview(data).cast("B")
         n = self._end - self._start
         if n + len(view) > _CHUNK_BYTES:
-            return False  # undecoded bytes stay below a chunk: ``_feed`` always has room for the next one
+            return None  # undecoded bytes stay below a chunk: ``_feed`` always has room for the next one
         if self._end + len(view) > _BUFFER_BYTES:
             self._buf[:n] = self._buf[self._start : self._end]
             self._start, self._end = 0, n
-        self._buf[self._end : self._end + len(view)] = view
+        old = self._end
+        self._buf[old : old + len(view)] = view
         self._end += len(view)
-        return True
+        # A marker may straddle the previous bytes: look from len(END) - 1 bytes back.
+        return self._buf.count(END, max(self._start, old - len(END) + 1), self._end)
 
     def block(self) -> FrameBlock:
         """The frames completed by the latest ``feed`` or ``feed_block`` as arrays (views; see ``FrameBlock``)."""

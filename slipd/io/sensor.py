@@ -205,6 +205,7 @@ class SerialSensor:
         """time.monotonic() of the read that delivered the latest frame (None before the first)."""
         self._arrival: float | None = None  # estimated time.monotonic() at which the latest frame arrived
         self._held = 0  # bytes stashed in the decoder, not decoded yet
+        self._held_frames = 0  # frames those bytes complete (end markers)
         self._hold_frames = 0  # deliver once this many are held (0: at once)
         self._hold_max_s = 0.0
         self._hold_margin_s = 0.0
@@ -343,14 +344,18 @@ class SerialSensor:
             return None
         return self._arrival + frames_ahead * self.period_s
 
-    def _tick_arrival(self, now: float, new: int) -> None:
-        """Advance the arrival clock by ``new`` frames read at ``now`` (an upper bound on their arrival)."""
+    def _tick_arrival(self, now: float, new: int, prompt: bool = True) -> None:
+        """Advance the arrival clock by ``new`` frames read at ``now`` (an upper bound on their arrival).
+
+        ``prompt``: the read came from the port's readiness (the frames had just arrived), not at the end of
+        a pause (they may have waited): only a prompt read that is far later than predicted re-anchors the
+        clock (a stall, a restarted stream); a late read after a pause says nothing about arrival."""
         est = self._arrival
         if est is None:
             self._arrival = now
             return
         pred = est + new * self.period_s
-        if now < pred or now - pred > ARRIVAL_REANCHOR_S:
+        if now < pred or (prompt and now - pred > ARRIVAL_REANCHOR_S):
             self._arrival = now
         else:
             self._arrival = min(now, pred + ARRIVAL_LEAK * new * self.period_s)
@@ -365,7 +370,7 @@ class SerialSensor:
         # Only when bytes are known to wait: with VMIN = VTIME = 0 a read of an empty tty returns 0, which
         # would look like EOF; an empty (or hung-up) port is left to the loop's readiness report.
         if self.pending_bytes() > 0:
-            self._on_readable()
+            self._on_readable(prompt=False)
         if self._fd >= 0 and self._resume_handle is None and not self._watching:
             self._loop.add_reader(self._fd, self._on_readable)
             self._watching = True
@@ -423,7 +428,7 @@ class SerialSensor:
             return
 
     # ------------------------------------------------------------ reading
-    def _on_readable(self) -> None:
+    def _on_readable(self, prompt: bool = True) -> None:
         try:
             n = os.readv(self._fd, [self._rbuf])
         except (BlockingIOError, InterruptedError):
@@ -436,9 +441,9 @@ class SerialSensor:
             self._lost("EOF")
             return
         now = time.monotonic()
-        if self.on_block is not None and self._hold(n, now):
+        if self.on_block is not None and self._hold(n, now, prompt):
             return
-        self._deliver(n, now)
+        self._deliver(n, now, prompt)
 
     def _flush_held(self) -> None:
         """The hold's time is up and no read ended it (the stream stopped, or slowed): hand over what is held."""
@@ -447,7 +452,7 @@ class SerialSensor:
             self._hold_frames = 0
             self._deliver(0, time.monotonic())
 
-    def _deliver(self, n: int, now: float) -> None:
+    def _deliver(self, n: int, now: float, prompt: bool = False) -> None:
         """Decode the held bytes and the ``n`` just read, account for them and hand them to the consumer."""
         held, self._held = self._held, 0
         if self._flush_handle is not None:
@@ -465,12 +470,13 @@ class SerialSensor:
         if not k:
             return
         self.last_frame_time = now
-        ticked = held // self.frame_bytes if held and self.frame_bytes else 0  # while the bytes were stashed
+        ticked = self._held_frames if held else 0  # the arrival clock followed these while they were stashed
+        self._held_frames = 0
         self.frame_bytes = (held + n) // k
         if self._after_reconnect or self._last_counter is None:
             self._arrival = None
         if k > ticked:
-            self._tick_arrival(now, k - ticked)
+            self._tick_arrival(now, k - ticked, prompt)
         keep = self._account(block)
         if frames is not None:
             for f, d, b in zip(frames, block.dropped_before.tolist(), block.discontinuity.tolist()):
@@ -493,29 +499,34 @@ class SerialSensor:
         except Exception:
             log.exception("on_frames callback failed")
 
-    def _hold(self, n: int, now: float) -> bool:
+    def _hold(self, n: int, now: float, prompt: bool) -> bool:
         """Whether to stash the ``n`` bytes just read instead of decoding them (``hold_for``); when so, pause
         until shortly before the frame that completes the hold is due."""
-        want, fb = self._hold_frames, self.frame_bytes
-        if want <= 1 or fb <= 0 or self._arrival is None:
+        want = self._hold_frames
+        if want <= 1 or self._arrival is None:
             return False
         if self._held == 0:
             self._hold_since = now
-        gathered = (self._held + n) // fb
-        if gathered >= want or now - self._hold_since >= self._hold_max_s or not self.decoder.stash(
-            self._rview[:n]
-        ):
+            self._held_frames = 0
+        if now - self._hold_since >= self._hold_max_s:
             self._hold_frames = 0
             return False
-        # The arrival clock follows the frames these bytes complete (a frame is written whole, so the
-        # bytes of a read are whole frames unless a write was split).
-        if gathered > self._held // fb:
-            self._tick_arrival(now, gathered - self._held // fb)
+        done = self.decoder.stash(self._rview[:n])
+        if done is None:
+            self._hold_frames = 0
+            return False
         if self._held == 0 and self._loop is not None:
             # However the stream goes on (or stops), what is held reaches the consumer within max_s.
             self._flush_handle = self._loop.call_later(self._hold_max_s, self._flush_held)
         self._held += n
-        due = self.expected_arrival(want - gathered)
+        self._held_frames += done
+        if done:
+            self._tick_arrival(now, done, prompt)
+        if self._held_frames >= want:
+            self._hold_frames = 0
+            self._deliver(0, now)  # the deciding frame is in: decode the lot at once
+            return True
+        due = self.expected_arrival(want - self._held_frames)
         if due is not None:
             self.pause(due - self._hold_margin_s - now, 1.0 / self.period_s)
         return True

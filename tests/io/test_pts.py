@@ -392,7 +392,8 @@ def test_a_configured_sensor_the_frames_lack_reads_nan_and_is_counted() -> None:
 
 def test_stashed_bytes_decode_as_if_fed() -> None:
     # A reader holding frames back stashes raw bytes and decodes them later in one pass: the same frames,
-    # in order, whatever the split; the undecoded bytes stay bounded (a stash that does not fit is refused).
+    # in order, whatever the split; the undecoded bytes stay bounded (a stash that does not fit is refused);
+    # each stash counts the frames its bytes complete (end markers, one split across stashes included).
     rng = np.random.default_rng(0)
     data = b"".join(encode_frame(simple_frame(i)) + (b"\x55\x66" if i % 7 == 0 else b"") for i in range(3000))
     ref = FrameDecoder().feed_block(data).counter.tolist()
@@ -401,9 +402,13 @@ def test_stashed_bytes_decode_as_if_fed() -> None:
         step = int(rng.integers(1, 30000))
         chunk, pos = data[pos : pos + step], pos + step
         if rng.random() < 0.6:
-            if dec.stash(chunk):
+            if dec.stash(chunk) is not None:
                 continue
             refused += 1
         got += dec.feed_block(chunk).counter.tolist()
     got += dec.feed_block(b"").counter.tolist()
     assert got == ref and refused > 0 and dec.garbage_bytes == 2 * len(range(0, 3000, 7))
+    dec = FrameDecoder()
+    frame = encode_frame(simple_frame(1))
+    assert dec.stash(frame[:-2]) == 0 and dec.stash(frame[-2:] + frame) == 2  # the split marker counts
+    assert dec.feed_block(b"").counter.tolist() == [1, 1]
