@@ -468,6 +468,9 @@ class SlipdConfig(_Section):
             raise _SectionProblem(("reaction", "on_failsafe"), f"{self.reaction.on_failsafe} needs arm.enabled: true")
         if self.reaction.on_failsafe == "stop_arm_and_tighten" and not self.gripper.enabled:
             raise _SectionProblem(("reaction", "on_failsafe"), "stop_arm_and_tighten needs gripper.enabled: true")
+        if self.sensor.sensors > 1 and self.model.detector != "onnx":
+            raise _SectionProblem(("model", "detector"), f"{self.model.detector} reads one sensor; sensor.sensors "
+                                  f"is {self.sensor.sensors} (the onnx detector decides per finger)")
         return self
 
 
