@@ -19,8 +19,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from slipd.detect.contact import ContactState
 
 
 @dataclass(frozen=True)
@@ -92,3 +96,6 @@ class Detection:
     rising_edge: bool
     valid: bool = True
     sensor: int = 0
+    contact: ContactState | None = None
+    """Per-pillar slip, friction estimate, continuous contact risk (``slipd.detect.contact``); None where the
+    detector keeps no contact state."""

@@ -28,11 +28,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
+from slipd.detect.contact import ContactStream
 from slipd.detect.decision import Detection
 from slipd.detect.ensemble import StepError
 from slipd.detect.features import FeatureSpec, FeatureStream, tare_offset
@@ -177,6 +179,8 @@ class Detector:
             raise ValueError(f"stride {self.spec.step} must divide the window {self.spec.window}")
         self.n_streams = self.spec.window // self.spec.step
         self.features = FeatureStream(self.spec, offset)
+        self.contact = ContactStream(self.spec, offset)
+        """Per-pillar slip, friction, contact risk: windows end with the detector's (``Detection.contact``)."""
         self.tare_samples = 0 if offset is not None else int(tare_samples)
         self._tare_buf = np.zeros((max(self.tare_samples, 1), 9, 3), np.float32)
         self._tare_t = np.zeros(max(self.tare_samples, 1), np.int64)
@@ -200,6 +204,7 @@ class Detector:
     def restart(self, retare: bool = False) -> None:
         """After a reconnect or a counter discontinuity: forget the feature history and GRU states."""
         self.features.reset()
+        self.contact.reset()
         self.ensemble.reset()
         self.decision.reset()
         self.windows = 0
@@ -235,6 +240,7 @@ class Detector:
             # sample, exactly as the batch path (training, evaluation) cuts them. Windows completed inside the
             # tare stretch step the model (state continuity) but only the last one is reported.
             self.features.set_offset(tare_offset(self._tare_buf, 0, self.tare_samples))
+            self.contact.set_offset(self.features._offset.reshape(9, 3))
             self._tared = True
             last = None
             for k in range(self.tare_samples):
@@ -269,17 +275,19 @@ class Detector:
             return out
         base = self.index + 1 - i  # sample index of force[0]
         self.index += len(force) - i
+        contact = dict(self.contact.push_many(force[i:]))
         for j, window in self.features.push_many(force[i:]):
             k = i + j
-            out.append((k, self._decide(window, force[k], int(t_us[k]), base + k)))
+            out.append((k, replace(self._decide(window, force[k], int(t_us[k]), base + k), contact=contact.get(j))))
             self.step_seconds.append(self.last_step_s)
         return out
 
     def _process(self, force: np.ndarray, t_us: int, index: int) -> Detection | None:
+        state = self.contact.push(force)
         window = self.features.push(force)
         if window is None:
             return None
-        return self._decide(window, force, t_us, index)
+        return replace(self._decide(window, force, t_us, index), contact=state)
 
     def _decide(self, window: np.ndarray, force: np.ndarray, t_us: int, index: int) -> Detection:
         """A completed window (its last sample ``force``, ``index``): contact gate, model step, decision."""
@@ -353,6 +361,8 @@ class HeuristicDetector:
         params, frontend = load_params(params_path, name)
         self.name = name
         self._det = make_baseline(name, params, frontend, offset)
+        self.contact = ContactStream(FeatureSpec(window=40, stride=10), offset)
+        """The contact state, on its own 40 / 10 windows; each detection carries the latest."""
         self.windows = 0
         self.resets = 0
         self.last_step_s: float | None = None
@@ -361,9 +371,11 @@ class HeuristicDetector:
 
     def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
         """Feed one raw sample (forces and tip displacements); a Detection when the heuristic decides."""
+        self.contact.push(force)
         d = self._det.push(force, t_us, disp)
         if d is not None:
             self.windows += 1
+            d = replace(d, contact=self.contact.latest)
         return d
 
     def push_many(
@@ -385,6 +397,7 @@ class HeuristicDetector:
     def restart(self, retare: bool = False) -> None:
         """Forget the history (reconnect, discontinuity)."""
         self._det.restart()
+        self.contact.reset()
         self.resets += 1
 
 

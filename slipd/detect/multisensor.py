@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -104,6 +105,7 @@ class MultiDetector:
         for s, d in enumerate(subs):
             d.index += k - i
             wins.append(d.features.push_many(x[i:, s]))
+        contacts = [dict(d.contact.push_many(x[i:, s])) for s, d in enumerate(subs)]  # Detection.contact
         # Same samples into every stream: the windows end on the same samples.
         for m, (j, _) in enumerate(wins[0]):
             kk = i + j
@@ -129,5 +131,5 @@ class MultiDetector:
                     step_s = None
                 else:
                     self.step_seconds.append(None)
-                out.append((kk, det))
+                out.append((kk, replace(det, contact=contacts[s].get(j))))
         return out

@@ -1,0 +1,123 @@
+"""The contact's state beside the alarm: per-pillar slip, friction estimate, continuous risk, grip and load.
+
+One ``ContactStream`` per sensor runs the shared feature pipeline (``FeatureStream``: sanitise, tare, clip,
+causal median) on all nine pillars' fx, fy, fz, with the detector's window and stride, so its windows end on
+exactly the samples the detector decides on. Per window: ``PillarSlip`` (per-pillar P(slip)),
+``FrictionEstimator`` (mu from the sliding pillars; reset when the contact is released) and
+``contact_risk`` (load-weighted share slipping or near the limit). The result is a ``ContactState``
+that the detector attaches to its ``Detection``; the grip-force policy (``slipd.daemon.grip_control``)
+reads it, the recorder and ``slipd replay --json`` write it, metrics export it.
+
+A model with an auxiliary per-pillar head would fill ``pillar_slip`` from its output instead (``source``
+"model"); the shipped ensemble has none, so ``source`` is "features".
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slipd.detect.features import FeatureSpec, FeatureStream
+from slipd.detect.friction import FrictionEstimator
+from slipd.detect.pillar_slip import PillarSlip, PillarSlipParams
+from slipd.detect.risk import contact_risk
+from slipd.geometry import CONTACT_THRESHOLD_N, N_PILLARS
+
+RISK_MARGIN = 0.3
+"""Default margin of ``contact_risk``: a pillar starts to count at 70 % of its friction limit."""
+
+
+@dataclass(frozen=True, slots=True)
+class ContactState:
+    """One window's contact state (forces in N, tared and median-filtered)."""
+
+    pillar_slip: tuple[float, ...]
+    """P(slip) of each of the nine pillars (SDK order)."""
+    friction: float | None
+    """Friction coefficient estimated from the sliding pillars; None until one was seen sliding."""
+    friction_sd: float | None
+    """Weighted standard deviation of the samples behind ``friction``."""
+    risk: float
+    """Load-weighted share of the contact that slips or is within the margin of its limit, 0..1."""
+    grip_n: float
+    """Total normal force (the grip on this finger)."""
+    load_n: float
+    """Magnitude of the total tangential force (the load the grip must hold)."""
+    source: str = "features"
+
+    @property
+    def friction_use(self) -> float | None:
+        """Share of the contact's friction capacity in use, |sum Ft| / (mu sum Fz); None without mu or grip."""
+        if self.friction is None or self.friction <= 0.0 or self.grip_n <= CONTACT_THRESHOLD_N:
+            return None
+        return self.load_n / (self.friction * self.grip_n)
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready (replay --json, the recorder's decisions)."""
+        return {"pillar_slip": [round(p, 4) for p in self.pillar_slip], "friction": self.friction,
+                "friction_sd": self.friction_sd, "contact_risk": round(self.risk, 4), "grip_n": round(self.grip_n, 4),
+                "load_n": round(self.load_n, 4), "pillar_source": self.source}
+
+
+def contact_spec(spec: FeatureSpec) -> FeatureSpec:
+    """All nine pillars' three axes with ``spec``'s window, stride, median and rate (windows end together)."""
+    return FeatureSpec(pillars=tuple(range(N_PILLARS)), channels=("fx", "fy", "fz"), window=spec.window,
+                       median=spec.median, rate_hz=spec.rate_hz, stride=spec.step, tare_samples=spec.tare_samples)
+
+
+class ContactStream:
+    """Samples in, a ``ContactState`` at the end of every window (see the module docstring)."""
+
+    def __init__(self, spec: FeatureSpec, offset: np.ndarray | None = None, *, risk_margin: float = RISK_MARGIN,
+                 params: PillarSlipParams | None = None) -> None:
+        self.spec = contact_spec(spec)
+        self.features = FeatureStream(self.spec, offset)
+        self.pillars = PillarSlip(params)
+        self.friction = FrictionEstimator()
+        self.risk_margin = float(risk_margin)
+        self.latest: ContactState | None = None
+
+    def set_offset(self, offset: np.ndarray | None) -> None:
+        """The tare offset ([9, 3]) in use from the next sample."""
+        self.features.set_offset(offset)
+
+    def reset(self) -> None:
+        """Forget history, slip states and the friction estimate (restart, new contact)."""
+        self.features.reset()
+        self.pillars.reset()
+        self.friction.reset()
+        self.latest = None
+
+    def push(self, force: np.ndarray) -> ContactState | None:
+        """One raw sample [9, 3]; the state when a window ends here."""
+        window = self.features.push(force)
+        return None if window is None else self._state(window)
+
+    def push_many(self, force: np.ndarray) -> list[tuple[int, ContactState]]:
+        """A block [k, 9, 3]; ``(i, state)`` for each sample that ends a window."""
+        return [(i, self._state(w)) for i, w in self.features.push_many(force)]
+
+    def _state(self, window: np.ndarray) -> ContactState:
+        w = window.reshape(self.spec.window, N_PILLARS, 3)
+        p = self.pillars.update(w)
+        last = w[-1].astype(np.float64)
+        fz = last[:, 2]
+        ft = last[:, :2]
+        util = np.hypot(ft[:, 0], ft[:, 1]) / np.maximum(fz, CONTACT_THRESHOLD_N)
+        contact = fz > CONTACT_THRESHOLD_N
+        if not contact.any():
+            self.friction.reset()  # released: the next grasp may be another object
+        # Only sliding pillars at the contact's top utilisation are samples of mu: a pillar marked sliding
+        # well below the others' ratio is a misjudged sticking one (a sliding tip sits on the limit).
+        top = float(util[contact].max()) if contact.any() else 0.0
+        est = self.friction.update(util, fz, np.where(util >= 0.9 * top, p, 0.0))
+        mu = None if est is None else est.mu
+        grip = float(fz[contact].sum())
+        load = float(np.hypot(*ft[contact].sum(0))) if contact.any() else 0.0
+        state = ContactState(
+            pillar_slip=tuple(float(x) for x in p), friction=mu, friction_sd=None if est is None else est.sd,
+            risk=contact_risk(fz, util, p, mu, self.risk_margin), grip_n=grip, load_n=load,
+        )
+        self.latest = state
+        return state

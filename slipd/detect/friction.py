@@ -1,0 +1,68 @@
+"""Online friction estimate from the pillars seen sliding.
+
+A sliding Coulomb tip sits on its friction limit, so its utilisation |Ft| / Fz *is* the friction
+coefficient of the surface (the kinetic one; with velocity-weakening friction, mu at that slip speed).
+Each decision adds one sample per pillar that slides (P(slip) >= 0.5) with a normal force large enough
+for the ratio to be meaningful (``min_fz_n``), weighted by its normal force (a heavily loaded pillar's
+ratio is the least affected by noise and offsets). The estimate is the weighted mean with exponential
+forgetting (``forget`` per decision, so a surface that changes is followed within a few hundred
+decisions), its uncertainty the weighted standard deviation of those samples (pillar-to-pillar spread
+and noise); both are None until a pillar has been seen sliding. ``reset`` on release: a new grasp may be
+a new object.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class FrictionEstimate:
+    """The current estimate: mean coefficient, its weighted standard deviation, and samples behind it."""
+
+    mu: float
+    sd: float
+    samples: int
+
+
+class FrictionEstimator:
+    """Weighted, forgetting mean of the sliding pillars' utilisation (see the module docstring)."""
+
+    def __init__(self, min_fz_n: float = 1.0, forget: float = 0.995, max_mu: float = 3.0) -> None:
+        self.min_fz_n = float(min_fz_n)
+        self.forget = float(forget)
+        self.max_mu = float(max_mu)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything (release: the next grasp may be another object)."""
+        self._w = 0.0
+        self._m = 0.0
+        self._s = 0.0  # weighted sum of squared deviations
+        self.samples = 0
+
+    def update(self, util: np.ndarray, fz: np.ndarray, p_slip: np.ndarray) -> FrictionEstimate | None:
+        """Add this decision's sliding pillars; returns the estimate (None while none was seen sliding)."""
+        use = (np.asarray(p_slip) >= 0.5) & (np.asarray(fz) > self.min_fz_n) & np.isfinite(util)
+        use &= np.asarray(util) < self.max_mu  # a ratio beyond any real friction is a glitch, not a sample
+        if use.any():
+            self._w *= self.forget
+            self._s *= self.forget
+            for u, w in zip(np.asarray(util, np.float64)[use], np.asarray(fz, np.float64)[use], strict=True):
+                # West's weighted incremental mean and variance.
+                self._w += w
+                d = u - self._m
+                self._m += d * w / self._w
+                self._s += w * d * (u - self._m)
+            self.samples += int(use.sum())
+        return self.estimate()
+
+    def estimate(self) -> FrictionEstimate | None:
+        """The current estimate, or None before any sliding pillar was seen."""
+        if self._w <= 0.0:
+            return None
+        sd = math.sqrt(max(self._s, 0.0) / self._w)
+        return FrictionEstimate(float(self._m), float(sd), self.samples)

@@ -1,0 +1,162 @@
+"""Score the contact state (``slipd.detect.contact``) against the simulator's truth.
+
+    python tools/evaluate.py --contact [--sets robust,transfer,offline] [--split test] [--json OUT]
+
+Every recording streams through ``ContactStream`` (the daemon's code, the detector's default window and
+stride 40 / 10) with the offset of its unloaded start. Two figures:
+
+* **per-pillar slip**: at every window end, each pillar in contact (filtered Fz > 0.5 N) is one case,
+  predicted slipping when P(slip) >= 0.5, truth the simulator's per-pillar ``slip``; precision, recall
+  and F1 pooled over all cases, per pillar, per set and per physics family;
+* **friction**: on every slip trial, the estimate 0.2 s after the truth's gross-slip time (all considered
+  pillars slipping; the onset + 0.5 s where there is none) against the truth: the scene's kinetic
+  coefficient ``mu_k`` (a sliding tip's |Ft| / Fz), and where the scene has per-pillar friction spread,
+  ``mu_k`` times the normal-force-weighted mean of the spread factors of the pillars sliding then (the
+  Stribeck family's mu(v) lies between mu_k and mu_s: it is scored against mu_k all the same). A trial
+  counts as within when |estimate - truth| <= 15 % of the truth; a trial with no estimate by then counts
+  as outside. Where a recording carries the PapillArray controller's own
+  type-6 friction estimate (meta ``friction_est``), it is compared too; the simulated sets carry none.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slipd.detect.contact import ContactStream
+from slipd.detect.features import FeatureSpec, tare_offset
+from slipd.recording import Recording
+from sliplab.paths import ROOT
+
+SPEC = FeatureSpec(window=40, stride=10)
+TOLERANCE = 0.15
+
+
+def truth_friction(meta: dict[str, Any]) -> tuple[float, float] | None:
+    """(mu_s, mu_k) of a recording's scene (hexapod ``friction`` or gripper ``object``), or None."""
+    scene = meta.get("scene", meta)
+    src = scene.get("friction") or scene.get("object")
+    if not src or "mu_k" not in src:
+        return None
+    return float(src["mu_s"]), float(src["mu_k"])
+
+
+def score_recording(path: str) -> dict[str, Any]:
+    """Stream one recording; per-pillar counts and the friction estimate at gross slip."""
+    rec = Recording.load(path)
+    meta = rec.meta
+    stream = ContactStream(SPEC, tare_offset(rec.force, 0, 100))
+    counts = np.zeros((9, 3), np.int64)  # tp, fp, fn per pillar
+    ev = rec.events
+    at = ev["gross_slip"] + 0.2 if "gross_slip" in ev else (ev["onset"] + 0.5 if "onset" in ev else None)
+    at_i = None if at is None else min(int(at * rec.rate_hz), len(rec) - 1)
+    est = None
+    for j, st in stream.push_many(rec.force):
+        if rec.slip is not None:
+            c = np.asarray(st.pillar_slip) >= 0.5
+            fz_ok = _fz(stream) > 0.5
+            pred, tr = c & fz_ok, rec.slip[j] & fz_ok
+            counts[:, 0] += pred & tr
+            counts[:, 1] += pred & ~tr
+            counts[:, 2] += ~pred & tr
+        if at_i is not None and j <= at_i:
+            est = st.friction
+    truth = truth_friction(meta)
+    if truth is not None and at_i is not None and isinstance(meta.get("physics"), dict) and "spread" in meta["physics"]:
+        from slipd.sim.contact_models import build_model, pillar_spread
+
+        mult = pillar_spread(build_model(meta["physics"]), int(meta["seed"]))["mu"]
+        sliding = rec.slip[at_i] if rec.slip is not None and rec.slip[at_i].any() else np.ones(9, bool)
+        w = np.maximum(rec.force[at_i, :, 2], 0.0) * sliding
+        if w.sum() > 0:
+            truth = (truth[0], truth[1] * float(np.dot(w, mult) / w.sum()))
+    return {"file": Path(path).name, "family": meta.get("physics_family", meta.get("scene", {}).get("family", "?")),
+            "kind": meta.get("kind"), "counts": counts.tolist(), "friction": est,
+            "mu_s": None if truth is None else truth[0], "mu_k": None if truth is None else truth[1],
+            "controller_friction": meta.get("friction_est")}
+
+
+def _fz(stream: ContactStream) -> np.ndarray:
+    # The last filtered sample's normal forces: the stream keeps them in its feature history.
+    f = stream.features
+    return f._buf[f._end - 1].reshape(9, 3)[:, 2]
+
+
+def prf(tp: int, fp: int, fn: int) -> tuple[float, float, float]:
+    """Precision, recall, F1 (0 where undefined)."""
+    p = tp / (tp + fp) if tp + fp else 0.0
+    r = tp / (tp + fn) if tp + fn else 0.0
+    return p, r, (2 * p * r / (p + r) if p + r else 0.0)
+
+
+def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Pooled and per-pillar F1, per-family friction accuracy."""
+    total = np.sum([r["counts"] for r in rows], axis=0)
+    per_pillar = [prf(*map(int, total[p]))[2] for p in range(9)]
+    pooled = prf(*map(int, total.sum(0)))
+    fam: dict[str, list[bool]] = defaultdict(list)
+    errs: dict[str, list[float]] = defaultdict(list)
+    for r in rows:
+        if r["kind"] != "slip" or r["mu_k"] is None:
+            continue
+        ok = r["friction"] is not None and abs(r["friction"] - r["mu_k"]) <= TOLERANCE * r["mu_k"]
+        fam[r["family"]].append(bool(ok))
+        if r["friction"] is not None:
+            errs[r["family"]].append((r["friction"] - r["mu_k"]) / r["mu_k"])
+    within = [v for vs in fam.values() for v in vs]
+    return {
+        "pillar": {"precision": pooled[0], "recall": pooled[1], "f1": pooled[2], "f1_per_pillar": per_pillar},
+        "friction": {"trials": len(within), "within_15pct": float(np.mean(within)) if within else 0.0,
+                     "per_family": {f: {"trials": len(v), "within_15pct": float(np.mean(v)),
+                                        "median_rel_error": float(np.median(errs[f])) if errs[f] else None}
+                                    for f, v in sorted(fam.items())}},
+        "controller_friction_recordings": sum(r["controller_friction"] is not None for r in rows),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Score the sets and print the figures."""
+    p = argparse.ArgumentParser(description="score per-pillar slip and the friction estimate against truth")
+    p.add_argument("--sets", default="robust,transfer,offline")
+    p.add_argument("--split", default="test")
+    p.add_argument("--data-root", default=str(ROOT / "out" / "datasets"))
+    p.add_argument("--count", type=int, default=None, help="first N recordings of each set")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--json", help="write the figures here")
+    args = p.parse_args(argv)
+    out: dict[str, Any] = {}
+    all_rows: list[dict[str, Any]] = []
+    for name in args.sets.split(","):
+        folder = Path(args.data_root) / f"{name}_{args.split}"
+        files = sorted(str(f) for f in folder.glob("*.npz"))[: args.count]
+        if not files:
+            print(f"{folder}: no recordings (python tools/make_dataset.py --set {name} --split {args.split})")
+            continue
+        with ProcessPoolExecutor(args.workers) as pool:
+            rows = list(pool.map(score_recording, files, chunksize=4))
+        all_rows += rows
+        out[name] = summarise(rows)
+        _print(f"{name}_{args.split} ({len(rows)} recordings)", out[name])
+    if all_rows:
+        out["all"] = summarise(all_rows)
+        _print(f"all sets ({len(all_rows)} recordings)", out["all"])
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1))
+    return 0
+
+
+def _print(title: str, s: dict[str, Any]) -> None:
+    pl, fr = s["pillar"], s["friction"]
+    print(f"{title}: per-pillar slip P {pl['precision']:.3f} R {pl['recall']:.3f} F1 {pl['f1']:.3f} "
+          f"(per pillar {' '.join(f'{f:.2f}' for f in pl['f1_per_pillar'])})")
+    print(f"  friction within 15 % of mu_k on {fr['within_15pct']:.1%} of {fr['trials']} slip trials; " + ", ".join(
+        f"{f} {v['within_15pct']:.0%} of {v['trials']} (median error {v['median_rel_error']:+.1%})"
+        if v["median_rel_error"] is not None else f"{f} {v['within_15pct']:.0%} of {v['trials']}"
+        for f, v in fr["per_family"].items()))
+    print(f"  recordings with the controller's type-6 friction estimate: {s['controller_friction_recordings']}")
