@@ -62,6 +62,22 @@ class Metrics:
         self.p_slip = Gauge("slipd_slip_probability", "Latest ensemble slip probability", ["sensor"], registry=r)
         self.risk = Gauge("slipd_slip_risk", "Continuous slip risk level (0..1)", ["sensor"], registry=r)
         self.alarms = Counter("slipd_alarms", "Incipient-slip alarms raised", ["sensor"], registry=r)
+        self.contact_risk = Gauge(
+            "slipd_contact_risk", "Load-weighted share of the contact slipping or near its friction limit (0..1)",
+            ["sensor"], registry=r,
+        )
+        self.friction = Gauge(
+            "slipd_friction_estimate", "Friction coefficient estimated from the sliding pillars (0: none seen yet)",
+            ["sensor"], registry=r,
+        )
+        self.pillar_slip = Gauge(
+            "slipd_pillar_slip_probability", "Per-pillar slip probability (pillar 0..8, SDK order)",
+            ["sensor", "pillar"], registry=r,
+        )
+        self.grip_target = Gauge(
+            "slipd_grip_target_newtons", "Grip force commanded by reaction.policy grip_control (0: not commanding)",
+            registry=r,
+        )
         self.decisions = Counter("slipd_decisions", "Model decisions made", ["sensor"], registry=r)
         self.failsafe = Counter("slipd_failsafe_stops", "Fail-safe arm stops by reason", ["reason"], registry=r)
         self.device_errors = Counter(

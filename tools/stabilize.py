@@ -49,7 +49,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-control", action="store_true", help="skip the runs with the reaction disabled")
     p.add_argument("--detectors", default="onnx",
                    help="comma list among onnx, deceleration, reference_pillar (each one a full set of runs)")
+    p.add_argument("--policy", choices=("stop_and_secure", "grip_control"), default=None,
+                   help="issue 16: run grip_control beside stop_and_secure (plus the filling cup and the fragile "
+                   "object) and write reports/grip_control.md")
+    p.add_argument("--json", type=Path, help="with --policy: one row per run")
     args = p.parse_args(argv)
+    if args.policy is not None:
+        return grip_main(args)
     runs = []
     objects = args.objects.split(",")
     conditions = [(d, True) for d in args.detectors.split(",")] + ([] if args.no_control else [("onnx", False)])
@@ -106,6 +112,79 @@ def report(runs: list[dict], args: argparse.Namespace) -> str:
     stalled = sum(r.get("sensor_stalls", 0) > 0 for r in runs)
     lines += [f"Runs in which the rig fell behind real time (sensor-stall fail-safe): {stalled} of {len(runs)}.",
               "", "Raw runs: `" + args.out.with_suffix(".json").name + "`.", ""]
+    return "\n".join(lines)
+
+
+GRIP = {"reaction.policy": "grip_control", "reaction.grip_margin": 0.85, "reaction.grip_raise_risk": 0.6,
+        "reaction.grip_stop_risk": 0.95}
+"""The grip_control settings of the report (friction use 0.85 of the kinetic estimate is about 0.7 of the
+static coefficient on these objects: mu_k / mu_s = 0.8)."""
+EXTRAS = (  # (scene, extra settings, fill (kg/s, s after lift start, final kg))
+    ("cup_filling", {}, (0.2, 0.5, 0.4)),
+    ("paper_cup_fragile", {"reaction.grip_max_force_n": 8.0}, None),
+)
+
+
+def grip_main(args: argparse.Namespace) -> int:
+    """grip_control beside stop_and_secure on the 6 objects x 2 scenarios x reps, plus the extras."""
+    rows = []
+    objects = args.objects.split(",")
+    plan = [(f"{o}_{sc}", o, sc, {}, None) for o in objects for sc in SCENARIOS]
+    plan += [(name, name, "extra", extra, fill) for name, extra, fill in EXTRAS]
+    for scene, obj, scen, extra, fill in plan:
+        for rep in range(args.reps):
+            for policy in ("stop_and_secure", args.policy) if args.policy != "stop_and_secure" else (args.policy,):
+                over = {**GRIP, **extra} if policy == "grip_control" else {}
+                res, _ = run_rig(ROOT / "config" / "scenes" / f"{scene}.yaml", args.config, seed=1000 + rep,
+                                 detector=None, log=lambda *a: None, overrides=over, fill=fill)
+                limit = over.get("reaction.grip_max_force_n")
+                row = {"policy": policy, "object": obj, "scenario": scen, "rep": rep,
+                       "translation_mm": round(res.final_translation_mm, 4),
+                       "rotation_deg": round(res.final_rotation_deg, 4), "dropped": res.dropped,
+                       "peak_grip_n": round(res.max_grip_n, 3), "mean_grip_n": round(res.mean_grip_n, 3),
+                       "arm_stopped": res.arm_stopped, "alarm_s": res.alarm_s,
+                       "time_to_secure_s": None if res.secure_s is None else round(res.secure_s - res.lift_start_s, 4),
+                       "force_limit_n": limit, "sensor_stalls": res.sensor_stalls}
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    out = args.json or ROOT / "reports" / "grip_control.json"
+    out.write_text(json.dumps(rows, indent=1))
+    md = ROOT / "reports" / "grip_control.md" if args.out == ROOT / "reports" / "stabilize.md" else args.out
+    md.write_text(grip_report(rows, args))
+    print(f"wrote {out} and {md}")
+    return 0
+
+
+def grip_report(rows: list[dict], args: argparse.Namespace) -> str:
+    """The markdown table of the grip_control comparison."""
+    lines = ["# Grip-force control beside stop-and-secure on the simulated rig", "",
+             f"Regenerate: `python tools/stabilize.py --policy grip_control --reps {args.reps} --json "
+             "reports/grip_control.json` (config `" + Path(args.config).name + "`, grip_control settings: "
+             + ", ".join(f"{k.split('.')[1]} {v}" for k, v in GRIP.items() if k != "reaction.policy") + ").",
+             "Object motion relative to the finger at the end of the run (after the lift and the hold); peak and",
+             "mean grip from the lift to the end; 'no arm stop': the lift went on without the arm being stopped;",
+             "time to secure: from the lift start to the object at rest after the first reaction reached a device.",
+             "", "| policy | runs | translation (mm) | rotation (deg) | dropped | peak grip (N) | mean grip (N) | "
+             "no arm stop | time to secure (s) |", "|---|---|---|---|---|---|---|---|---|"]
+    main_rows = [r for r in rows if r["scenario"] != "extra"]
+    for pol in dict.fromkeys(r["policy"] for r in main_rows):
+        sel = [r for r in main_rows if r["policy"] == pol]
+        ts = [r["time_to_secure_s"] for r in sel if r["time_to_secure_s"] is not None]
+        lines.append(f"| {pol} | {len(sel)} | {_ms([r['translation_mm'] for r in sel])} | "
+                     f"{_ms([r['rotation_deg'] for r in sel])} | {sum(r['dropped'] for r in sel)} | "
+                     f"{_ms([r['peak_grip_n'] for r in sel])} | {_ms([r['mean_grip_n'] for r in sel])} | "
+                     f"{sum(not r['arm_stopped'] for r in sel)}/{len(sel)} | {_ms(ts)} |")
+    lines += ["", "Per object (grip_control):", "", "| object | scenario | translation (mm) | rotation (deg) | "
+              "dropped | peak grip (N) | arm stopped |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if (r["policy"] == "grip_control" and r["rep"] == 0) or r["scenario"] == "extra":
+            lines.append(f"| {r['object']} ({r['policy']}) | {r['scenario']} | {r['translation_mm']:.2f} | "
+                         f"{r['rotation_deg']:.2f} | {r['dropped']} | {r['peak_grip_n']:.1f}"
+                         + (f" (limit {r['force_limit_n']:g})" if r["force_limit_n"] else "")
+                         + f" | {r['arm_stopped']} |")
+    stalled = sum(r["sensor_stalls"] > 0 for r in rows)
+    lines += ["", f"Runs in which the rig fell behind real time (sensor-stall fail-safe): {stalled} of {len(rows)}.",
+              "Raw runs: `grip_control.json`.", ""]
     return "\n".join(lines)
 
 

@@ -247,6 +247,36 @@ class ReactionConfig(_Section):
     rearm_after_s: float = Field(
         1.0, ge=0.0, le=3600.0, description="after a reaction, further alarms this soon do not re-issue it"
     )
+    policy: Literal["stop_and_secure", "grip_control"] = Field(
+        "stop_and_secure",
+        description="stop_and_secure: an alarm runs the actions; grip_control: the grip follows the contact's "
+        "friction use and risk (reaction.grip_*), the arm stops only at grip_stop_risk or at the force limit",
+    )
+    grip_margin: float = Field(
+        0.7, gt=0.0, le=1.0, description="grip_control: keep |load| / (friction x grip) below this share"
+    )
+    grip_max_force_n: float = Field(
+        30.0, gt=0.0, le=200.0, description="grip_control: the object's force limit; the grip never exceeds it (N)"
+    )
+    grip_rise_n_s: float = Field(
+        200.0, gt=0.0, le=10_000.0, description="grip_control: fastest grip increase (N/s): the servo's rate limit"
+    )
+    grip_relax_n_s: float = Field(
+        2.0, ge=0.0, le=1000.0, description="grip_control: relaxation towards the holding force (N/s)"
+    )
+    grip_relax_after_s: float = Field(
+        1.0, ge=0.0, le=3600.0, description="grip_control: relax only after the risk stayed below grip_raise_risk "
+        "this long"
+    )
+    grip_raise_risk: float = Field(
+        0.3, ge=0.0, le=1.0, description="grip_control: contact risk above which the grip rises in proportion to it"
+    )
+    grip_stop_risk: float = Field(
+        0.9, ge=0.0, le=1.0, description="grip_control: contact risk at which the arm is stopped as well"
+    )
+    grip_update_hz: float = Field(
+        62.0, gt=0.0, le=1000.0, description="grip_control: most grip commands per second (the servo's update rate)"
+    )
 
     @field_validator("actions")
     @classmethod
@@ -271,6 +301,10 @@ class GripperConfig(_Section):
     )
     secure_position: int | None = Field(
         None, ge=0, le=4095, description="goal position when securing the grasp (ticks; closes further)"
+    )
+    max_force_n: float = Field(
+        40.0, gt=0.0, le=500.0,
+        description="grip force at full effort (PWM 885 / torque limit 1023), the calibration of grip_control",
     )
     hold_pwm: int | None = Field(None, ge=0, le=885, description="protocol 2.0: goal PWM while holding (0..885)")
     secure_pwm: int | None = Field(None, ge=0, le=885, description="protocol 2.0: goal PWM when securing")

@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from slipd.daemon.grip_control import GripControlSettings
 from slipd.daemon.reaction import Reaction
 from slipd.daemon.worker import DeviceWorker
 from slipd.detect.detector import SlipDetector, build_detector
@@ -60,6 +61,7 @@ if TYPE_CHECKING:
     from slipd.config import SlipdConfig
     from slipd.daemon.recorder import Recorder
     from slipd.daemon.sdnotify import Notifier
+    from slipd.detect.decision import Detection
     from slipd.detect.ensemble import Ensemble
     from slipd.io.arm import Arm
     from slipd.io.gripper import DynamixelGripper
@@ -148,6 +150,8 @@ class Daemon:
             graded=cfg.reaction.graded,
             rearm_after_s=cfg.reaction.rearm_after_s,
             on_failsafe=cfg.reaction.on_failsafe,
+            policy=cfg.reaction.policy,
+            grip=GripControlSettings.from_config(cfg.reaction),
         )
         self.notifier = notifier
         self.recorder: Recorder | None = None
@@ -185,6 +189,11 @@ class Daemon:
         self._m_sensor = [
             (m.decisions.labels(sensor=str(k)), m.p_slip.labels(sensor=str(k)), m.risk.labels(sensor=str(k)),
              m.alarms.labels(sensor=str(k)), m.step_errors.labels(sensor=str(k)))
+            for k in range(ns)
+        ]
+        self._m_contact = [
+            (m.contact_risk.labels(sensor=str(k)), m.friction.labels(sensor=str(k)),
+             [m.pillar_slip.labels(sensor=str(k), pillar=str(p)) for p in range(9)])
             for k in range(ns)
         ]
         m.model.info({"name": str(cfg.model.manifest.name), "sha256": ensemble.manifest.sha256})
@@ -247,6 +256,8 @@ class Daemon:
                     if offset is not None:
                         rec.meta["tare_offset"] = np.asarray(offset).tolist()
                 rec.push_decision(det.t_us, det.p_slip, det.alarm, s)
+            if det.contact is not None:
+                self._on_contact(det)  # issue 16: contact metrics and grip_control, apart from the hot path
             if det.rising_edge:
                 t_dec = time.monotonic()
                 self.reaction.on_alarm(det.risk, t_dec)
@@ -269,6 +280,17 @@ class Daemon:
             if bad != self._nonfinite_seen:  # counted once per block, not per sample
                 m.nonfinite.inc(bad - self._nonfinite_seen)
                 self._nonfinite_seen = bad
+
+    def _on_contact(self, det: Detection) -> None:
+        """A valid decision's contact state: its metrics, and the grip controller (``policy: grip_control``)."""
+        c = det.contact
+        assert c is not None
+        risk_g, friction_g, pillars_g = self._m_contact[det.sensor]
+        risk_g.set(c.risk)
+        friction_g.set(0.0 if c.friction is None else c.friction)
+        for g, p in zip(pillars_g, c.pillar_slip, strict=True):
+            g.set(p)
+        self.reaction.on_detection(c, det.alarm, time.monotonic())
 
     def _check_samples(self, force: np.ndarray, disp: np.ndarray) -> None:
         """Freshness of a block, per sensor (vectorised, once per block): finite, and not bit-identical to the

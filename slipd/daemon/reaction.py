@@ -11,6 +11,9 @@ Policies:
   straight to the secure setting, and tighten further when a later alarm carries a higher risk;
 - ``rearm_after_s``: after a reaction, further alarms within this time do not re-issue the same
   commands (the grasp is being secured already), except a graded escalation.
+- ``policy``: ``stop_and_secure`` (the above) or ``grip_control``: the grip follows every decision's contact
+  state (``slipd.daemon.grip_control``: least grip that keeps a friction margin; the arm stops only at a
+  high risk or at the force limit); alarms then raise the grip instead of running the actions.
 Fail-safe (sensor stall, model failure, a device error while reacting): stop the arm, keep the grip.
 
 A tighten that failed (the servo did not answer) stays owed until the grasp is reset: ``retry_tighten``
@@ -29,7 +32,9 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from slipd.daemon.grip_control import GripController, GripControlSettings
     from slipd.daemon.worker import DeviceWorker
+    from slipd.detect.contact import ContactState
     from slipd.metrics import Metrics
 
 log = logging.getLogger("slipd.daemon.reaction")
@@ -67,6 +72,8 @@ class Reaction:
         enabled: bool = True,
         on_failsafe: str = "stop_arm",
         clock: Callable[[], float] = time.monotonic,
+        policy: str = "stop_and_secure",
+        grip: GripControlSettings | None = None,
     ) -> None:
         unknown = [a for a in actions if a not in ACTIONS]
         if unknown:
@@ -89,12 +96,23 @@ class Reaction:
         self._last_t: float | None = None
         self._last_level = 0.0
         self.failsafe_count = 0
+        if policy not in ("stop_and_secure", "grip_control"):
+            raise ValueError(f"unknown reaction policy {policy!r}")
+        self.policy = policy
+        self.grip_control: GripController | None = None
+        """``policy: grip_control``: the grip follows the contact state (``on_detection``); alarms raise it."""
+        if policy == "grip_control" and gripper is not None:
+            from slipd.daemon.grip_control import GripController, GripControlSettings
+
+            self.grip_control = GripController(grip or GripControlSettings(), gripper=gripper,
+                                               gripper_worker=gripper_worker, stop_arm=self._grip_stop,
+                                               failsafe=self.failsafe, metrics=metrics)
 
     def on_alarm(self, risk: float, t_decision: float | None = None) -> list[Future[Any]]:
         """React to an alarm decided at ``t_decision`` (monotonic); returns the futures of the issued calls."""
         t0 = self.clock() if t_decision is None else t_decision
-        if not self.enabled:
-            return []
+        if not self.enabled or self.grip_control is not None:
+            return []  # grip_control: the controller reacts to the alarm with the decision's contact state
         level = min(1.0, max(0.0, float(risk))) if self.graded else 1.0
         recent = self._last_t is not None and t0 - self._last_t < self.rearm_after_s
         if recent and level <= self._last_level:
@@ -110,6 +128,18 @@ class Reaction:
                 futures.append(self._submit(rec, action, self.gripper_worker, self.gripper.tighten, arg))
         self._last_t, self._last_level = t0, max(level, self._last_level if recent else 0.0)
         return futures
+
+    def on_detection(self, contact: ContactState | None, alarm: bool, t_decision: float) -> None:
+        """``policy: grip_control``: every valid decision's contact state goes to the grip controller."""
+        if self.grip_control is not None and self.enabled:
+            self.grip_control.update(contact, t_decision, alarm=alarm)
+
+    def _grip_stop(self, why: str) -> None:
+        if "stop_arm" not in self.actions or self.arm is None:
+            return
+        rec = ReactionRecord(t_decision=self.clock(), risk=1.0)
+        self.records.append(rec)
+        self._submit(rec, "stop_arm", self.arm_worker, self.arm.stop, why)
 
     def failsafe(self, reason: str) -> Future[Any] | None:
         """Fail safe (sensor stalled, model failed, reaction failed): by default stop the arm, keep the grip.
@@ -143,6 +173,8 @@ class Reaction:
 
     def reset(self) -> None:
         """Forget the last reaction (a new grasp); a failed tighten is no longer owed."""
+        if self.grip_control is not None:
+            self.grip_control.reset()
         self._last_t = None
         self._last_level = 0.0
         self._owed, self.tighten_owed = False, None

@@ -154,6 +154,10 @@ class Gripper(ABC):
         Returns the ``time.monotonic()`` at which the command's bytes were written.
         """
 
+    def grip_force(self, newtons: float) -> float:
+        """Grip with ``newtons`` (force control); returns the send time. Grippers without it refuse."""
+        raise NotImplementedError(f"{type(self).__name__} has no force control")
+
     @abstractmethod
     def release(self) -> None:
         """Let go of the object."""
@@ -201,6 +205,7 @@ class DynamixelSettings:
     reboot_on_hardware_error: bool = True  # connect(): reboot (2.0) a servo that reports one
     reboot_wait_s: float = 0.5  # how long a rebooted servo needs before it answers
     torque_off_on_close: bool = False  # False keeps the grip when the daemon exits
+    max_force_n: float = 40.0  # grip force at full effort (grip_force's calibration)
 
     def __post_init__(self) -> None:
         def bad(key: str, why: str) -> ValueError:
@@ -239,7 +244,7 @@ class DynamixelSettings:
         return cls(port=cfg.port, baudrate=cfg.baudrate, dxl_id=cfg.id, protocol=float(cfg.protocol),
                    hold_position=cfg.hold_position, secure_position=cfg.secure_position,
                    hold_pwm=cfg.hold_effort, secure_pwm=cfg.secure_effort,
-                   retries=cfg.retries, packet_timeout_ms=cfg.packet_timeout_ms)
+                   retries=cfg.retries, packet_timeout_ms=cfg.packet_timeout_ms, max_force_n=cfg.max_force_n)
 
     @property
     def closing_sign(self) -> int:
@@ -308,6 +313,7 @@ class DynamixelGripper(Gripper):
         self._packet: Any = PacketHandler(settings.protocol)
         self._v2 = settings.protocol == 2.0
         self._effort_sent: int | None = None  # 2.0: skip rewriting an unchanged Goal PWM
+        self._goal_sent: int | None = None  # grip_force: the goal position it set (others clear it)
 
     # Public API ---------------------------------------------------------------------------------------
     def connect(self) -> None:
@@ -353,6 +359,31 @@ class DynamixelGripper(Gripper):
             t_sent = self._command(position, effort)
             self.last_tighten_monotonic = t_sent
             return t_sent
+
+    def grip_force(self, newtons: float) -> float:
+        """Grip with ``newtons`` (force control for ``reaction.policy: grip_control``); returns the send time.
+
+        The goal position is the secure setting, well past the object, so the jaw presses until the effort
+        limit (Goal PWM under 2.0, Torque Limit under 1.0) balances it: the force is the effort's share of
+        ``max_force_n`` (the jaw stalls on the object, where force follows motor current). Only a changed
+        effort is written after the first command: one packet per update.
+        """
+        s = self.settings
+        if not math.isfinite(newtons):
+            raise ValueError(f"grip_force: newtons must be finite, got {newtons!r}")
+        top = PWM_MAX if self._v2 else TORQUE_LIMIT_MAX
+        effort = min(top, max(0, round(float(newtons) / s.max_force_n * top)))
+        with self._lock:
+            port = self._require_port()
+            if not self._v2:
+                return self._command(s.secure_position, effort)
+            if effort != self._effort_sent:
+                self._write(V2_GOAL_PWM, effort.to_bytes(2, "little"))
+                self._effort_sent = effort
+            if self._goal_sent != s.secure_position:
+                self._write(V2_GOAL_POSITION, s.secure_position.to_bytes(4, "little", signed=True))
+                self._goal_sent = s.secure_position
+            return float(port.last_write_monotonic)
 
     def release(self) -> None:
         """Open to ``open_position`` at the hold effort (or turn torque off where there is none)."""
@@ -495,6 +526,7 @@ class DynamixelGripper(Gripper):
     def _command(self, position: int, effort: int) -> float:
         """Write effort and goal position; returns the monotonic time the first packet was written."""
         port = self._require_port()
+        self._goal_sent = None
         if self._v2:
             t_first: float | None = None
             if effort != self._effort_sent:

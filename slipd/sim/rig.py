@@ -88,6 +88,14 @@ class RigResult:
     max_grip_n: float
     frames: int
     sensor_stalls: int = 0
+    policy: str = "stop_and_secure"
+    arm_stopped: bool = False
+    """The UR controller received a stop (the lift did not go on as planned)."""
+    final_translation_mm: float = 0.0
+    final_rotation_deg: float = 0.0
+    """Object motion relative to the finger at the end of the run (after the whole lift and hold)."""
+    mean_grip_n: float = 0.0
+    """Mean grip force from the lift to the end of the run."""
     """Fail-safe stops for a stalled sensor: the rig fell behind real time (a busy machine), so the run
     measured the fail-safe, not the detector."""
 
@@ -148,6 +156,7 @@ class RigPhysics:
         self.grasp_index = round(GRASP_S / DT_S)
         self.lift_at = self.grasp_index + round((scene.grip.close_s + scene.settle_s) / DT_S)
         self._prepare_measurement()
+        self.fill_kg_s, self.fill_after_s, self.fill_to_kg = 0.0, 0.0, 0.0
 
     def grasp(self) -> None:
         """The object enters the jaw (hook for the rig's timeline)."""
@@ -188,6 +197,9 @@ class RigPhysics:
             self.lift()
         grip, v_up = self.device_inputs()
         st = self.stepper
+        if self.fill_kg_s and self.lift_index is not None and i >= self.lift_at + round(self.fill_after_s / DT_S):
+            # A cup being filled during the hold: its mass (and weight) grows at fill_kg_s up to fill_to_kg.
+            st.mass[:] = np.minimum(st.mass + self.fill_kg_s * DT_S, self.fill_to_kg)
         # Drive the finger at the arm's measured speed: the acceleration that brings the stepper's
         # finger velocity to the TCP's over one sample (+y in the sensor plane is up).
         accel = np.array([[0.0, (v_up - st.finger_vel[0, 1]) / DT_S]])
@@ -246,7 +258,7 @@ def _scrape(port: int) -> str:
 
 
 def _daemon_config(base: Path, dev: EmulatedDevices, metrics_port: int, react: bool, out_dir: Path,
-                   detector: str | None = None) -> Path:
+                   detector: str | None = None, extra: dict[str, Any] | None = None) -> Path:
     from slipd.config import load_config, override
 
     cfg = load_config(base)
@@ -256,6 +268,7 @@ def _daemon_config(base: Path, dev: EmulatedDevices, metrics_port: int, react: b
         updates["reaction.actions"] = []
     if detector is not None:
         updates["model.detector"] = detector
+    updates.update(extra or {})
     cfg = override(cfg, updates)
     path = out_dir / "daemon.yaml"
     path.write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
@@ -273,6 +286,8 @@ def run_rig(
     out_dir: str | Path | None = None,
     detector: str | None = None,
     log=print,
+    overrides: dict[str, Any] | None = None,
+    fill: tuple[float, float, float] | None = None,
 ) -> tuple[RigResult, RigPhysics]:
     """Run one closed-loop scene: start the emulators and ``slipd run`` as a separate process, stream the
     physics in real time, and measure what happened. Returns the summary and the recorded physics."""
@@ -295,6 +310,8 @@ def run_rig(
         contact = g.hold_position - sign * scene.grip.force_n / stiffness
         jaw = JawParams(contact_position=None, closing_sign=sign, initial_position=float(g.hold_position))
         physics = RigPhysics(scene, seed, duration_s)
+        if fill is not None:  # (kg/s, seconds after the lift starts, final kg): a cup being filled
+            physics.fill_kg_s, physics.fill_after_s, physics.fill_to_kg = fill
         with EmulatedDevices(physics.source, host=host, protocol=float(g.protocol), jaw=jaw) as dev:
             physics.devices = dev
             physics.grasp = lambda: dev.servo.set_contact(contact)  # type: ignore[method-assign]
@@ -307,7 +324,7 @@ def run_rig(
 
             physics.lift = lift  # type: ignore[method-assign]
             port = _free_port()
-            cfg_file = _daemon_config(Path(config_path), dev, port, react, out, detector)
+            cfg_file = _daemon_config(Path(config_path), dev, port, react, out, detector, overrides)
             log_file = out / "daemon.log"
             env = {**os.environ, "PYTHONUNBUFFERED": "1"}
             env.pop("NOTIFY_SOCKET", None)
@@ -336,6 +353,7 @@ def run_rig(
         text = log_file.read_text()
         (out / "metrics.txt").write_text(metrics_text)
         result = summarise(physics, scene_path, react, text, ur_state, writes, g.secure_position)
+        result.policy = str((overrides or {}).get("reaction.policy", base_cfg.reaction.policy))
     return result, physics
 
 
@@ -419,6 +437,10 @@ def summarise(physics: RigPhysics, scene_path: Any, react: bool, daemon_log: str
         max_grip_n=float(physics.grip[:n].max()) if n else 0.0,
         frames=n,
         sensor_stalls=daemon_log.count("fail-safe: sensor_stall"),
+        arm_stopped=bool(ur_state.stop_count),
+        final_translation_mm=final,
+        final_rotation_deg=float(abs(motion[n - 1, 2])),
+        mean_grip_n=float(physics.grip[lift:n].mean()) if n > lift else 0.0,
     )
 
 

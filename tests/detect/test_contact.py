@@ -1,0 +1,85 @@
+"""The contact state: per-pillar slip, friction estimate and contact risk (issue 16)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slipd.detect.contact import ContactStream
+from slipd.detect.features import FeatureSpec
+from slipd.detect.friction import FrictionEstimator
+from slipd.detect.pillar_slip import PillarSlip
+from slipd.detect.risk import contact_risk
+
+FZ = np.array([1.0, 2.0, 1.0, 2.0, 4.0, 2.0, 1.0, 2.0, 1.0])
+
+
+def _loading(n: int, slide: set[int], mu: float = 0.5, rate_n_s: float = 2.0) -> np.ndarray:
+    """[n, 9, 3] samples: the contact loaded in +x; pillars in ``slide`` sit on their friction limit."""
+    t = np.arange(n)[:, None] / 1000.0
+    f = np.zeros((n, 9, 3))
+    f[:, :, 2] = FZ
+    f[:, :, 0] = rate_n_s * t
+    for p in slide:
+        f[:, p, 0] = np.minimum(f[:, p, 0], mu * FZ[p])
+    return f
+
+
+def test_pillars_that_stop_following_the_load_slide_and_give_the_friction() -> None:
+    mu = 0.5
+    f = _loading(600, {0, 2, 6, 8}, mu=mu)  # corners (least normal force) reach the limit first
+    stream = ContactStream(FeatureSpec(window=40, stride=10))
+    states = [s for _, s in stream.push_many(f)]
+    last = states[-1]
+    p = np.array(last.pillar_slip)
+    assert (p[[0, 2, 6, 8]] > 0.9).all() and (p[[1, 3, 4, 5, 7]] < 0.1).all()
+    assert last.friction is not None and abs(last.friction - mu) < 0.02
+    assert 0.0 < last.risk < 1.0
+    assert last.friction_use is not None and last.friction_use < 1.0
+
+
+def test_no_slip_while_the_contact_sticks() -> None:
+    f = _loading(600, set())
+    states = [s for _, s in ContactStream(FeatureSpec(window=40, stride=10)).push_many(f)]
+    assert max(max(s.pillar_slip) for s in states) < 0.5
+    assert all(s.friction is None for s in states)
+
+
+def test_release_resets_the_friction_estimate() -> None:
+    f = _loading(600, {0, 2, 6, 8})
+    free = np.zeros((200, 9, 3))
+    stream = ContactStream(FeatureSpec(window=40, stride=10))
+    stream.push_many(f)
+    assert stream.latest is not None and stream.latest.friction is not None
+    stream.push_many(free)
+    assert stream.latest is not None and stream.latest.friction is None and stream.latest.grip_n == 0.0
+
+
+def test_friction_estimator_weights_and_spread() -> None:
+    est = FrictionEstimator(forget=1.0)
+    assert est.update(np.full(9, 0.4), np.full(9, 3.0), np.zeros(9)) is None  # nothing sliding: no estimate
+    util = np.array([0.4, 0.6, 0, 0, 0, 0, 0, 0, 0])
+    fz = np.array([3.0, 3.0, 0, 0, 0, 0, 0, 0, 0])
+    r = est.update(util, fz, np.array([1, 1, 0, 0, 0, 0, 0, 0, 0.0]))
+    assert r is not None and abs(r.mu - 0.5) < 1e-6 and abs(r.sd - 0.1) < 1e-6
+    # A ratio no real friction has (a glitch) is not a sample.
+    r2 = est.update(np.array([50.0, 0, 0, 0, 0, 0, 0, 0, 0]), np.full(9, 3.0), np.eye(9)[0])
+    assert r2 is not None and abs(r2.mu - 0.5) < 1e-6
+
+
+def test_contact_risk_is_the_load_weighted_share_at_risk() -> None:
+    fz = np.array([1.0, 3.0, 0, 0, 0, 0, 0, 0, 0])
+    p = np.array([1.0, 0, 0, 0, 0, 0, 0, 0, 0])
+    assert contact_risk(fz, np.zeros(9), p, None, 0.3) == 0.25  # only the sliding pillar, a quarter of the load
+    util = np.array([0.5, 0.5, 0, 0, 0, 0, 0, 0, 0])
+    assert contact_risk(fz, util, p, 0.5, 0.3) == 1.0  # the other one at its limit too
+    assert contact_risk(fz, util * 0.7, np.zeros(9), 0.5, 0.3) == 0.0  # at 70 % of the limit: no risk yet
+    assert contact_risk(np.zeros(9), util, p, 0.5, 0.3) == 0.0  # no contact
+
+
+def test_pillar_state_is_bounded_and_finite() -> None:
+    ps = PillarSlip()
+    rng = np.random.default_rng(0)
+    for _ in range(2000):
+        w = rng.normal(0, 5, (40, 9, 3))
+        p = ps.update(w)
+        assert np.isfinite(p).all() and (p >= 0).all() and (p <= 1).all()
