@@ -59,3 +59,33 @@ def test_realism_runs_the_reference_ensemble(reference_ckpt_dir, capsys):
     assert realism.main(["--count", "6", "--ckpt", str(reference_ckpt_dir)]) == 0
     out = capsys.readouterr().out
     assert "slip scenes detected" in out and "first alarm - onset" in out
+
+
+@pytest.fixture(scope="module")
+def robust_folder(tmp_path_factory):
+    """Five robust test recordings: one per physics family."""
+    out = tmp_path_factory.mktemp("robust")
+    write_dataset("robust", "test", out, count=5)
+    return out
+
+
+def test_realism_scores_recordings_per_physics_family(robust_folder):
+    from sliplab.robustness import tags
+
+    paths = sorted(robust_folder.glob("*.npz"))
+    recs = [Recording.load(p) for p in paths]
+    fams = [tags(robust_folder)[p.stem]["physics_family"] for p in paths]
+    ends = [np.arange(39, len(r), 40) for r in recs]
+    quiet = realism.evaluate_recordings(recs, [p.stem for p in paths], fams, [np.zeros(len(e)) for e in ends], ends)
+    assert set(quiet) == set(fams) | {"all"} and list(quiet)[-1] == "all"
+    a = quiet["all"]
+    assert a["detected"] == 0 and a["quiet"] == a["no_slip"] and a["slip"] + a["unscored"] + a["no_slip"] == 5
+    assert a["missed"] == a["slip"]
+    loud = realism.evaluate_recordings(recs, [p.stem for p in paths], fams, [np.ones(len(e)) for e in ends], ends)
+    assert loud["all"]["quiet"] == 0 and loud["all"]["early"] == loud["all"]["slip"]  # an alarm at 0.04 s
+
+
+def test_realism_runs_on_recordings(robust_folder, reference_ckpt_dir, capsys):
+    assert realism.main(["--recordings", str(robust_folder), "--limit", "5", "--ckpt", str(reference_ckpt_dir)]) == 0
+    out = capsys.readouterr().out
+    assert "5 of 5 recordings" in out and "physics family" in out and "stick_slip" in out
