@@ -4,6 +4,7 @@
                              [--train-data out/datasets/offline_train out/datasets/transfer_train]
                              [--train-args "--channels util --label-span slip ..."] [--every 1] [--workers 2]
                              [--retrain-epochs 8] [--cache out/tradeoff] [--no-retrain]
+                             [--heldout out/datasets/robust_test] [--heldout-limit 50]
 
 Two groups of points, each compared within itself:
 
@@ -26,9 +27,17 @@ reference implementation's decision (the authors' 5 checkpoints in torch eager m
 members, one window at a time) is timed in rounds alternating with each point's own step, and every
 point's speed-up over it is printed.
 
+With ``--heldout DIR`` (a folder of robust test recordings, ``tools/make_dataset.py --set robust``) every
+point is also run on those recordings (``--heldout-limit`` of them, spread over the physics families) and
+scored with the offline criterion as ``tools/robustness.py`` does: success, balanced success, stop/hold false
+alarms, latency, and success per physics family. The report says whether the run's training data held the
+same families (then the figures are on unseen recordings of seen families, not on unseen families).
+
 Writes ``reports/tradeoff.md`` (the table, the knee: the cheapest point within 1 point of the best
-success rate) and ``reports/tradeoff.png`` (success rate against median latency, marker area = CPU
-share, the Pareto front drawn), plus ``<cache>/tradeoff.json`` with every figure.
+success rate) and ``reports/tradeoff.png`` (two panels: success against compute per decision, log scale,
+and success against detection delay, the median latency of the detected slips; the knee ringed; the
+held-out success as a hollow marker beside each point's own-split success), plus ``<cache>/tradeoff.json``
+with every figure.
 """
 
 from __future__ import annotations
@@ -170,6 +179,34 @@ def accuracy(pt: Point, paths: list[Path], workers: int) -> dict:
             "latency_median_s": s.latency_s.median, "latency_p90_s": s.latency_s.p90, "scenes": s.n_scenes}
 
 
+def heldout_accuracy(pt: Point, paths: list[Path], tag: dict, workers: int) -> dict:
+    """Offline figures of one point on the held-out recordings, overall and per physics family
+    (``sliplab.robustness.figures``: the robustness report's criterion)."""
+    from sliplab.robustness import figures, group
+
+    results = evaluate_paths(paths, "model", (pt.manifest, 0.0, pt.threshold, pt.stride), workers=workers,
+                             progress=False)
+    out = figures(results)
+    out["families"] = {fam: figures(rs)["success"] for fam, rs in group(results, tag, "physics_family").items()}
+    return out
+
+
+def heldout_note(manifest: str, folder: Path) -> str:
+    """Whether the run's training data held the held-out folder's set (from the export's provenance)."""
+    try:
+        prov = json.loads(Path(manifest).read_text()).get("provenance", {})
+        held = json.loads((folder / "index.json").read_text()).get("set", "")
+    except (OSError, ValueError):
+        return ""
+    seen = [str(d) for d in prov.get("data", []) if held and Path(str(d)).name.startswith(f"{held}_")]
+    if seen:
+        return (f"the run was trained on {', '.join(seen)}: the same physics families, other recordings "
+                "(unseen recordings, not unseen families)")
+    if prov.get("data"):
+        return f"the run's training data ({', '.join(map(str, prov['data']))}) holds no `{held}` set"
+    return ""
+
+
 # ------------------------------------------------------------------------------------------ time
 def _time_us(fn, n: int) -> np.ndarray:
     return np.asarray(time_calls(fn, n))
@@ -247,6 +284,13 @@ def pareto(points: list[Point]) -> list[Point]:
     return sorted(front, key=lambda p: p.figures["latency_median_s"])
 
 
+def _heldout_cells(h: dict | None) -> str:
+    if not h:
+        return " - | - | - |"
+    return (f" {_pct(h['success'])} / {_pct(h['balanced'])} | {h['stop_alarmed']}/{h['stop']} | "
+            f"{_ms(h['latency_median_s'])} |")
+
+
 def write_report(points: list[Point], torch_us: np.ndarray | None, args: argparse.Namespace, cmd: str) -> str:
     """The markdown report (also returned for printing)."""
     lines = ["# What accuracy costs in time", "",
@@ -254,6 +298,11 @@ def write_report(points: list[Point], torch_us: np.ndarray | None, args: argpars
              f"`{args.data}`; the method's {points[0].figures.get('criterion', 'offline')} criterion). "
              "Speed: one thread, B = 1; CPU share = per-sample "
              "feature cost x 1000 + decision cost x decisions per second, as a share of one core.", ""]
+    if args.heldout_paths:
+        note = heldout_note(points[0].manifest, args.heldout)
+        lines += [f"Held-out: {len(args.heldout_paths)} recordings of `{args.heldout}` (a spread subset over the "
+                  f"physics families, `--heldout-limit {args.heldout_limit}`), offline criterion as in "
+                  "`tools/robustness.py`" + (f"; {note}" if note else "") + ".", ""]
     if torch_us is not None:
         lines += [f"Reference implementation (authors' 5 checkpoints, torch eager, Python loop over members), "
                   f"timed in rounds alternating with every point's own step: median {np.median(torch_us):.0f} us, "
@@ -266,10 +315,13 @@ def write_report(points: list[Point], torch_us: np.ndarray | None, args: argpars
         gp = [p for p in points if p.group == group]
         if not gp:
             continue
+        held = any(p.figures.get("heldout") for p in gp)
         lines += [f"## {title}", "",
                   "| point | success | TP/FN | FP/TN | false alarms/h | latency median / p90 (ms) | step median / "
-                  "p99 (us) | features (us/sample) | CPU share | x faster than torch eager |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
+                  "p99 (us) | features (us/sample) | CPU share | x faster than torch eager |"
+                  + (" held-out success / balanced | held-out stop+hold alarmed | held-out latency median (ms) |"
+                     if held else ""),
+                  "|---|---|---|---|---|---|---|---|---|---|" + ("---|---|---|" if held else "")]
         for p in gp:
             f = p.figures
             speed = f"{f['speedup']:.1f}" if f.get("speedup") else "-"
@@ -277,47 +329,179 @@ def write_report(points: list[Point], torch_us: np.ndarray | None, args: argpars
             name = p.name if group == "ensemble" else f"{p.name}, threshold {p.threshold:.2f}"
             lines.append(f"| {name} | {_pct(f['success'])} | {f['tp']}/{f['fn']} | {f['fp']}/{f['tn']} | {fah} | "
                          f"{_ms(f['latency_median_s'])} / {_ms(f['latency_p90_s'])} | {f['step_median_us']:.0f} / "
-                         f"{f['step_p99_us']:.0f} | {f['feature_us']:.1f} | {100 * f['cpu_share']:.1f} % | {speed} |")
+                         f"{f['step_p99_us']:.0f} | {f['feature_us']:.1f} | {100 * f['cpu_share']:.1f} % | {speed} |"
+                         + (_heldout_cells(f.get("heldout")) if held else ""))
+        if held:
+            fams = sorted({k for p in gp for k in (p.figures.get("heldout") or {}).get("families", {})})
+            lines += ["", "Held-out success per physics family:", "",
+                      "| point | " + " | ".join(fams) + " |", "|---|" + "---|" * len(fams)]
+            for p in gp:
+                fam = (p.figures.get("heldout") or {}).get("families", {})
+                lines.append(f"| {p.name} | " + " | ".join(_pct(fam.get(k)) for k in fams) + " |")
         best, kp = knee(gp)
         lines += ["", f"Best success: **{best.name}** ({_pct(best.figures['success'])}). Knee (cheapest within 1 "
                   f"point of it): **{kp.name}** ({_pct(kp.figures['success'])}, CPU share "
                   f"{100 * kp.figures['cpu_share']:.1f} %, step {kp.figures['step_median_us']:.0f} us"
                   + (f", {kp.figures['speedup']:.1f}x faster than the torch eager reference" if kp.figures.get(
                       "speedup") else "") + ").", ""]
+    if args.no_retrain:
+        lines += ["The retrained group (window 10 / 20 / 40 and median 1 / 5 / 11 / 21, one member per point) was not "
+                  "run (`--no-retrain`): it needs its own training runs, and no figures of it are shown here.", ""]
     lines += ["![trade-off](tradeoff.png)", ""]
     return "\n".join(lines)
 
 
-def plot(points: list[Point], path: Path) -> None:
-    """Success against median latency; marker area = CPU share; Pareto front per group."""
+def place_labels(ax, items: list[tuple[float, float, str, str]], avoid: list[tuple[float, float]],
+                 fontsize: float = 7.5) -> None:
+    """Label every (x, y, text, colour) without overlaps. Points of one colour that (nearly) coincide on screen
+    share one label ("a / b"). For each label try offsets around its point, nearest first,
+    and keep the first whose box stays inside the axes and clear of earlier labels and of every marker in
+    ``avoid`` (data coordinates); far offsets get a thin leader line. Greedy, like adjustText, no dependency."""
+    from matplotlib.text import Text
+
+    fig = ax.figure
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    frame = ax.get_window_extent(renderer)
+    marker_px = 9.0
+    markers = [ax.transData.transform((x, y)) for x, y in avoid]
+    merged: list[list] = []  # [x, y, [texts], colour, display position]
+    for x, y, text, colour in items:
+        d = ax.transData.transform((x, y))
+        for m in merged:
+            if m[3] == colour and float(np.hypot(*(m[4] - d))) < marker_px:
+                m[2].append(text)
+                break
+        else:
+            merged.append([x, y, [text], colour, d])
+    items = [(m[0], m[1], " / ".join(m[2]), m[3]) for m in merged]
+    taken: list = []
+    dirs = [(1, 0.6), (1, -0.6), (-1, 0.6), (-1, -0.6), (0, 1), (0, -1), (1, 0), (-1, 0)]
+    offsets = [(dx * r, dy * r) for r in (6, 12, 20, 30, 42, 56, 72, 90) for dx, dy in dirs]
+
+    def clashes(bb) -> int:
+        """0 when the box is clear; else how many things it hits (the frame counts 10)."""
+        out = 10 * (bb.x0 < frame.x0 + 2 or bb.x1 > frame.x1 - 2 or bb.y0 < frame.y0 + 2 or bb.y1 > frame.y1 - 2)
+        out += sum(bb.overlaps(t) for t in taken)
+        return out + sum(bb.x0 - marker_px < mx < bb.x1 + marker_px and bb.y0 - marker_px < my < bb.y1 + marker_px
+                         for mx, my in markers)
+
+    def draw(x: float, y: float, text: str, colour: str, dx: float, dy: float):
+        ha = "left" if dx > 0 else "right" if dx < 0 else "center"
+        va = "bottom" if dy > 0 else "top" if dy < 0 else "center"
+        far = abs(dx) > 12 or abs(dy) > 12
+        ann = ax.annotate(text, (x, y), xytext=(dx, dy), textcoords="offset points", ha=ha, va=va,
+                          fontsize=fontsize, zorder=5, color=colour,
+                          bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8},
+                          arrowprops={"arrowstyle": "-", "lw": 0.5, "color": "0.4"} if far else None)
+        ann.update_positions(renderer)  # the text's own box, without the leader line (which ends at its marker)
+        return ann, Text.get_window_extent(ann, renderer).padded(4.0)  # the white box around the text, and air
+
+    for x, y, text, colour in sorted(items, key=lambda it: (-it[1], it[0])):
+        best: tuple[int, int] | None = None
+        for k, (dx, dy) in enumerate(offsets):
+            ann, bb = draw(x, y, text, colour, dx, dy)
+            ann.remove()
+            n = clashes(bb)
+            if best is None or n < best[0]:
+                best = (n, k)
+            if n == 0:
+                break
+        assert best is not None
+        _, bb = draw(x, y, text, colour, *offsets[best[1]])  # the first clear offset, else the least crowded
+        taken.append(bb)
+
+
+def plot(points: list[Point], path: Path, own_label: str = "own split", heldout_label: str = "held-out") -> None:
+    """Two panels: success against compute per decision (log x) and against detection delay (median latency of
+    the detected slips). Filled markers: the own split; hollow squares: the held-out recordings, joined to their
+    point by a dotted line; the knee of each group ringed."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
-    fig, ax = plt.subplots(figsize=(8, 5.5))
+    fig, (ax_c, ax_d) = plt.subplots(1, 2, figsize=(14, 6.2), dpi=130)  # labels are measured at the saved dpi
     colours = {"ensemble": "tab:blue", "retrained": "tab:orange"}
-    for group, colour in colours.items():
-        gp = [p for p in points if p.group == group and p.figures.get("latency_median_s") is not None]
-        if not gp:
+    scored = [p for p in points if p.figures.get("success") is not None]
+    knees = {g: knee([p for p in scored if p.group == g])[1] for g in colours if any(p.group == g for p in scored)}
+    has_held = any(p.figures.get("heldout") for p in scored)
+    not_shown: list[str] = []
+    deferred = []  # labels are placed once the layout is final
+    for ax, xkey, xscale in ((ax_c, "step_median_us", 1.0), (ax_d, "latency_median_s", 1000.0)):
+        labels: list[tuple[float, float, str, str]] = []
+        avoid: list[tuple[float, float]] = []
+        ys_all: list[float] = []
+        xs_all: list[float] = []
+        for group, colour in colours.items():
+            gp = [p for p in scored if p.group == group]
+            for p in gp:
+                f = p.figures
+                y = 100 * f["success"]
+                x = None if f.get(xkey) is None else xscale * f[xkey]
+                h = f.get("heldout") or {}
+                hx = None
+                if h.get("success") is not None:
+                    hx = x if xkey == "step_median_us" else (
+                        None if h.get("latency_median_s") is None else xscale * h["latency_median_s"])
+                if x is None and ax is ax_d:
+                    not_shown.append(p.name)
+                if x is not None:
+                    ax.scatter([x], [y], s=46, color=colour, edgecolor="black", lw=0.4, zorder=3)
+                    labels.append((x, y, p.name, "black"))
+                    avoid.append((x, y))
+                    xs_all.append(x)
+                    ys_all.append(y)
+                    if p is knees.get(group):
+                        ax.scatter([x], [y], s=260, facecolor="none", edgecolor="crimson", lw=1.6, zorder=4)
+                if hx is not None:
+                    hy = 100 * h["success"]
+                    ax.scatter([hx], [hy], s=40, marker="s", facecolor="white", edgecolor=colour, lw=1.4, zorder=3)
+                    if xkey == "step_median_us":  # same x: a vertical link to its own-split point
+                        if x is not None:
+                            ax.plot([x, hx], [y, hy], ":", color=colour, lw=0.8, zorder=2)
+                    else:  # its own latency: labelled in grey instead of linked (links would cross)
+                        labels.append((hx, hy, p.name, "0.45"))
+                    avoid.append((hx, hy))
+                    xs_all.append(hx)
+                    ys_all.append(hy)
+        if not xs_all:
             continue
-        xs = [1000 * p.figures["latency_median_s"] for p in gp]
-        ys = [100 * p.figures["success"] for p in gp]
-        sizes = [20 + 4000 * p.figures["cpu_share"] for p in gp]
-        ax.scatter(xs, ys, s=sizes, alpha=0.5, color=colour, label=f"{group} (area = CPU share)")
-        for p, x, y in zip(gp, xs, ys):
-            ax.annotate(p.name, (x, y), fontsize=7, xytext=(4, 3), textcoords="offset points")
-        front = pareto(gp)
-        ax.plot([1000 * p.figures["latency_median_s"] for p in front], [100 * p.figures["success"] for p in front],
-                "--", color=colour, lw=1)
-    ax.set_xlabel("detection latency from labelled onset, median (ms)")
-    ax.set_ylabel("success rate (%)")
-    ax.set_title("slipd: accuracy against detection delay and compute (dashed: Pareto front)")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="lower right", fontsize=8)
-    fig.tight_layout()
+        lo, hi = min(ys_all), max(ys_all)
+        ax.set_ylim(max(-2.0, lo - 0.12 * (hi - lo + 5)), min(hi + 0.25 * (hi - lo + 5), 115.0))  # room for labels
+        ax.set_yticks([t for t in ax.get_yticks() if t <= 100.0 + 1e-9])
+        if xkey == "step_median_us":
+            ax.set_xscale("log")
+            ax.set_xlim(min(xs_all) / 1.6, max(xs_all) * 1.6)
+        else:
+            span = max(xs_all) - min(xs_all) + 10
+            ax.set_xlim(min(xs_all) - 0.25 * span, max(xs_all) + 0.25 * span)
+        deferred.append((ax, labels, avoid))
+        ax.grid(alpha=0.3, which="both" if xkey == "step_median_us" else "major")
+    ax_c.set_xlabel("compute per decision: Ensemble.step median (us, one thread, B = 1; log scale)")
+    ax_d.set_xlabel("detection delay: median latency of the detected slips from the labelled onset (ms)")
+    for ax in (ax_c, ax_d):
+        ax.set_ylabel("success rate (%)")
+    ax_c.set_title("success against compute")
+    ax_d.set_title("success against detection delay")
+    if not_shown:
+        ax_d.text(0.01, 0.01, "no detected slip, not shown: " + ", ".join(not_shown), transform=ax_d.transAxes,
+                  fontsize=7, color="0.3", va="bottom")
+    handles = [Line2D([], [], marker="o", ls="", color=c, markeredgecolor="black", label=f"{g}: {own_label}")
+               for g, c in colours.items() if any(p.group == g for p in scored)]
+    if has_held:
+        handles.append(Line2D([], [], marker="s", ls="", markerfacecolor="white", markeredgecolor="0.3",
+                              label=f"same point: {heldout_label}"))
+    handles.append(Line2D([], [], marker="o", ls="", markersize=13, markerfacecolor="none",
+                          markeredgecolor="crimson", label="knee (cheapest CPU share within 1 point of the best)"))
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8.5, frameon=False)
+    fig.suptitle("slipd: what accuracy costs", fontsize=12)
+    fig.tight_layout(rect=(0, 0.06, 1, 0.97))
+    for ax, items, avoid in deferred:
+        place_labels(ax, items, avoid)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=130)
     plt.close(fig)
 
 
@@ -345,12 +529,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reference", type=Path, default=DEFAULT_REF, help="authors' checkpoints for the torch timing")
     ap.add_argument("--cache", type=Path, default=ROOT / "out" / "tradeoff")
     ap.add_argument("--report", type=Path, default=ROOT / "reports" / "tradeoff.md")
+    ap.add_argument("--heldout", type=Path, default=None,
+                    help="a folder of robust test recordings (out/datasets/robust_test): every point is also scored "
+                         "on it (offline criterion), per physics family")
+    ap.add_argument("--heldout-limit", type=int, default=50,
+                    help="held-out recordings used, spread over the physics families (0: all)")
     args = ap.parse_args(argv)
     args.paths = list_recordings(args.data)[:: args.every]
     if not args.paths:
         raise SystemExit(f"tradeoff: no recordings in {args.data}")
     if not list(args.run.glob("member_*.pt")):
         raise SystemExit(f"tradeoff: no member_<k>.pt in {args.run} (see models/MODEL_CARD.md to make them)")
+    args.heldout_paths, heldout_tag = [], {}
+    if args.heldout is not None:
+        from sliplab.robustness import subset, tags
+
+        held = list_recordings(args.heldout) if args.heldout.is_dir() else []
+        if not held:
+            raise SystemExit(f"tradeoff: no recordings in {args.heldout}")
+        heldout_tag = tags(args.heldout)
+        args.heldout_paths = subset(held, args.heldout_limit, heldout_tag, "physics_family")
     args.cache.mkdir(parents=True, exist_ok=True)
     cmd = "python tools/tradeoff.py " + shlex.join(argv if argv is not None else sys.argv[1:])
 
@@ -376,16 +574,23 @@ def main(argv: list[str] | None = None) -> int:
         cpu = (RATE_HZ * feat_cache[key] + RATE_HZ / pt.stride * float(us.mean())) / 1e6
         fig.update(step_median_us=step_med, step_p99_us=float(np.percentile(us, 99)), feature_us=feat_cache[key],
                    cpu_share=cpu, torch_median_us=ref_med, speedup=(ref_med / step_med) if ref_med else None)
+        if args.heldout_paths:
+            fig["heldout"] = heldout_accuracy(pt, args.heldout_paths, heldout_tag, args.workers)
         pt.figures = fig
+        h = fig.get("heldout")
         print(f"{pt.name:<22} success {_pct(fig['success']):>8}  FP {fig['fp']:>3}  latency "
               f"{_ms(fig['latency_median_s']):>5} ms  step {step_med:7.0f} us  CPU {100 * cpu:5.1f} %"
               + (f"  {fig['speedup']:.1f}x torch" if fig["speedup"] else "")
+              + (f"  held-out {_pct(h['success'])} (balanced {_pct(h['balanced'])}, stop+hold alarmed "
+                 f"{h['stop_alarmed']}/{h['stop']}, latency {_ms(h['latency_median_s'])} ms)" if h else "")
               + f"   ({time.perf_counter() - t0:.0f} s)", flush=True)
     torch_us = np.concatenate(all_torch) if all_torch else None
     report = write_report(points, torch_us, args, cmd)
     args.report.parent.mkdir(parents=True, exist_ok=True)
     args.report.write_text(report)
-    plot(points, args.report.with_suffix(".png"))
+    crit = points[0].figures.get("criterion", "offline")
+    plot(points, args.report.with_suffix(".png"), own_label=f"{args.data.name} ({crit} criterion)",
+         heldout_label=f"{args.heldout.name} (offline criterion)" if args.heldout_paths else "held-out")
     (args.cache / "tradeoff.json").write_text(json.dumps(
         {"command": cmd, "torch_reference_us": None if torch_us is None else
          {"median": float(np.median(torch_us)), "p99": float(np.percentile(torch_us, 99))},
