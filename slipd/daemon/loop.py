@@ -54,7 +54,8 @@ import numpy as np
 from slipd.daemon.grip_control import GripControlSettings
 from slipd.daemon.reaction import Reaction
 from slipd.daemon.worker import DeviceWorker
-from slipd.detect.detector import SlipDetector, build_detector
+from slipd.detect.build import build_detector
+from slipd.detect.detector import SlipDetector
 from slipd.metrics import Metrics
 
 if TYPE_CHECKING:
@@ -68,6 +69,14 @@ if TYPE_CHECKING:
     from slipd.io.pts import FrameBlock
 
 log = logging.getLogger("slipd.daemon.loop")
+
+# How long ``Daemon.close`` waits for a device's thread to finish its queued calls and close the device.
+DEVICE_CLOSE_TIMEOUT_S = 10.0
+
+
+def _close_quietly(dev: Any) -> None:
+    with contextlib.suppress(Exception):
+        dev.close()
 
 SUPERVISION_PERIOD_S = 0.005
 """Supervision tick for short stall timeouts (up to 25 ms); longer ones allow up to SUPERVISION_MAX_PERIOD_S."""
@@ -309,7 +318,9 @@ class Daemon:
         self._prev_sample = vals[-1].copy()
         fresh = (finite & changed).any(axis=0)
         if fresh.any():
-            self._fresh_ts[fresh] = time.monotonic()
+            # When the data arrived (a held block can be handed over up to half a stall timeout later).
+            arrived = self.sensor.last_frame_time if self.sensor is not None else None
+            self._fresh_ts[fresh] = time.monotonic() if arrived is None else arrived
             self._fresh_t = float(self._fresh_ts.min())
         if finite.all():
             self._nonfinite_run[:] = 0
@@ -645,13 +656,21 @@ class Daemon:
         self._stop.set()
 
     def close(self) -> None:
-        """Release device threads and the recorder (the devices keep their last state: grip held)."""
-        for w in (self.arm_worker, self.gripper_worker):
-            if w is not None:
-                w.close()
-        for dev in (self.gripper, self.arm):
-            if dev is not None:
+        """Release device threads and the recorder (the devices keep their last state: grip held).
+
+        Each device is closed on its own thread, after whatever was queued there (the libraries are not
+        thread-safe); a thread still stuck in a vendor call after ``DEVICE_CLOSE_TIMEOUT_S`` (ur_rtde's
+        reconnect timeouts after a dropped link) is left behind so that the daemon still exits."""
+        for name, w, dev in (("gripper", self.gripper_worker, self.gripper), ("arm", self.arm_worker, self.arm)):
+            if dev is None:
+                continue
+            if w is None:
                 with contextlib.suppress(Exception):
                     dev.close()
+                continue
+            w.submit(_close_quietly, dev)
+            if not w.close(timeout=DEVICE_CLOSE_TIMEOUT_S):
+                log.warning("%s: its thread is still in a vendor call after %.0f s; exiting without closing it",
+                            name, DEVICE_CLOSE_TIMEOUT_S)
         if self.recorder is not None:
             self.recorder.close()

@@ -19,8 +19,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from slipd.detect.build import build_detector
 from slipd.detect.decision import Detection
-from slipd.detect.detector import SlipDetector, build_detector, run_recording
+from slipd.detect.detector import SlipDetector, run_recording
 from slipd.detect.features import tare_offset
 from slipd.recording import Recording
 

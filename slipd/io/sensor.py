@@ -208,6 +208,7 @@ class SerialSensor:
         self._held_frames = 0  # frames those bytes complete (end markers)
         self._hold_frames = 0  # deliver once this many are held (0: at once)
         self._hold_max_s = 0.0
+        self._held_read_t = 0.0  # when the last held bytes were read
         self._hold_margin_s = 0.0
         self._hold_since = 0.0
         self._flush_handle: asyncio.TimerHandle | None = None
@@ -255,7 +256,20 @@ class SerialSensor:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+        self._drain()
         self._close()
+
+    def _drain(self) -> None:
+        """At a stop, hand over what is held back or waits in the port (a pause or a hold leaves up to a
+        decision's worth of frames there), so that the consumer and the recorder see every frame that came."""
+        self._cancel_pause()
+        self._hold_frames = 0  # no further holds: every read below is delivered
+        for _ in range(64):  # bounded: a device that keeps streaming cannot keep the stop waiting
+            if self._fd < 0 or self.pending_bytes() <= 0:
+                break
+            self._on_readable(prompt=False)
+        if self._held and self._fd >= 0:
+            self._flush_held()
 
     def send_command(self, data: bytes) -> None:
         """Write a controller command (see slipd.io.pts: CMD_BIAS, rate_command(...)). SensorError if not open."""
@@ -450,7 +464,9 @@ class SerialSensor:
         self._flush_handle = None
         if self._held and self._fd >= 0:
             self._hold_frames = 0
-            self._deliver(0, time.monotonic())
+            # Stamped with the last read's time, not the flush's: these frames are that old, and liveness
+            # (a stall, a missing decision) counts from when data last arrived.
+            self._deliver(0, self._held_read_t)
 
     def _deliver(self, n: int, now: float, prompt: bool = False) -> None:
         """Decode the held bytes and the ``n`` just read, account for them and hand them to the consumer."""
@@ -515,6 +531,7 @@ class SerialSensor:
         if done is None:
             self._hold_frames = 0
             return False
+        self._held_read_t = now
         if self._held == 0 and self._loop is not None:
             # However the stream goes on (or stops), what is held reaches the consumer within max_s.
             self._flush_handle = self._loop.call_later(self._hold_max_s, self._flush_held)

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from slipd.detect.detector import build_detector, run_recording
+from slipd.detect.build import build_detector
+from slipd.detect.detector import run_recording
 from slipd.detect.ensemble import Ensemble
 from slipd.models import SAMPLE_RECORDING
 from slipd.recording import Recording

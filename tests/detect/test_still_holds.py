@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from slipd import models
-from slipd.detect.detector import build_detector
+from slipd.detect.build import build_detector
 from slipd.detect.ensemble import Ensemble
 from slipd.recording import Recording
 from slipd.sim.datasets import hold_scene

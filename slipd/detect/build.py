@@ -1,0 +1,70 @@
+"""One place builds a detector from a config: the daemon, replay, the rig and the offline tools call
+``build_detector``. It sits above ``detector`` (one sensor), ``multisensor`` (several sensors, one model call)
+and the heuristics, so none of them needs to know about the others.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from slipd.detect.decision import Decision
+from slipd.detect.detector import Detector, HeuristicDetector, SlipDetector
+from slipd.detect.multisensor import MultiDetector
+
+if TYPE_CHECKING:
+    from slipd.config import SlipdConfig
+    from slipd.detect.ensemble import Ensemble
+
+
+def build_detector(
+    cfg: SlipdConfig | None,
+    ensemble: Ensemble,
+    *,
+    offset: np.ndarray | None = None,
+    tare_samples: int | None = None,
+    sensors: int | None = None,
+) -> SlipDetector:
+    """The one place a detector is built from a config: the daemon, replay and the rig all call it.
+
+    ``cfg`` None means the model's own settings (stride, threshold, no hysteresis). The tare: an explicit
+    ``offset`` ([9, 3], or [S, 9, 3] one per sensor) wins; else ``tare_samples`` (a start-up tare of that
+    many samples; 0 means the sensor zeroes itself, offset 0); else the config's ``sensor.tare``.
+    ``sensors``: the arrays per frame (default: the config's ``sensor.sensors``, else 1); with more than
+    one, a ``slipd.detect.multisensor.MultiDetector`` of one ``Detector`` per sensor, one model call for all.
+    """
+    spec = ensemble.feature_spec
+    threshold, hysteresis, consecutive = ensemble.threshold, 0.0, 1
+    if cfg is not None:
+        if cfg.model.stride:
+            spec = spec.with_(stride=cfg.model.stride)
+        threshold = cfg.decision.effective_threshold(ensemble.threshold)
+        hysteresis = cfg.decision.hysteresis
+        consecutive = cfg.decision.min_consecutive
+    if offset is None:
+        if tare_samples is None:
+            startup = cfg is not None and cfg.sensor.tare == "startup"
+            tare_samples = cfg.sensor.tare_samples if cfg is not None and startup else 0
+        if tare_samples == 0:
+            offset = np.zeros((9, 3), np.float32)
+    if cfg is not None and cfg.model.detector != "onnx":
+        if (sensors or cfg.sensor.sensors) > 1:
+            raise ValueError(f"model.detector {cfg.model.detector!r} reads one sensor; sensor.sensors is "
+                             f"{sensors or cfg.sensor.sensors} (use the onnx detector for two fingers)")
+        # A published heuristic instead of the ensemble (comparisons on the rig); it has no start-up tare of
+        # its own, so it expects a zeroed sensor (tare: bias_command).
+        params = cfg.model.baseline_params or cfg.model.manifest.parent / "baselines.json"
+        return HeuristicDetector(cfg.model.detector, params, offset)
+    if sensors is None:
+        sensors = cfg.sensor.sensors if cfg is not None else 1
+    if sensors > 1:
+        offsets = None if offset is None else np.broadcast_to(np.asarray(offset, np.float32), (sensors, 9, 3))
+        return MultiDetector([
+            Detector(ensemble, Decision(threshold=threshold, hysteresis=hysteresis, min_consecutive=consecutive),
+                     spec, offset=None if offsets is None else offsets[s], tare_samples=tare_samples or 0,
+                     row=s, rows=sensors)
+            for s in range(sensors)
+        ])
+    decision = Decision(threshold=threshold, hysteresis=hysteresis, min_consecutive=consecutive)
+    return Detector(ensemble, decision, spec, offset=offset, tare_samples=tare_samples or 0)
