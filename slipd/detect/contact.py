@@ -78,6 +78,12 @@ class ContactStream:
         self.risk_margin = float(risk_margin)
         self.latest: ContactState | None = None
 
+    def shares_window(self, spec: FeatureSpec) -> bool:
+        """Whether a detector on ``spec`` filters exactly this stream's columns (a derived spec on all nine pillars
+        in SDK order with the same median: the shipped model's): its filtered window then serves both the model
+        and ``state``, and this stream's own ``features`` stay unused (one median per window, not two)."""
+        return spec.derived and spec.columns == self.spec.columns and spec.median == self.spec.median
+
     def set_offset(self, offset: np.ndarray | None) -> None:
         """The tare offset ([9, 3]) in use from the next sample."""
         self.features.set_offset(offset)
@@ -92,13 +98,14 @@ class ContactStream:
     def push(self, force: np.ndarray) -> ContactState | None:
         """One raw sample [9, 3]; the state when a window ends here."""
         window = self.features.push(force)
-        return None if window is None else self._state(window)
+        return None if window is None else self.state(window)
 
     def push_many(self, force: np.ndarray) -> list[tuple[int, ContactState]]:
         """A block [k, 9, 3]; ``(i, state)`` for each sample that ends a window."""
-        return [(i, self._state(w)) for i, w in self.features.push_many(force)]
+        return [(i, self.state(w)) for i, w in self.features.push_many(force)]
 
-    def _state(self, window: np.ndarray) -> ContactState:
+    def state(self, window: np.ndarray) -> ContactState:
+        """The state at the end of one filtered window (fx, fy, fz of the nine pillars, [window * 27])."""
         w = window.reshape(self.spec.window, N_PILLARS, 3)
         p = self.pillars.update(w)
         last = w[-1].astype(np.float64)

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from slipd.detect.contact import ContactStream
+from slipd.detect.contact import ContactState, ContactStream
 from slipd.detect.decision import Detection
 from slipd.detect.ensemble import StepError
 from slipd.detect.features import FeatureSpec, FeatureStream, tare_offset
@@ -177,9 +177,12 @@ class Detector:
         if self.spec.window % self.spec.step:
             raise ValueError(f"stride {self.spec.step} must divide the window {self.spec.window}")
         self.n_streams = self.spec.window // self.spec.step
-        self.features = FeatureStream(self.spec, offset)
         self.contact = ContactStream(self.spec, offset)
         """Per-pillar slip, friction, contact risk: windows end with the detector's (``Detection.contact``)."""
+        self._shared = self.contact.shares_window(self.spec)
+        # Shared: the stream yields filtered base windows, derived here for the model and read as they are for
+        # the contact state, so the 1 kHz path sanitises, tares and median-filters each sample once, not twice.
+        self.features = FeatureStream(self.spec, offset, derive=not self._shared)
         self.tare_samples = 0 if offset is not None else int(tare_samples)
         self._tare_buf = np.zeros((max(self.tare_samples, 1), 9, 3), np.float32)
         self._tare_t = np.zeros(max(self.tare_samples, 1), np.int64)
@@ -274,19 +277,34 @@ class Detector:
             return out
         base = self.index + 1 - i  # sample index of force[0]
         self.index += len(force) - i
-        contact = dict(self.contact.push_many(force[i:]))
-        for j, window in self.features.push_many(force[i:]):
+        for j, window, state in self.feature_windows(force[i:]):
             k = i + j
-            out.append((k, replace(self._decide(window, force[k], int(t_us[k]), base + k), contact=contact.get(j))))
+            out.append((k, replace(self._decide(window, force[k], int(t_us[k]), base + k), contact=state)))
             self.step_seconds.append(self.last_step_s)
         return out
 
+    def feature_windows(self, force: np.ndarray) -> list[tuple[int, np.ndarray, ContactState | None]]:
+        """The feature stages on a block of tared-phase samples: ``(i, model window, contact state)`` for each
+        sample that ends a window (the model is not stepped here)."""
+        if self._shared:
+            return [(j, *self._split(w)) for j, w in self.features.push_many(force)]
+        contact = dict(self.contact.push_many(force))
+        return [(j, w, contact.get(j)) for j, w in self.features.push_many(force)]
+
     def _process(self, force: np.ndarray, t_us: int, index: int) -> Detection | None:
-        state = self.contact.push(force)
+        state = None if self._shared else self.contact.push(force)
         window = self.features.push(force)
         if window is None:
             return None
+        if self._shared:
+            window, state = self._split(window)
         return replace(self._decide(window, force, t_us, index), contact=state)
+
+    def _split(self, filtered: np.ndarray) -> tuple[np.ndarray, ContactState]:
+        """A shared filtered window -> (the model's window, the contact state)."""
+        spec = self.spec
+        window = spec.derive(filtered.reshape(spec.window, spec.n_base)).reshape(-1)
+        return window, self.contact.state(filtered)
 
     def _decide(self, window: np.ndarray, force: np.ndarray, t_us: int, index: int) -> Detection:
         """A completed window (its last sample ``force``, ``index``): contact gate, model step, decision."""

@@ -321,8 +321,11 @@ class FeatureStream:
     path, so both give bit-identical windows and the per-sample cost is a copy into a ring.
     """
 
-    def __init__(self, spec: FeatureSpec, offset: np.ndarray | None = None) -> None:
+    def __init__(self, spec: FeatureSpec, offset: np.ndarray | None = None, derive: bool = True) -> None:
         self.spec = spec
+        self._derive = spec.derive if derive else _identity
+        """``derive=False``: windows of the filtered base columns (stage 5, [window * n_base]), left for the caller
+        to derive; the detector then reads one filtered window for both its model and the contact state."""
         self._cols = np.array(spec.columns, dtype=np.intp)
         self._clip = np.tile(CLIP_N, N_PILLARS)
         self._hist_len = spec.median - 1 + spec.window
@@ -389,7 +392,7 @@ class FeatureStream:
         if n < spec.window or (n - spec.window) % spec.step:
             return None
         hist = self._buf[self._end - self._hist_len : self._end]
-        filtered = spec.derive(causal_median_tail(hist, spec.median))
+        filtered = self._derive(causal_median_tail(hist, spec.median))
         return filtered.reshape(-1).copy()
 
     def push_many(self, samples: np.ndarray) -> list[tuple[int, np.ndarray]]:
@@ -435,7 +438,7 @@ class FeatureStream:
             self._append(rows[done : i + 1])
             done = i + 1
             hist = self._buf[self._end - self._hist_len : self._end]
-            out.append((i, spec.derive(causal_median_tail(hist, spec.median)).reshape(-1).copy()))
+            out.append((i, self._derive(causal_median_tail(hist, spec.median)).reshape(-1).copy()))
         self._append(rows[done:])
         self._n = n0 + k
         return out
@@ -450,6 +453,10 @@ class FeatureStream:
             self._end = keep
         self._buf[self._end : self._end + m] = rows
         self._end += m
+
+
+def _identity(filtered: np.ndarray) -> np.ndarray:
+    return filtered
 
 
 def _hold_from(x: np.ndarray, bad: np.ndarray, last: np.ndarray) -> None:

@@ -104,10 +104,9 @@ class MultiDetector:
         wins = []
         for s, d in enumerate(subs):
             d.index += k - i
-            wins.append(d.features.push_many(x[i:, s]))
-        contacts = [dict(d.contact.push_many(x[i:, s])) for s, d in enumerate(subs)]  # Detection.contact
+            wins.append(d.feature_windows(x[i:, s]))
         # Same samples into every stream: the windows end on the same samples.
-        for m, (j, _) in enumerate(wins[0]):
+        for m, (j, _, _) in enumerate(wins[0]):
             kk = i + j
             t, idx = int(t_us[kk]), base + kk
             gated = [d._gate(x[kk, s], t, idx) for s, d in enumerate(subs)]
@@ -131,5 +130,5 @@ class MultiDetector:
                     step_s = None
                 else:
                     self.step_seconds.append(None)
-                out.append((kk, replace(det, contact=contacts[s].get(j))))
+                out.append((kk, replace(det, contact=wins[s][m][2])))
         return out

@@ -83,3 +83,25 @@ def test_pillar_state_is_bounded_and_finite() -> None:
         w = rng.normal(0, 5, (40, 9, 3))
         p = ps.update(w)
         assert np.isfinite(p).all() and (p >= 0).all() and (p <= 1).all()
+
+
+def test_a_detector_on_all_nine_pillars_shares_its_filtered_window_with_the_contact_state() -> None:
+    """The shipped layout (util of P0..P8): one median per window feeds both the model and the contact state,
+    and the states equal those of a ContactStream of its own, sample by sample and block by block."""
+    from slipd.detect.decision import Decision
+    from slipd.detect.detector import Detector
+    from slipd.detect.ensemble import Ensemble
+    from slipd.models import packaged
+
+    ens = Ensemble.load(packaged("slip_ensemble_int8"))
+    rng = np.random.default_rng(3)
+    f = (_loading(900, {0, 2, 6, 8}) + rng.normal(0, 0.01, (900, 9, 3))).astype(np.float32)
+    offset = np.zeros((9, 3), np.float32)
+    expected = [s for _, s in ContactStream(ens.feature_spec, offset).push_many(f)]
+    by_block = Detector(ens, Decision(), offset=offset)
+    assert by_block._shared
+    got = [d.contact for _, d in by_block.push_many(f, np.arange(900) * 1000)]
+    ens.reset()
+    one = Detector(ens, Decision(), offset=offset)
+    singles = [d.contact for d in (one.push(x, i * 1000) for i, x in enumerate(f)) if d is not None]
+    assert got == expected == singles and len(expected) == (900 - 40) // ens.feature_spec.step + 1
