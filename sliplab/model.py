@@ -15,7 +15,8 @@ from torch import nn
 class SlipNet(nn.Module):
     """Encoder MLP -> GRU cell -> predictor MLP -> 2-class softmax. ``forward(x, h) -> (probs, h_next)``."""
 
-    def __init__(self, input_size: int = 640, hidden: int = 128, enc: int = 1024, pred: tuple[int, int] = (256, 128)):
+    def __init__(self, input_size: int = 640, hidden: int = 128, enc: int = 1024, pred: tuple[int, int] = (256, 128),
+                 aux: int = 0):
         super().__init__()
         self.input_size = input_size
         self.hidden = hidden
@@ -29,6 +30,11 @@ class SlipNet(nn.Module):
             nn.Linear(pred[0], pred[1]), nn.BatchNorm1d(pred[1]), nn.ReLU(),
             nn.Linear(pred[1], 2), nn.BatchNorm1d(2), nn.Softmax(dim=1),
         )
+        # Auxiliary per-pillar head (training only, ``aux`` > 0): one slip logit per input pillar read from the
+        # GRU state, supervised by the simulator's per-pillar slip truth. It asks the state to carry *which
+        # pillars slide*, the physical content of incipient slip, rather than a clock of when our scripts move.
+        self.aux = aux
+        self.aux_head = nn.Linear(hidden, aux) if aux > 0 else None
 
     def logits(self, x: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Pre-softmax outputs (after the last BatchNorm) and the next hidden state."""
@@ -46,6 +52,7 @@ class SlipNet(nn.Module):
             "hidden": self.hidden,
             "enc": self.projector[0].out_features,
             "pred": (self.predictor[0].out_features, self.predictor[3].out_features),
+            "aux": self.aux,
         }
 
 

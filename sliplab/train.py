@@ -85,10 +85,12 @@ TINY = {"members": 2, "epochs": 2, "enc": 64, "hidden": 16, "pred": (32, 16), "b
 # ------------------------------------------------------------------------------------------ data
 @dataclass
 class Item:
-    """One sequence after the feature pipeline: windows [K, D] float32 and window labels [K] int64."""
+    """One sequence after the feature pipeline: windows [K, D] float32, window labels [K] int64 and, where the
+    simulator gave it, each window's per-pillar slip truth at its last sample [K, P] float32 (P = spec pillars)."""
 
     windows: np.ndarray
     labels: np.ndarray
+    slip: np.ndarray | None = None
 
 
 def slip_span_labels(label: np.ndarray, events: dict, t_s: np.ndarray) -> np.ndarray:
@@ -226,13 +228,14 @@ def featurize(seqs: list[Seq], spec: FeatureSpec, lead: int = 0, gate: bool = Tr
         if not len(ends):
             continue
         labels = window_labels(lead_labels(seq.label, lead), ends).astype(np.int64)
+        slip = None if seq.slip is None else seq.slip[ends][:, list(spec.pillars)].astype(np.float32)
         if not gate:
-            items.append(Item(windows, labels))
+            items.append(Item(windows, labels, slip))
             continue
         open_ = gate_windows(seq.force, spec)
         edges = np.flatnonzero(np.diff(np.concatenate([[0], open_.astype(np.int8), [0]])))
         for a, b in zip(edges[::2], edges[1::2]):
-            items.append(Item(windows[a:b], labels[a:b]))
+            items.append(Item(windows[a:b], labels[a:b], None if slip is None else slip[a:b]))
     return items
 
 
@@ -244,6 +247,7 @@ class Lanes:
     y: torch.Tensor  # [B, T] int64
     valid: torch.Tensor  # [B, T] bool (False in the padding at a lane's end)
     keep: torch.Tensor  # [B, T] float32, 0 at the first window of a sequence (h resets), else 1
+    slip: torch.Tensor | None = None  # [B, T, P] float32 per-pillar slip truth, NaN where a sequence has none
 
 
 def pack_lanes(items: list[Item], n_lanes: int, rng: np.random.Generator | None = None) -> Lanes:
@@ -264,6 +268,8 @@ def pack_lanes(items: list[Item], n_lanes: int, rng: np.random.Generator | None 
     y = np.zeros((n_lanes, t_max), np.int64)
     valid = np.zeros((n_lanes, t_max), bool)
     keep = np.ones((n_lanes, t_max), np.float32)
+    n_pillars = next((it.slip.shape[1] for it in items if it.slip is not None), 0)
+    slip = np.full((n_lanes, t_max, n_pillars), np.nan, np.float32) if n_pillars else None
     for b, members in enumerate(lanes):
         t = 0
         for i in members:
@@ -272,14 +278,18 @@ def pack_lanes(items: list[Item], n_lanes: int, rng: np.random.Generator | None 
             y[b, t : t + k] = items[i].labels
             valid[b, t : t + k] = True
             keep[b, t] = 0.0
+            if slip is not None and items[i].slip is not None:
+                slip[b, t : t + k] = items[i].slip
             t += k
-    return Lanes(torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(valid), torch.from_numpy(keep))
+    return Lanes(torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(valid), torch.from_numpy(keep),
+                 None if slip is None else torch.from_numpy(slip))
 
 
 # ------------------------------------------------------------------------------------- training
-def _chunk_logits(net: SlipNet, x: torch.Tensor, keep: torch.Tensor, valid: torch.Tensor, h: torch.Tensor
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Logits of the valid windows of one chunk ([B, L, D]) and the hidden state after it.
+def _chunk_logits(net: SlipNet, x: torch.Tensor, keep: torch.Tensor, valid: torch.Tensor, h: torch.Tensor,
+                  with_states: bool = False) -> tuple[torch.Tensor, ...]:
+    """Logits of the valid windows of one chunk ([B, L, D]) and the hidden state after it (and, with
+    ``with_states``, the hidden state of every valid window, for the auxiliary head).
 
     Same computation as ``SlipNet.logits`` window by window; the encoder and the predictor run once
     on all valid windows of the chunk (they do not depend on h), the GRU steps through time.
@@ -295,6 +305,8 @@ def _chunk_logits(net: SlipNet, x: torch.Tensor, keep: torch.Tensor, valid: torc
         h = net.rnn(enc[:, t], h * keep[:, t, None])
         states.append(h)
     hs = torch.stack(states, 1).reshape(b * length, -1)[flat_valid]
+    if with_states:
+        return net.predictor[:-1](hs), h, hs
     return net.predictor[:-1](hs), h
 
 
@@ -311,11 +323,12 @@ def _summary(loss_sum: float, n: int, c: np.ndarray) -> dict[str, float]:
 
 
 def train_epoch(net: SlipNet, opt: torch.optim.Optimizer, lanes: Lanes, chunk: int, clip_grad: float = 0.0,
-                device: str = "cpu", pos_weight: float = 1.0) -> dict[str, float]:
+                device: str = "cpu", pos_weight: float = 1.0, aux_weight: float = 0.0) -> dict[str, float]:
     """One pass over packed lanes with truncated BPTT; returns mean loss and window metrics.
 
     ``pos_weight`` weighs the slip class in the loss: gripper trials hold incipient slip for only
     20-90 ms (one or two windows in a hundred), and an unweighted loss learns to never alarm.
+    ``aux_weight`` adds the auxiliary head's per-pillar binary cross-entropy (windows with slip truth only).
     """
     net.train()
     weight = None if pos_weight == 1.0 else torch.tensor([1.0, pos_weight], device=device)
@@ -330,8 +343,20 @@ def train_epoch(net: SlipNet, opt: torch.optim.Optimizer, lanes: Lanes, chunk: i
         if n < 2:  # BatchNorm needs two rows; only the padded tail can be this short
             continue
         y = lanes.y[:, sl].to(device).reshape(-1)[valid.reshape(-1)]
-        logits, h = _chunk_logits(net, lanes.x[:, sl].to(device), lanes.keep[:, sl].to(device), valid, h)
+        use_aux = aux_weight > 0 and net.aux_head is not None and lanes.slip is not None
+        if use_aux:
+            logits, h, hs = _chunk_logits(net, lanes.x[:, sl].to(device), lanes.keep[:, sl].to(device), valid, h,
+                                          with_states=True)
+        else:
+            logits, h = _chunk_logits(net, lanes.x[:, sl].to(device), lanes.keep[:, sl].to(device), valid, h)
         loss = loss_fn(logits, y)
+        if use_aux:
+            truth = lanes.slip[:, sl].to(device).reshape(-1, lanes.slip.shape[-1])[valid.reshape(-1)]
+            known = ~torch.isnan(truth)
+            if known.any():
+                aux = nn.functional.binary_cross_entropy_with_logits(
+                    net.aux_head(hs)[known], truth[known], reduction="sum") / truth.shape[1]
+                loss = loss + aux_weight * aux
         opt.zero_grad(set_to_none=True)
         (loss / n).backward()
         if clip_grad > 0:
@@ -466,6 +491,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "settle instead of ending wherever a noisy step left the weights")
     p.add_argument("--batch", type=int, help="windows per optimiser step (512)")
     p.add_argument("--chunk", type=int, default=9, help="windows per truncated-BPTT chunk (9 = 360 samples)")
+    p.add_argument("--aux-weight", type=float, default=0.0,
+                   help="weight of an auxiliary per-pillar slip head on the GRU state, trained on the simulator's "
+                        "per-pillar slip truth (0 = off, the method; the head is not exported)")
     p.add_argument("--pos-weight", type=float, default=1.0,
                    help="loss weight of the slip class (1 = the method's unweighted cross-entropy)")
     p.add_argument("--channels", default="fx,fy",
@@ -542,7 +570,8 @@ def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureS
     """Train member ``k`` and return its checkpoint dict (also logs one line per epoch to ``log``)."""
     rng = np.random.default_rng([args.seed, k])
     torch.manual_seed(args.seed * 1000 + k)
-    net = SlipNet(spec.input_size, hidden=args.hidden, enc=args.enc, pred=args.pred).to(args.device)
+    net = SlipNet(spec.input_size, hidden=args.hidden, enc=args.enc, pred=args.pred,
+                  aux=len(spec.pillars) if getattr(args, "aux_weight", 0.0) > 0 else 0).to(args.device)
     opt = make_optimizer(net, args)
     augs = set(args.augs)
     n_lanes = max(1, args.batch // args.chunk)
@@ -562,7 +591,8 @@ def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureS
         items = featurize(augment_epoch(pool, idx, augs, rng, args.mix_frac, spec.window), spec, args.label_lead)
         lanes = pack_lanes(items, n_lanes, rng)
         t_feat = time.perf_counter() - t0
-        stats = train_epoch(net, opt, lanes, args.chunk, args.clip_grad, args.device, args.pos_weight)
+        stats = train_epoch(net, opt, lanes, args.chunk, args.clip_grad, args.device, args.pos_weight,
+                            getattr(args, "aux_weight", 0.0))
         entry = {"member": k, "epoch": epoch, **stats, "sequences": len(items),
                  "feature_s": round(t_feat, 3), "epoch_s": round(time.perf_counter() - t0, 3)}
         history.append(entry)
