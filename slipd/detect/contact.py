@@ -123,7 +123,7 @@ class ContactStream:
         grip = float(fz[contact].sum())
         load = float(np.hypot(*ft[contact].sum(0))) if contact.any() else 0.0
         state = ContactState(
-            pillar_slip=tuple(float(x) for x in p), friction=mu, friction_sd=None if est is None else est.sd,
+            pillar_slip=tuple(p.tolist()), friction=mu, friction_sd=None if est is None else est.sd,
             risk=contact_risk(fz, util, p, mu, self.risk_margin), grip_n=grip, load_n=load,
         )
         self.latest = state

@@ -71,15 +71,17 @@ class PillarSlip:
     def update(self, window: np.ndarray) -> np.ndarray:
         """One window of filtered forces [W, 9, 3] (tared, finite); returns P(slip) per pillar [9]."""
         p = self.p
-        w = np.asarray(window, np.float64).reshape(-1, N_PILLARS, 3)
-        fz = w[-1, :, 2]
+        w = np.asarray(window).reshape(-1, N_PILLARS, 3)
+        # Only the window's first and last samples matter: convert those two, not the whole window (hot path).
+        first, last = w[0].astype(np.float64), w[-1].astype(np.float64)
+        fz = last[:, 2]
         contact = fz > CONTACT_THRESHOLD_N
         if not contact.any():
             self.reset()
             return self.probability()
-        ft = w[-1, :, :2]
+        ft = last[:, :2]
         util = np.hypot(ft[:, 0], ft[:, 1]) / np.maximum(fz, CONTACT_THRESHOLD_N)
-        d = w[-1, :, :2] - w[0, :, :2]
+        d = ft - first[:, :2]
         rate = np.hypot(d[:, 0], d[:, 1])
         ref = float(rate[contact].max())
         top = float(util[contact].max())

@@ -381,10 +381,10 @@ class SerialSensor:
         self._resume_handle = None
         if self._fd < 0 or self._loop is None:
             return
-        # Only when bytes are known to wait: with VMIN = VTIME = 0 a read of an empty tty returns 0, which
-        # would look like EOF; an empty (or hung-up) port is left to the loop's readiness report.
-        if self.pending_bytes() > 0:
-            self._on_readable(prompt=False)
+        # Read straight away (the deciding frame is due: bytes almost always wait, and asking the kernel first
+        # costs an ioctl per pause). With VMIN = VTIME = 0 a read of an empty tty returns 0, as EOF does, so
+        # here 0 means "nothing yet": an empty (or hung-up) port is left to the loop's readiness report.
+        self._on_readable(prompt=False, empty_ok=True)
         if self._fd >= 0 and self._resume_handle is None and not self._watching:
             self._loop.add_reader(self._fd, self._on_readable)
             self._watching = True
@@ -442,7 +442,7 @@ class SerialSensor:
             return
 
     # ------------------------------------------------------------ reading
-    def _on_readable(self, prompt: bool = True) -> None:
+    def _on_readable(self, prompt: bool = True, empty_ok: bool = False) -> None:
         try:
             n = os.readv(self._fd, [self._rbuf])
         except (BlockingIOError, InterruptedError):
@@ -452,7 +452,8 @@ class SerialSensor:
             self._lost(reason)
             return
         if n == 0:
-            self._lost("EOF")
+            if not empty_ok:
+                self._lost("EOF")
             return
         now = time.monotonic()
         if self.on_block is not None and self._hold(n, now, prompt):
