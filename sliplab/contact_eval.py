@@ -29,8 +29,10 @@ from typing import Any
 
 import numpy as np
 
+from slipd.detect.build import build_detector
 from slipd.detect.contact import ContactStream
-from slipd.detect.features import FeatureSpec, tare_offset
+from slipd.detect.ensemble import Ensemble
+from slipd.detect.features import FeatureSpec, stretch_offset
 from slipd.recording import Recording
 from sliplab.paths import ROOT
 
@@ -47,20 +49,42 @@ def truth_friction(meta: dict[str, Any]) -> tuple[float, float] | None:
     return float(src["mu_s"]), float(src["mu_k"])
 
 
-def score_recording(path: str) -> dict[str, Any]:
+_MODEL: dict[str, Any] = {}
+
+
+def _states(rec: Recording, model: str | None) -> Any:
+    """(window end, ContactState, filtered normal forces [9]) of every decision: ``ContactStream`` alone (the
+    feature estimate), or with ``model`` the daemon's detector, whose contact state takes the model's own
+    per-pillar P(slip) where its graph has a per-pillar head (``slipd.detect.contact``)."""
+    offset = stretch_offset(rec.force, rec.meta.get("tare_samples", (0, 100)))
+    if model is None:
+        stream = ContactStream(SPEC, offset)
+        for j, st in stream.push_many(rec.force):
+            yield j, st, _fz(stream)
+        return
+    ens = _MODEL.get(model)
+    if ens is None:
+        ens = _MODEL[model] = Ensemble.load(model)
+    ens.reset()
+    det = build_detector(None, ens, offset=offset)
+    for j, d in det.push_many(rec.force, rec.t_us):
+        if d.contact is not None:
+            yield j, d.contact, _fz(det.contact) if not det._shared else rec.force[j, :, 2] - offset[:, 2]
+
+
+def score_recording(path: str, model: str | None = None) -> dict[str, Any]:
     """Stream one recording; per-pillar counts and the friction estimate at gross slip."""
     rec = Recording.load(path)
     meta = rec.meta
-    stream = ContactStream(SPEC, tare_offset(rec.force, 0, 100))
     counts = np.zeros((9, 3), np.int64)  # tp, fp, fn per pillar
     ev = rec.events
     at = ev["gross_slip"] + 0.2 if "gross_slip" in ev else (ev["onset"] + 0.5 if "onset" in ev else None)
     at_i = None if at is None else min(int(at * rec.rate_hz), len(rec) - 1)
     est = None
-    for j, st in stream.push_many(rec.force):
+    for j, st, fz in _states(rec, model):
         if rec.slip is not None:
             c = np.asarray(st.pillar_slip) >= 0.5
-            fz_ok = _fz(stream) > 0.5
+            fz_ok = fz > 0.5
             pred, tr = c & fz_ok, rec.slip[j] & fz_ok
             counts[:, 0] += pred & tr
             counts[:, 1] += pred & ~tr
@@ -129,6 +153,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--count", type=int, default=None, help="first N recordings of each set")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--json", help="write the figures here")
+    p.add_argument("--model", help="score the detector of this manifest (its per-pillar head where it has one) "
+                                   "instead of the feature pipeline's estimate alone")
     args = p.parse_args(argv)
     out: dict[str, Any] = {}
     all_rows: list[dict[str, Any]] = []
@@ -139,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{folder}: no recordings (python tools/make_dataset.py --set {name} --split {args.split})")
             continue
         with ProcessPoolExecutor(args.workers) as pool:
-            rows = list(pool.map(score_recording, files, chunksize=4))
+            rows = list(pool.map(score_recording, files, [args.model] * len(files), chunksize=4))
         all_rows += rows
         out[name] = summarise(rows)
         _print(f"{name}_{args.split} ({len(rows)} recordings)", out[name])

@@ -452,6 +452,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--objective", choices=("balanced", "success"), default="balanced",
                    help="--tune-baselines: maximise balanced success (mean of slip and stop rates) or plain success "
                         "(TP+TN)/N, the figure the results table reports and tune_threshold maximises for models")
+    p.add_argument("--contact", action="store_true",
+                   help="score the contact state instead: per-pillar slip F1 and the friction estimate against the "
+                        "simulator's truth (sliplab.contact_eval; --sets, --split, --count, --model, --json)")
     p.add_argument("--record-manifest", action="store_true",
                    help="with --model: merge the summary into the manifest's metrics (key eval_<data folder>)")
     return p
@@ -459,6 +462,12 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--contact" in argv:
+        # The contact state against the simulator's truth (per-pillar slip F1, friction): its own options.
+        from sliplab.contact_eval import main as contact_main
+
+        return contact_main([a for a in argv if a != "--contact"])
     args = _parser().parse_args(argv)
     if args.tune_baselines:
         return run_tuning(args)

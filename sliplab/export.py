@@ -33,7 +33,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -78,6 +78,7 @@ class FoldedMember:
     b_ih: np.ndarray  # [3H]
     b_hh: np.ndarray  # [3H]
     pred: list[tuple[np.ndarray, np.ndarray]]  # predictor: 2 ReLU layers, then the 2-class output layer
+    aux: tuple[np.ndarray, np.ndarray] | None = None  # per-pillar slip head on the GRU state (W [H, P], b [P])
 
     @property
     def input_size(self) -> int:
@@ -117,6 +118,8 @@ def fold_member(state: dict[str, Any], where: str = "member") -> FoldedMember:
         w_ih=_np(state, "rnn.weight_ih", where), w_hh=_np(state, "rnn.weight_hh", where),
         b_ih=_np(state, "rnn.bias_ih", where), b_hh=_np(state, "rnn.bias_hh", where),
         pred=pred,
+        aux=(_np(state, "aux_head.weight", where).T, _np(state, "aux_head.bias", where))
+        if "aux_head.weight" in state else None,
     )
     h = m.hidden
     if m.w_ih.shape != (3 * h, enc[1][0].shape[1]) or m.w_hh.shape != (3 * h, h):
@@ -157,6 +160,12 @@ class _Graph:
         self._n += 1
         self.nodes.append(helper.make_node("Split", [x, sizes], outs, name=f"n{self._n}_Split", axis=-1))
         return outs
+
+
+def pillar_head_size(members: list[FoldedMember]) -> int:
+    """Pillars of the per-pillar head every member carries (0: none, or not all members have one)."""
+    sizes = {0 if m.aux is None else m.aux[0].shape[1] for m in members}
+    return sizes.pop() if len(sizes) == 1 else 0
 
 
 def build_graph(members: list[FoldedMember], precision: str = "fp32", input_clip: float = INPUT_CLIP
@@ -222,6 +231,11 @@ def build_graph(members: list[FoldedMember], precision: str = "fp32", input_clip
     p = g.op("Squeeze", [p, g.const("squeeze_axes", np.array([2], np.int64), True)])
     p_members = to_float(p, "p_members")
     g.op("ReduceMean", [p_members], "p_slip", axes=[0], keepdims=0)
+    n_aux = pillar_head_size(members)
+    if n_aux:
+        # The per-pillar head (training's auxiliary target): member mean of each pillar's P(slip), [B, P].
+        pa = g.op("Sigmoid", [dense(h_new, [m.aux for m in members if m.aux is not None], "aux", relu=False)])
+        g.op("ReduceMean", [to_float(pa, "p_pillars_members")], "p_pillars", axes=[0], keepdims=0)
 
     f = TensorProto.FLOAT
     graph = helper.make_graph(
@@ -231,7 +245,8 @@ def build_graph(members: list[FoldedMember], precision: str = "fp32", input_clip
          helper.make_tensor_value_info("h", f, [z, BATCH_DIM, hid])],
         [helper.make_tensor_value_info("p_slip", f, [BATCH_DIM]),
          helper.make_tensor_value_info("p_members", f, [z, BATCH_DIM]),
-         helper.make_tensor_value_info("h_next", f, [z, BATCH_DIM, hid])],
+         helper.make_tensor_value_info("h_next", f, [z, BATCH_DIM, hid]),
+         *([helper.make_tensor_value_info("p_pillars", f, [BATCH_DIM, n_aux])] if n_aux else [])],
         initializer=g.inits,
     )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="slipd-export")
@@ -347,7 +362,7 @@ def export(
     if precision == "int8":
         data = _quantize_int8(data, out)
     atomic_write_bytes(out, data)
-    inputs, outputs = io_infos(spec.input_size, len(members), members[0].hidden)
+    inputs, outputs = io_infos(spec.input_size, len(members), members[0].hidden, pillar_head_size(members))
     final = onnx.load_model_from_string(data)  # int8 quantisation rewrites the graph: describe what was written
     opset = next(o.version for o in final.opset_import if o.domain in ("", "ai.onnx"))
     manifest = Manifest(
@@ -405,6 +420,9 @@ def main(argv: list[str] | None = None) -> int:
     prec.add_argument("--fp16", action="store_true", help="float16 weights and compute (I/O stays float32)")
     prec.add_argument("--int8", action="store_true", help="onnxruntime dynamic int8 quantisation")
     ap.add_argument("--threshold", type=float, default=0.5, help="decision threshold stored in the manifest")
+    ap.add_argument("--pillar-head", action="store_true",
+                    help="also export the members' per-pillar slip head (training's --aux-weight) as output "
+                         "p_pillars, which the daemon then uses as its slip map instead of the feature estimate")
     ap.add_argument("--stride", type=int, default=None,
                     help="samples between decisions (default: the window; a divisor of the window runs "
                          "window/stride phase-shifted GRU streams)")
@@ -416,6 +434,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             members, spec, prov = load_run(args.run)
             source = "trained"
+            if not args.pillar_head:
+                members = [replace(m, aux=None) for m in members]
         if args.stride is not None:
             if args.stride < 1 or spec.window % args.stride:
                 raise ExportError(f"--stride {args.stride} must be a divisor of the window ({spec.window})")

@@ -104,10 +104,14 @@ class ContactStream:
         """A block [k, 9, 3]; ``(i, state)`` for each sample that ends a window."""
         return [(i, self.state(w)) for i, w in self.features.push_many(force)]
 
-    def state(self, window: np.ndarray) -> ContactState:
-        """The state at the end of one filtered window (fx, fy, fz of the nine pillars, [window * 27])."""
+    def state(self, window: np.ndarray, pillar_p: np.ndarray | None = None) -> ContactState:
+        """The state at the end of one filtered window (fx, fy, fz of the nine pillars, [window * 27]); with
+        ``pillar_p`` (a model's per-pillar P(slip), [9]) that is the slip map instead of the feature estimate."""
         w = window.reshape(self.spec.window, N_PILLARS, 3)
-        p = self.pillars.update(w)
+        if pillar_p is None:
+            p, source = self.pillars.update(w), "features"
+        else:
+            p, source = pillar_p, "model"
         last = w[-1].astype(np.float64)
         fz = last[:, 2]
         ft = last[:, :2]
@@ -124,7 +128,7 @@ class ContactStream:
         load = float(np.hypot(*ft[contact].sum(0))) if contact.any() else 0.0
         state = ContactState(
             pillar_slip=tuple(p.tolist()), friction=mu, friction_sd=None if est is None else est.sd,
-            risk=contact_risk(fz, util, p, mu, self.risk_margin), grip_n=grip, load_n=load,
+            risk=contact_risk(fz, util, p, mu, self.risk_margin), grip_n=grip, load_n=load, source=source,
         )
         self.latest = state
         return state

@@ -180,6 +180,8 @@ class Detector:
         self.contact = ContactStream(self.spec, offset)
         """Per-pillar slip, friction, contact risk: windows end with the detector's (``Detection.contact``)."""
         self._shared = self.contact.shares_window(self.spec)
+        self.pillar_p: np.ndarray | None = None
+        """The model's per-pillar P(slip) on the latest stepped window (SDK order), or None."""
         # Shared: the stream yields filtered base windows, derived here for the model and read as they are for
         # the contact state, so the 1 kHz path sanitises, tares and median-filters each sample once, not twice.
         self.features = FeatureStream(self.spec, offset, derive=not self._shared)
@@ -277,37 +279,49 @@ class Detector:
             return out
         base = self.index + 1 - i  # sample index of force[0]
         self.index += len(force) - i
-        for j, window, state in self.feature_windows(force[i:]):
+        for j, window, filtered, state in self.feature_windows(force[i:]):
             k = i + j
-            out.append((k, replace(self._decide(window, force[k], int(t_us[k]), base + k), contact=state)))
+            det = self._decide(window, force[k], int(t_us[k]), base + k)
+            out.append((k, replace(det, contact=self.contact_state(filtered, state))))
             self.step_seconds.append(self.last_step_s)
         return out
 
-    def feature_windows(self, force: np.ndarray) -> list[tuple[int, np.ndarray, ContactState | None]]:
-        """The feature stages on a block of tared-phase samples: ``(i, model window, contact state)`` for each
-        sample that ends a window (the model is not stepped here)."""
+    def feature_windows(self, force: np.ndarray
+                        ) -> list[tuple[int, np.ndarray, np.ndarray | None, ContactState | None]]:
+        """The feature stages on a block of tared-phase samples: ``(i, model window, filtered window, contact
+        state)`` for each sample that ends a window (the model is not stepped here). A detector that shares its
+        filtered window with the contact state returns that window (``contact_state`` turns it into the state
+        once the model has stepped); otherwise the contact stream's own state."""
         if self._shared:
-            return [(j, *self._split(w)) for j, w in self.features.push_many(force)]
+            spec = self.spec
+            return [(j, spec.derive(w.reshape(spec.window, spec.n_base)).reshape(-1), w, None)
+                    for j, w in self.features.push_many(force)]
         contact = dict(self.contact.push_many(force))
-        return [(j, w, contact.get(j)) for j, w in self.features.push_many(force)]
+        return [(j, w, None, contact.get(j)) for j, w in self.features.push_many(force)]
+
+    def contact_state(self, filtered: np.ndarray | None, state: ContactState | None) -> ContactState | None:
+        """The contact state of a decided window: from the shared ``filtered`` window, with the model's own
+        per-pillar P(slip) where its graph has a per-pillar head and it stepped on this window
+        (``pillar_p``), else the feature pipeline's estimate; ``state`` as it is otherwise."""
+        if filtered is None:
+            return state
+        return self.contact.state(filtered, self.pillar_p)
 
     def _process(self, force: np.ndarray, t_us: int, index: int) -> Detection | None:
         state = None if self._shared else self.contact.push(force)
         window = self.features.push(force)
         if window is None:
             return None
+        filtered = None
         if self._shared:
-            window, state = self._split(window)
-        return replace(self._decide(window, force, t_us, index), contact=state)
-
-    def _split(self, filtered: np.ndarray) -> tuple[np.ndarray, ContactState]:
-        """A shared filtered window -> (the model's window, the contact state)."""
-        spec = self.spec
-        window = spec.derive(filtered.reshape(spec.window, spec.n_base)).reshape(-1)
-        return window, self.contact.state(filtered)
+            spec = self.spec
+            filtered, window = window, spec.derive(window.reshape(spec.window, spec.n_base)).reshape(-1)
+        det = self._decide(window, force, t_us, index)
+        return replace(det, contact=self.contact_state(filtered, state))
 
     def _decide(self, window: np.ndarray, force: np.ndarray, t_us: int, index: int) -> Detection:
         """A completed window (its last sample ``force``, ``index``): contact gate, model step, decision."""
+        self.pillar_p = None
         det = self._gate(force, t_us, index)
         if det is not None:
             return det
@@ -317,6 +331,8 @@ class Detector:
             try:
                 result = self.ensemble.step(window, stream=stream)
                 p, pm, valid = result.p_slip, result.p_members, result.valid
+                if valid:
+                    self.set_pillars(result.p_pillars)
             except StepError:
                 p, pm, valid = float("nan"), None, False
         else:
@@ -325,8 +341,19 @@ class Detector:
             active = np.arange(self.rows) == self.row
             ps, pms, ok = self.ensemble.step_rows(x, self.phase(self.features.samples_seen), active)
             p, pm, valid = ps[self.row], pms[:, self.row], bool(ok[self.row])
+            rows = self.ensemble.pillar_rows
+            if valid and rows is not None:
+                self.set_pillars(rows[self.row])
         self.last_step_s = time.perf_counter() - t0
         return self._finish(float(p), pm, valid, t_us, index)
+
+    def set_pillars(self, p_pillars: np.ndarray | None) -> None:
+        """The model's per-pillar P(slip) on the window just stepped (its pillars), as nine SDK-ordered values for
+        the contact state; None where the graph has no per-pillar head."""
+        if p_pillars is None or self.spec.pillars != tuple(range(9)):
+            self.pillar_p = None
+        else:
+            self.pillar_p = np.asarray(p_pillars, np.float64)
 
     def phase(self, samples: int) -> int:
         """The stream (window phase) of the window that ends at the ``samples``-th sample since the restart."""

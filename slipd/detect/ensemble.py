@@ -31,6 +31,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import onnxruntime as ort
@@ -63,6 +64,8 @@ class StepResult:
     p_slip: float | np.ndarray
     p_members: np.ndarray
     status: str = STATUS_OK
+    p_pillars: np.ndarray | None = None
+    """P(slip) of each model pillar ([P], or [B, P]) where the graph has a per-pillar head, else None."""
 
     @property
     def valid(self) -> bool:
@@ -76,14 +79,17 @@ class SequenceResult:
 
     p_slip: np.ndarray
     p_members: np.ndarray
+    p_pillars: np.ndarray | None = None
+    """[K, P] where the graph has a per-pillar head."""
 
 
 class _Stream:
     """Buffers and bindings of one stream: h ping-pongs between two buffers, so a bad h_next never
     overwrites the good state."""
 
-    def __init__(self, session: ort.InferenceSession, batch: int, z: int, d: int, h: int) -> None:
+    def __init__(self, session: ort.InferenceSession, batch: int, z: int, d: int, h: int, pillars: int = 0) -> None:
         self.batch = batch
+        self.p_pillars = np.zeros((batch, pillars), np.float32) if pillars else None
         self.x = np.zeros((batch, d), np.float32)
         self.h = [np.zeros((z, batch, h), np.float32), np.zeros((z, batch, h), np.float32)]
         self.p_slip = np.zeros(batch, np.float32)
@@ -102,7 +108,12 @@ class _Stream:
             b.bind_ortvalue_output("p_members", pm_v)
             b.bind_ortvalue_output("h_next", h_v[1 - src])
             self.bindings.append(b)
-        self._values = (x_v, h_v, p_v, pm_v)  # keep the OrtValues (and so the shared memory) alive
+        self._values: tuple[Any, ...] = (x_v, h_v, p_v, pm_v)  # keep the OrtValues (the shared memory) alive
+        if self.p_pillars is not None:
+            pp_v = ort.OrtValue.ortvalue_from_numpy(self.p_pillars)
+            for b in self.bindings:
+                b.bind_ortvalue_output("p_pillars", pp_v)
+            self._values += (pp_v,)
 
     def reset(self) -> None:
         self.h[self.cur][:] = 0.0
@@ -130,6 +141,10 @@ class Ensemble:
         self.manifest_path = manifest_path
         self._spec = manifest.spec
         self._z, self._h, self._d = manifest.members, manifest.hidden, self._spec.input_size
+        self._p = len(self._spec.pillars) if manifest.has_pillar_output else 0
+        self.pillar_rows: np.ndarray | None = None
+        """[B, P] per-pillar P(slip) of the latest ``step_rows`` (NaN in rows that did not step); None without a
+        per-pillar head."""
         self._streams: dict[int, _Stream] = {}
         self.refused_inputs = 0
         """Windows refused because they held non-finite values (stream state untouched)."""
@@ -210,7 +225,7 @@ class Ensemble:
             return self._invalid(w.shape[0], single, STATUS_NONFINITE_INPUT)
         st = self._streams.get(stream)
         if st is None:
-            st = self._streams[stream] = _Stream(self._session, w.shape[0], self._z, self._d, self._h)
+            st = self._streams[stream] = _Stream(self._session, w.shape[0], self._z, self._d, self._h, self._p)
         elif st.batch != w.shape[0]:
             raise ValueError(f"stream {stream} holds {st.batch} sequences, window has {w.shape[0]}; reset it first")
         np.copyto(st.x, w, casting="same_kind")
@@ -221,9 +236,11 @@ class Ensemble:
             self.nonfinite_outputs += 1
             return self._invalid(w.shape[0], single, STATUS_NONFINITE_OUTPUT)
         st.cur = 1 - st.cur
+        pp = st.p_pillars
         if single:
-            return StepResult(float(st.p_slip[0]), st.p_members[:, 0].copy())
-        return StepResult(st.p_slip.copy(), st.p_members.copy())
+            return StepResult(float(st.p_slip[0]), st.p_members[:, 0].copy(),
+                              p_pillars=None if pp is None else pp[0].copy())
+        return StepResult(st.p_slip.copy(), st.p_members.copy(), p_pillars=None if pp is None else pp.copy())
 
     def step_rows(
         self, windows: np.ndarray, stream: int, active: np.ndarray
@@ -254,7 +271,7 @@ class Ensemble:
             return p, pm, run
         st = self._streams.get(stream)
         if st is None:
-            st = self._streams[stream] = _Stream(self._session, b, self._z, self._d, self._h)
+            st = self._streams[stream] = _Stream(self._session, b, self._z, self._d, self._h, self._p)
         elif st.batch != b:
             raise ValueError(f"stream {stream} holds {st.batch} sequences, windows has {b}; reset it first")
         idle = ~run
@@ -276,6 +293,9 @@ class Ensemble:
         st.cur = 1 - st.cur
         p[ok] = st.p_slip[ok]
         pm[:, ok] = st.p_members[:, ok]
+        if st.p_pillars is not None:
+            self.pillar_rows = np.full(st.p_pillars.shape, np.nan, np.float32)
+            self.pillar_rows[ok] = st.p_pillars[ok]
         return p, pm, ok
 
     def reset_row(self, row: int) -> None:
@@ -306,6 +326,7 @@ class Ensemble:
         lengths = np.array([len(s) for s in seqs], dtype=np.int64)
         order = np.argsort(-lengths, kind="stable")  # longest first: active sequences are a prefix
         results = [(np.zeros(n, np.float32), np.zeros((self._z, n), np.float32)) for n in lengths]
+        pillars = [np.zeros((n, self._p), np.float32) for n in lengths] if self._p else None
         h = np.zeros((self._z, len(seqs), self._h), np.float32)
         x = np.zeros((len(seqs), self._d), np.float32)
         sorted_len = lengths[order]
@@ -313,7 +334,8 @@ class Ensemble:
             active = int((sorted_len > k).sum())
             for j in range(active):
                 x[j] = seqs[order[j]][k]
-            p, pm, h_next = self._session.run(None, {"window": x[:active], "h": np.ascontiguousarray(h[:, :active])})
+            outs = self._session.run(None, {"window": x[:active], "h": np.ascontiguousarray(h[:, :active])})
+            p, pm, h_next = outs[:3]
             if not (np.isfinite(pm).all() and np.isfinite(h_next).all()):
                 raise NonFiniteOutput(f"window {k}: model output or state is non-finite")
             h[:, :active] = h_next
@@ -321,4 +343,8 @@ class Ensemble:
                 res = results[order[j]]
                 res[0][k] = p[j]
                 res[1][:, k] = pm[:, j]
-        return [SequenceResult(p, pm) for p, pm in results]
+                if pillars is not None:
+                    pillars[order[j]][k] = outs[3][j]
+        if pillars is None:
+            return [SequenceResult(p, pm) for p, pm in results]
+        return [SequenceResult(p, pm, pp) for (p, pm), pp in zip(results, pillars)]

@@ -27,6 +27,8 @@ from slipd.detect.features import FeatureSpec
 FORMAT_VERSION = 1
 INPUT_NAMES = ("window", "h")
 OUTPUT_NAMES = ("p_slip", "p_members", "h_next")
+PILLAR_OUTPUT = "p_pillars"
+"""Optional fourth output: P(slip) of each model pillar, [B, P] (the member mean of a per-pillar head)."""
 BATCH_DIM = "B"
 """Symbolic name of the dynamic batch dimension in the graph and the manifest."""
 
@@ -85,6 +87,11 @@ class Manifest(BaseModel):
     metrics: dict[str, Any] = Field(default_factory=dict)
 
     @property
+    def has_pillar_output(self) -> bool:
+        """Whether the graph also gives each model pillar's P(slip) (``p_pillars``, a per-pillar head)."""
+        return any(t.name == PILLAR_OUTPUT for t in self.outputs)
+
+    @property
     def spec(self) -> FeatureSpec:
         """The feature layout as the ``FeatureSpec`` the feature code uses."""
         return FeatureSpec.from_dict(self.feature_spec)
@@ -111,10 +118,11 @@ def check_consistency(manifest: Manifest, path: str | os.PathLike[str]) -> None:
     for key, (mine, theirs) in pairs.items():
         if mine != theirs:
             raise ModelError(path, key, f"{mine!r} disagrees with feature_spec ({theirs!r})")
-    for kind, infos, names in (("inputs", manifest.inputs, INPUT_NAMES), ("outputs", manifest.outputs, OUTPUT_NAMES)):
+    outputs = (*OUTPUT_NAMES, PILLAR_OUTPUT) if manifest.has_pillar_output else OUTPUT_NAMES
+    for kind, infos, names in (("inputs", manifest.inputs, INPUT_NAMES), ("outputs", manifest.outputs, outputs)):
         if [t.name for t in infos] != list(names):
             raise ModelError(path, kind, f"must be named {list(names)}, got {[t.name for t in infos]}")
-    expected = expected_io(spec.input_size, manifest.members, manifest.hidden)
+    expected = expected_io(spec.input_size, manifest.members, manifest.hidden, len(spec.pillars))
     for kind, infos in (("inputs", manifest.inputs), ("outputs", manifest.outputs)):
         for t in infos:
             if t.shape != expected[t.name]:
@@ -125,9 +133,10 @@ def check_consistency(manifest: Manifest, path: str | os.PathLike[str]) -> None:
                 )
 
 
-def expected_io(input_size: int, members: int, hidden: int) -> dict[str, list[Dim]]:
-    """The graph's I/O shapes for a given input size, ensemble size Z and hidden size H."""
+def expected_io(input_size: int, members: int, hidden: int, pillars: int = 0) -> dict[str, list[Dim]]:
+    """The graph's I/O shapes for a given input size, ensemble size Z, hidden size H (and P model pillars)."""
     return {
+        PILLAR_OUTPUT: [BATCH_DIM, pillars],
         "window": [BATCH_DIM, input_size],
         "h": [members, BATCH_DIM, hidden],
         "p_slip": [BATCH_DIM],
@@ -136,12 +145,15 @@ def expected_io(input_size: int, members: int, hidden: int) -> dict[str, list[Di
     }
 
 
-def io_infos(input_size: int, members: int, hidden: int) -> tuple[list[TensorInfo], list[TensorInfo]]:
-    """``TensorInfo`` lists (inputs, outputs) for the manifest of a graph of this size."""
-    shapes = expected_io(input_size, members, hidden)
+def io_infos(input_size: int, members: int, hidden: int, pillars: int = 0
+             ) -> tuple[list[TensorInfo], list[TensorInfo]]:
+    """``TensorInfo`` lists (inputs, outputs) for the manifest of a graph of this size (``pillars`` > 0: with
+    the per-pillar output)."""
+    shapes = expected_io(input_size, members, hidden, pillars)
+    outputs = (*OUTPUT_NAMES, PILLAR_OUTPUT) if pillars else OUTPUT_NAMES
     return (
         [TensorInfo(name=n, shape=shapes[n]) for n in INPUT_NAMES],
-        [TensorInfo(name=n, shape=shapes[n]) for n in OUTPUT_NAMES],
+        [TensorInfo(name=n, shape=shapes[n]) for n in outputs],
     )
 
 

@@ -106,7 +106,7 @@ class MultiDetector:
             d.index += k - i
             wins.append(d.feature_windows(x[i:, s]))
         # Same samples into every stream: the windows end on the same samples.
-        for m, (j, _, _) in enumerate(wins[0]):
+        for m, (j, _, _, _) in enumerate(wins[0]):
             kk = i + j
             t, idx = int(t_us[kk]), base + kk
             gated = [d._gate(x[kk, s], t, idx) for s, d in enumerate(subs)]
@@ -125,10 +125,13 @@ class MultiDetector:
                 if det is None:
                     assert p is not None and pm is not None and ok is not None
                     det = d._finish(float(p[s]), pm[:, s], bool(ok[s]), t, idx)
+                    rows = self.ensemble.pillar_rows
+                    d.set_pillars(rows[s] if bool(ok[s]) and rows is not None else None)
                     d.last_step_s = step_s
                     self.step_seconds.append(step_s)
                     step_s = None
                 else:
                     self.step_seconds.append(None)
-                out.append((kk, replace(det, contact=wins[s][m][2])))
+                    d.pillar_p = None
+                out.append((kk, replace(det, contact=d.contact_state(wins[s][m][2], wins[s][m][3]))))
         return out

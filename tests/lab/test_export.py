@@ -166,3 +166,39 @@ def test_run_directory_with_mixed_feature_specs_is_refused(tmp_path: Path) -> No
 
         load_run(tmp_path / "run")
     assert main(["--run", str(tmp_path / "empty"), "--out", str(tmp_path / "x.onnx")]) == 1
+
+
+def test_pillar_head_is_exported_only_when_asked_and_feeds_the_contact_state(tmp_path: Path) -> None:
+    """``--pillar-head``: the members' per-pillar head becomes output ``p_pillars`` (member mean of the sigmoids,
+    matching torch), the manifest declares it, ``Ensemble.step`` returns it and the detector's contact state takes
+    it as its slip map (source "model"); without the flag the graph is the method's (three outputs)."""
+    from slipd.detect.build import build_detector
+    from slipd.detect.ensemble import Ensemble
+
+    spec = FeatureSpec(pillars=tuple(range(9)), channels=("util",), median=5, stride=10)
+    nets = [_random_member(s, input_size=spec.input_size, hidden=16, enc=32, pred=(16, 8), aux=9) for s in (1, 2)]
+    _save_run(tmp_path / "run", nets, [spec, spec])
+    plain, head = tmp_path / "plain.onnx", tmp_path / "head.onnx"
+    assert main(["--run", str(tmp_path / "run"), "--out", str(plain), "--stride", "10"]) == 0
+    assert main(["--run", str(tmp_path / "run"), "--out", str(head), "--stride", "10", "--pillar-head"]) == 0
+    assert not Ensemble.load(plain.with_suffix(".json")).manifest.has_pillar_output
+    ens = Ensemble.load(head.with_suffix(".json"))
+    assert [t.name for t in ens.manifest.outputs] == ["p_slip", "p_members", "h_next", "p_pillars"]
+    windows = np.abs(_walk(6, c=9, seed=5))
+    with torch.no_grad():
+        h = [torch.zeros(1, 16) for _ in nets]
+        for w in windows:
+            r = ens.step(w)
+            ref = []
+            for k, net in enumerate(nets):
+                _, h[k] = net(torch.from_numpy(w[None]), h[k])
+                ref.append(torch.sigmoid(net.aux_head(h[k]))[0].numpy())
+            assert r.p_pillars is not None and r.p_pillars.shape == (9,)
+            assert np.abs(r.p_pillars - np.mean(ref, axis=0)).max() <= TOL
+    ens.reset()
+    f = np.zeros((400, 9, 3), np.float32)
+    f[:, :, 2] = 2.0
+    f[:, :, 0] = np.linspace(0, 0.5, 400)[:, None]
+    dets = [d for _, d in build_detector(None, ens, offset=np.zeros((9, 3), np.float32)).push_many(f, np.arange(400))]
+    states = [d.contact for d in dets if d.valid and d.p_slip > 0]
+    assert states and all(s is not None and s.source == "model" for s in states)
