@@ -74,6 +74,11 @@ log = logging.getLogger("slipd.daemon.loop")
 DEVICE_CLOSE_TIMEOUT_S = 10.0
 
 
+def _settle(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)
+
+
 def _close_quietly(dev: Any) -> None:
     with contextlib.suppress(Exception):
         dev.close()
@@ -189,6 +194,7 @@ class Daemon:
         self._fresh_t = now  # the oldest of them (re-based when the loop starts)
         self._decided_t: float | None = None  # latest valid decision on fresh data (None: none this episode)
         self._decision_due = now  # a valid decision is overdue after this (re-based on every restart)
+        self._wake: asyncio.Future[None] | None = None  # the supervision task's nap, while it naps
         self._nonfinite_seen = 0
         streams = getattr(self.detector, "feature_streams", None)
         feats = getattr(self.detector, "features", None)  # the ensemble's pipeline; the heuristics have none
@@ -333,6 +339,7 @@ class Daemon:
                 run = 0 if ok else run + 1
                 if run > self._nonfinite_bridge:
                     self._nonfinite_burst = True
+                    self._wake_supervisor()
                     self._nonfinite_sensor = s
             self._nonfinite_run[s] = run
 
@@ -447,9 +454,21 @@ class Daemon:
         while not self._stop.is_set():
             k += 1
             deadline = start + k * period
+            if self.live and self.blind is None:
+                # Live: no cause can arise before the earliest of the fresh-data and decision deadlines (a
+                # disconnect and a non-finite burst wake this task themselves), so sleep until then, or until
+                # the next ping or kick, rather than every period: 1 wake-up per stall timeout, not 5.
+                due = min(self._fresh_t + stall_s, self._decision_due)
+                if ping_every:
+                    due = min(due, last_ping + ping_every)
+                if kick is not None:
+                    due = min(due, last_kick + kick_every)
+                if due > deadline:
+                    k = int((due - start) / period)
+                    deadline = max(deadline, due)
             delay = deadline - time.monotonic()
             if delay > 0:
-                await asyncio.sleep(delay)
+                await self._nap(delay)
             now = time.monotonic()
             if now - deadline > max_late:
                 self.stats.overruns += 1
@@ -472,6 +491,23 @@ class Daemon:
                 assert self.arm_worker is not None
                 kicking = self.arm_worker.submit(kick.kick_watchdog)
                 last_kick = now
+
+    async def _nap(self, delay: float) -> None:
+        """Sleep ``delay`` seconds, or until ``_wake_supervisor``."""
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[None] = loop.create_future()
+        self._wake = fut
+        handle = loop.call_later(delay, _settle, fut)
+        try:
+            await fut
+        finally:
+            handle.cancel()
+            self._wake = None
+
+    def _wake_supervisor(self) -> None:
+        """A cause arose between two deadlines (a non-finite burst): let the supervision task look now."""
+        if self._wake is not None:
+            _settle(self._wake)
 
     def _on_live(self) -> None:
         """The first valid decision on fresh data: at start-up READY=1, after an episode one log line."""
