@@ -1,16 +1,14 @@
 """The shipped detector stays quiet when nothing slips, for as long as a robot holds something.
 
-A still press (0.6-1.4 mm against a flat plate, unloaded start, then perfectly still) held for two minutes
-on the v2 sensor and one minute on v1, and free air (no contact) for a minute: the shipped int8 model, run
-through the daemon's own decision path (``Detector`` at the manifest's stride), raises no alarm, and in free
-air the contact gate keeps p_slip at exactly 0 (the model never runs without contact).
+One hold of each type (issue 14): a still press (0.6-1.4 mm against a flat plate, unloaded start, then perfectly
+still) for two minutes on the v2 sensor and one on v1, a shear hold (a move that stops at 30-90 % of the first
+pillar's stick limit, then held), a hold after a fast stop at 50-95 % of it, a hold after a release and regrasp, and
+free air (no contact). The shipped int8 model, run through the daemon's own decision path (``Detector`` at the
+manifest's stride), raises no alarm, and p_slip settles at least 0.2 below the threshold (the issue's margin:
+p99 over the hold after its first fifth); in free air the contact gate keeps p_slip at exactly 0.
 
-How far below the threshold p_slip settles is printed, not asserted: issue 14 asks for 0.2 and the shipped
-model settles about 0.1 below it on these presses (p_slip about 0.41, with or without the gate), so that
-target is not met yet. The issue's own still presses, from a simulator that shares no code with ours, did
-set the old model off within 2 s; these tests guard against a regression on ours, they do not prove that.
-Other still presses of the ``holds`` set do set the shipped model off (for example ``hold_00055``, v2, and
-``hold_00035``, v2 with per-pillar spread): ``reports/robustness.md`` counts them.
+These are the first recordings of each type and sensor of ``slipd.sim.datasets.hold_scene`` (seed 7), not a
+selection; ``reports/robustness.md`` counts the alarms over the whole ``holds`` test set.
 """
 
 from __future__ import annotations
@@ -40,7 +38,8 @@ def ens() -> Ensemble:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("index, seconds, what", [(5, 120.0, "still press v2"), (0, 60.0, "still press v1"),
-                                                  (4, 30.0, "free air v1")])
+                                                  (6, 60.0, "shear hold v2"), (2, 60.0, "hold after a stop v1"),
+                                                  (8, 60.0, "hold after a regrasp v2"), (4, 30.0, "free air v1")])
 def test_long_still_hold_raises_no_alarm(ens: Ensemble, index: int, seconds: float, what: str) -> None:
     rec = _hold(index, seconds, seed=7)
     ens.reset()
@@ -54,6 +53,6 @@ def test_long_still_hold_raises_no_alarm(ens: Ensemble, index: int, seconds: flo
     p99 = float(np.percentile(settled, 99))
     print(f"{what}: {seconds:g} s, {len(p)} decisions, no alarm; p_slip p99 {p99:.3f}, "
           f"{ens.threshold - p99:.3f} below the threshold")
-    assert p99 < ens.threshold
+    assert p99 <= ens.threshold - 0.2
     if "free air" in what:
         assert not p.any()  # the gate: no contact, no slip, the model never ran
