@@ -293,11 +293,15 @@ class Detector:
         filtered window with the contact state returns that window (``contact_state`` turns it into the state
         once the model has stepped); otherwise the contact stream's own state."""
         if self._shared:
-            spec = self.spec
-            return [(j, spec.derive(w.reshape(spec.window, spec.n_base)).reshape(-1), w, None)
-                    for j, w in self.features.push_many(force)]
+            return [(j, self._derive(w), w, None) for j, w in self.features.push_many(force)]
         contact = dict(self.contact.push_many(force))
         return [(j, w, None, contact.get(j)) for j, w in self.features.push_many(force)]
+
+    def _derive(self, filtered: np.ndarray) -> np.ndarray:
+        """A shared filtered window [window * n_base] -> the model's window (stage 5b)."""
+        spec = self.spec
+        out: np.ndarray = spec.derive(filtered.reshape(spec.window, spec.n_base)).reshape(-1)
+        return out
 
     def contact_state(self, filtered: np.ndarray | None, state: ContactState | None) -> ContactState | None:
         """The contact state of a decided window: from the shared ``filtered`` window, with the model's own
@@ -314,8 +318,7 @@ class Detector:
             return None
         filtered = None
         if self._shared:
-            spec = self.spec
-            filtered, window = window, spec.derive(window.reshape(spec.window, spec.n_base)).reshape(-1)
+            filtered, window = window, self._derive(window)
         det = self._decide(window, force, t_us, index)
         return replace(det, contact=self.contact_state(filtered, state))
 
