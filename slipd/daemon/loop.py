@@ -12,7 +12,9 @@ device threads at once. Nothing on this path blocks. With two sensors (``sensor.
 per finger) each finger has its own decisions and a rising edge on either reacts.
 
 A supervision task runs on absolute deadlines (``next = start + k * period``; a late tick is counted
-as an overrun and the schedule is not shifted). It owns **liveness**, defined once here
+as an overrun and the schedule is not shifted); while live it skips the ticks before the earliest moment a
+blind cause can arise (the fresh-data and decision deadlines, the next ping or kick), and a non-finite burst
+wakes it at once. It owns **liveness**, defined once here
 (``Daemon._blind_cause``): a valid decision on a window of fresh samples within the stall timeout
 (``sensor.stall_timeout_ms``). A sample is fresh when its packet counter advanced (repeats are dropped by
 the reader), every value the detector reads is finite and it is not bit-identical to the one before (a real sensor is
