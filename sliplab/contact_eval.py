@@ -69,7 +69,7 @@ def _states(rec: Recording, model: str | None) -> Any:
     det = build_detector(None, ens, offset=offset)
     for j, d in det.push_many(rec.force, rec.t_us):
         if d.contact is not None:
-            yield j, d.contact, _fz(det.contact) if not det._shared else rec.force[j, :, 2] - offset[:, 2]
+            yield j, d.contact, rec.force[j, :, 2] - offset[:, 2]  # the tared normal forces at the window's end
 
 
 def score_recording(path: str, model: str | None = None) -> dict[str, Any]:
