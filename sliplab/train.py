@@ -286,10 +286,10 @@ def pack_lanes(items: list[Item], n_lanes: int, rng: np.random.Generator | None 
 
 
 # ------------------------------------------------------------------------------------- training
-def _chunk_logits(net: SlipNet, x: torch.Tensor, keep: torch.Tensor, valid: torch.Tensor, h: torch.Tensor,
-                  with_states: bool = False) -> tuple[torch.Tensor, ...]:
-    """Logits of the valid windows of one chunk ([B, L, D]) and the hidden state after it (and, with
-    ``with_states``, the hidden state of every valid window, for the auxiliary head).
+def _chunk_logits(net: SlipNet, x: torch.Tensor, keep: torch.Tensor, valid: torch.Tensor, h: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Logits of the valid windows of one chunk ([B, L, D]), the hidden state after it, and the hidden state of
+    every valid window (what the auxiliary head reads).
 
     Same computation as ``SlipNet.logits`` window by window; the encoder and the predictor run once
     on all valid windows of the chunk (they do not depend on h), the GRU steps through time.
@@ -305,9 +305,7 @@ def _chunk_logits(net: SlipNet, x: torch.Tensor, keep: torch.Tensor, valid: torc
         h = net.rnn(enc[:, t], h * keep[:, t, None])
         states.append(h)
     hs = torch.stack(states, 1).reshape(b * length, -1)[flat_valid]
-    if with_states:
-        return net.predictor[:-1](hs), h, hs
-    return net.predictor[:-1](hs), h
+    return net.predictor[:-1](hs), h, hs
 
 
 def _counts(logits: torch.Tensor, y: torch.Tensor) -> np.ndarray:
@@ -344,11 +342,7 @@ def train_epoch(net: SlipNet, opt: torch.optim.Optimizer, lanes: Lanes, chunk: i
             continue
         y = lanes.y[:, sl].to(device).reshape(-1)[valid.reshape(-1)]
         use_aux = aux_weight > 0 and net.aux_head is not None and lanes.slip is not None
-        if use_aux:
-            logits, h, hs = _chunk_logits(net, lanes.x[:, sl].to(device), lanes.keep[:, sl].to(device), valid, h,
-                                          with_states=True)
-        else:
-            logits, h = _chunk_logits(net, lanes.x[:, sl].to(device), lanes.keep[:, sl].to(device), valid, h)
+        logits, h, hs = _chunk_logits(net, lanes.x[:, sl].to(device), lanes.keep[:, sl].to(device), valid, h)
         loss = loss_fn(logits, y)
         if use_aux:
             truth = lanes.slip[:, sl].to(device).reshape(-1, lanes.slip.shape[-1])[valid.reshape(-1)]
@@ -393,7 +387,7 @@ def precise_bn(net: SlipNet, items: list[Item], n_lanes: int, chunk: int, device
         valid = lanes.valid[:, sl].to(device)
         if int(valid.sum()) < 2:
             continue
-        _, h = _chunk_logits(net, lanes.x[:, sl].to(device), lanes.keep[:, sl].to(device), valid, h)
+        _, h, _ = _chunk_logits(net, lanes.x[:, sl].to(device), lanes.keep[:, sl].to(device), valid, h)
     for m, mom in zip(bns, saved):
         m.momentum = mom
     net.eval()
@@ -493,7 +487,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--chunk", type=int, default=9, help="windows per truncated-BPTT chunk (9 = 360 samples)")
     p.add_argument("--aux-weight", type=float, default=0.0,
                    help="weight of an auxiliary per-pillar slip head on the GRU state, trained on the simulator's "
-                        "per-pillar slip truth (0 = off, the method; the head is not exported)")
+                        "per-pillar slip truth (0 = off, the method; tools/export_onnx.py --pillar-head exports it)")
     p.add_argument("--pos-weight", type=float, default=1.0,
                    help="loss weight of the slip class (1 = the method's unweighted cross-entropy)")
     p.add_argument("--channels", default="fx,fy",

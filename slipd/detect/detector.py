@@ -351,12 +351,10 @@ class Detector:
         return self._finish(float(p), pm, valid, t_us, index)
 
     def set_pillars(self, p_pillars: np.ndarray | None) -> None:
-        """The model's per-pillar P(slip) on the window just stepped (its pillars), as nine SDK-ordered values for
-        the contact state; None where the graph has no per-pillar head."""
-        if p_pillars is None or self.spec.pillars != tuple(range(9)):
-            self.pillar_p = None
-        else:
-            self.pillar_p = np.asarray(p_pillars, np.float64)
+        """The model's per-pillar P(slip) on the window just stepped, for the contact state; None where the graph
+        has no per-pillar head. Only a shared window reads it (``contact_state``), and sharing means the model's
+        pillars are P0..P8 in SDK order (``ContactStream.shares_window``)."""
+        self.pillar_p = None if p_pillars is None else np.asarray(p_pillars, np.float64)
 
     def phase(self, samples: int) -> int:
         """The stream (window phase) of the window that ends at the ``samples``-th sample since the restart."""

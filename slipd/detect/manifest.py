@@ -29,6 +29,11 @@ INPUT_NAMES = ("window", "h")
 OUTPUT_NAMES = ("p_slip", "p_members", "h_next")
 PILLAR_OUTPUT = "p_pillars"
 """Optional fourth output: P(slip) of each model pillar, [B, P] (the member mean of a per-pillar head)."""
+
+
+def output_names(pillar_output: bool) -> tuple[str, ...]:
+    """The graph's output names, in order, with or without ``PILLAR_OUTPUT``."""
+    return (*OUTPUT_NAMES, PILLAR_OUTPUT) if pillar_output else OUTPUT_NAMES
 BATCH_DIM = "B"
 """Symbolic name of the dynamic batch dimension in the graph and the manifest."""
 
@@ -118,7 +123,7 @@ def check_consistency(manifest: Manifest, path: str | os.PathLike[str]) -> None:
     for key, (mine, theirs) in pairs.items():
         if mine != theirs:
             raise ModelError(path, key, f"{mine!r} disagrees with feature_spec ({theirs!r})")
-    outputs = (*OUTPUT_NAMES, PILLAR_OUTPUT) if manifest.has_pillar_output else OUTPUT_NAMES
+    outputs = output_names(manifest.has_pillar_output)
     for kind, infos, names in (("inputs", manifest.inputs, INPUT_NAMES), ("outputs", manifest.outputs, outputs)):
         if [t.name for t in infos] != list(names):
             raise ModelError(path, kind, f"must be named {list(names)}, got {[t.name for t in infos]}")
@@ -150,10 +155,9 @@ def io_infos(input_size: int, members: int, hidden: int, pillars: int = 0
     """``TensorInfo`` lists (inputs, outputs) for the manifest of a graph of this size (``pillars`` > 0: with
     the per-pillar output)."""
     shapes = expected_io(input_size, members, hidden, pillars)
-    outputs = (*OUTPUT_NAMES, PILLAR_OUTPUT) if pillars else OUTPUT_NAMES
     return (
         [TensorInfo(name=n, shape=shapes[n]) for n in INPUT_NAMES],
-        [TensorInfo(name=n, shape=shapes[n]) for n in outputs],
+        [TensorInfo(name=n, shape=shapes[n]) for n in output_names(pillars > 0)],
     )
 
 
