@@ -49,6 +49,7 @@ import logging
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -64,6 +65,7 @@ if TYPE_CHECKING:
     from slipd.config import SlipdConfig
     from slipd.daemon.recorder import Recorder
     from slipd.daemon.sdnotify import Notifier
+    from slipd.detect.contact import ContactState
     from slipd.detect.decision import Detection
     from slipd.detect.ensemble import Ensemble
     from slipd.io.arm import Arm
@@ -203,16 +205,20 @@ class Daemon:
         self._feature_streams = list(streams) if streams is not None else [feats] if feats is not None else []
         m = self.metrics
         # Bounded label values: one child per configured sensor, made once (no label lookup per decision).
-        self._m_sensor = [
-            (m.decisions.labels(sensor=str(k)), m.p_slip.labels(sensor=str(k)), m.risk.labels(sensor=str(k)),
-             m.alarms.labels(sensor=str(k)), m.step_errors.labels(sensor=str(k)))
-            for k in range(ns)
-        ]
-        self._m_contact = [
-            (m.contact_risk.labels(sensor=str(k)), m.friction.labels(sensor=str(k)),
-             [m.pillar_slip.labels(sensor=str(k), pillar=str(p)) for p in range(9)])
-            for k in range(ns)
-        ]
+        self._m_sensor = [(m.decisions.labels(sensor=str(k)), m.alarms.labels(sensor=str(k)),
+                           m.step_errors.labels(sensor=str(k))) for k in range(ns)]
+        # The per-decision gauges are read when Prometheus scrapes (a scrape every few seconds against 100
+        # decisions a second per sensor): the hot path keeps each sensor's latest valid decision and contact
+        # state, and a gauge's function reads it; nothing is set per decision.
+        self._latest: list[Detection | None] = [None] * ns
+        self._latest_contact: list[ContactState | None] = [None] * ns
+        for k in range(ns):
+            m.p_slip.labels(sensor=str(k)).set_function(partial(self._latest_value, k, "p_slip"))
+            m.risk.labels(sensor=str(k)).set_function(partial(self._latest_value, k, "risk"))
+            m.contact_risk.labels(sensor=str(k)).set_function(partial(self._contact_value, k, "risk"))
+            m.friction.labels(sensor=str(k)).set_function(partial(self._contact_value, k, "friction"))
+            for p in range(9):
+                m.pillar_slip.labels(sensor=str(k), pillar=str(p)).set_function(partial(self._pillar_value, k, p))
         m.model.info({"name": str(cfg.model.manifest.name), "sha256": ensemble.manifest.sha256})
 
     # ----------------------------------------------------------------- hot path
@@ -251,7 +257,7 @@ class Daemon:
         recorded = 0
         for (i, det), step_s in zip(dets, det_.step_seconds):
             s = det.sensor
-            m_dec, m_p, m_risk, m_alarms, m_err = self._m_sensor[s]
+            m_dec, m_alarms, m_err = self._m_sensor[s]
             if rec is not None and recorded <= i:
                 rec.push_frames(stamps[recorded : i + 1], force[recorded : i + 1], disp[recorded : i + 1])
                 recorded = i + 1
@@ -264,8 +270,7 @@ class Daemon:
             self.stats.decisions += 1
             valid[s] = True
             m_dec.inc()
-            m_p.set(det.p_slip)
-            m_risk.set(det.risk)
+            self._latest[s] = det
             if rec is not None:
                 if det.alarm and not rec.recording:
                     # The recording this alarm starts replays with the offset the daemon used (slipd replay).
@@ -299,15 +304,27 @@ class Daemon:
                 self._nonfinite_seen = bad
 
     def _on_contact(self, det: Detection) -> None:
-        """A valid decision's contact state: its metrics, and the grip controller (``policy: grip_control``)."""
+        """A valid decision's contact state: kept for its metrics, and handed to the grip controller
+        (``policy: grip_control``)."""
         c = det.contact
         assert c is not None
-        risk_g, friction_g, pillars_g = self._m_contact[det.sensor]
-        risk_g.set(c.risk)
-        friction_g.set(0.0 if c.friction is None else c.friction)
-        for g, p in zip(pillars_g, c.pillar_slip, strict=True):
-            g.set(p)
+        self._latest_contact[det.sensor] = c
         self.reaction.on_detection(c, det.alarm, time.monotonic())
+
+    # Scrape-time readers of the per-decision gauges (called from the metrics server's thread: each reads
+    # one reference the loop replaces whole, never a half-written value).
+    def _latest_value(self, sensor: int, field: str) -> float:
+        det = self._latest[sensor]
+        return 0.0 if det is None else float(getattr(det, field))
+
+    def _contact_value(self, sensor: int, field: str) -> float:
+        c = self._latest_contact[sensor]
+        value = None if c is None else getattr(c, field)
+        return 0.0 if value is None else float(value)
+
+    def _pillar_value(self, sensor: int, pillar: int) -> float:
+        c = self._latest_contact[sensor]
+        return 0.0 if c is None else float(c.pillar_slip[pillar])
 
     def _check_samples(self, force: np.ndarray, disp: np.ndarray) -> None:
         """Freshness of a block, per sensor (vectorised, once per block): finite, and not bit-identical to the

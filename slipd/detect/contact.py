@@ -14,13 +14,14 @@ A model with an auxiliary per-pillar head would fill ``pillar_slip`` from its ou
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from slipd.detect.features import FeatureSpec, FeatureStream
 from slipd.detect.friction import FrictionEstimator
-from slipd.detect.pillar_slip import PillarSlip, PillarSlipParams
+from slipd.detect.pillar_slip import PillarSlip, PillarSlipParams, utilisation
 from slipd.detect.risk import contact_risk
 from slipd.geometry import CONTACT_THRESHOLD_N, N_PILLARS
 
@@ -45,6 +46,10 @@ class ContactState:
     load_n: float
     """Magnitude of the total tangential force (the load the grip must hold)."""
     source: str = "features"
+    shear_n: float | None = None
+    """Sum of the pillars' tangential force magnitudes: the load with its twist. A torque (an off-centre object)
+    loads pillars in opposite directions, which cancels in ``load_n``; the whole contact slides once this
+    reaches ``friction * grip_n``. None where it was not computed."""
 
     @property
     def friction_use(self) -> float | None:
@@ -57,7 +62,8 @@ class ContactState:
         """JSON-ready (replay --json, the recorder's decisions)."""
         return {"pillar_slip": [round(p, 4) for p in self.pillar_slip], "friction": self.friction,
                 "friction_sd": self.friction_sd, "contact_risk": round(self.risk, 4), "grip_n": round(self.grip_n, 4),
-                "load_n": round(self.load_n, 4), "pillar_source": self.source}
+                "load_n": round(self.load_n, 4), "pillar_source": self.source,
+                "shear_n": None if self.shear_n is None else round(self.shear_n, 4)}
 
 
 def contact_spec(spec: FeatureSpec) -> FeatureSpec:
@@ -108,27 +114,36 @@ class ContactStream:
         """The state at the end of one filtered window (fx, fy, fz of the nine pillars, [window * 27]); with
         ``pillar_p`` (a model's per-pillar P(slip), [9]) that is the slip map instead of the feature estimate."""
         w = window.reshape(self.spec.window, N_PILLARS, 3)
+        # Nine pillars once per decision: plain floats (a numpy call on nine values costs more than its work).
+        last = w[-1].tolist()
         if pillar_p is None:
-            p, source = self.pillars.update(w), "features"
+            p, source = self.pillars.step(w[0].tolist(), last), "features"
         else:
-            p, source = pillar_p, "model"
-        last = w[-1].astype(np.float64)
-        fz = last[:, 2]
-        ft = last[:, :2]
-        util = np.hypot(ft[:, 0], ft[:, 1]) / np.maximum(fz, CONTACT_THRESHOLD_N)
-        contact = fz > CONTACT_THRESHOLD_N
-        if not contact.any():
+            p, source = np.asarray(pillar_p, np.float64).tolist(), "model"
+        fz, util, contact = utilisation(last)
+        grip = fx = fy = shear = 0.0
+        top = -1.0
+        for (x, y, z), u, c in zip(last, util, contact):
+            if c:
+                grip += z
+                fx += x
+                fy += y
+                shear += math.hypot(x, y)
+                top = max(top, u)
+        if top < 0.0:
             self.friction.reset()  # released: the next grasp may be another object
-        # Only sliding pillars at the contact's top utilisation are samples of mu: a pillar marked sliding
-        # well below the others' ratio is a misjudged sticking one (a sliding tip sits on the limit).
-        top = float(util[contact].max()) if contact.any() else 0.0
-        est = self.friction.update(util, fz, np.where(util >= 0.9 * top, p, 0.0))
+            top = 0.0
+        load = math.hypot(fx, fy)
+        # Only sliding pillars at the contact's top utilisation are samples of mu, and only they put the grip at
+        # risk: a pillar marked sliding well below the others' ratio is a misjudged sticking one (a sliding tip
+        # sits on the limit).
+        p_top = [q if u >= 0.9 * top else 0.0 for q, u in zip(p, util, strict=True)]
+        est = self.friction.update(util, fz, p_top)
         mu = None if est is None else est.mu
-        grip = float(fz[contact].sum())
-        load = float(np.hypot(*ft[contact].sum(0))) if contact.any() else 0.0
         state = ContactState(
-            pillar_slip=tuple(p.tolist()), friction=mu, friction_sd=None if est is None else est.sd,
-            risk=contact_risk(fz, util, p, mu, self.risk_margin), grip_n=grip, load_n=load, source=source,
+            pillar_slip=tuple(p), friction=mu, friction_sd=None if est is None else est.sd,
+            risk=contact_risk(fz, util, p_top, mu, self.risk_margin), grip_n=grip, load_n=load, source=source,
+            shear_n=shear,
         )
         self.latest = state
         return state

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
@@ -282,7 +281,7 @@ class Detector:
         for j, window, filtered, state in self.feature_windows(force[i:]):
             k = i + j
             det = self._decide(window, force[k], int(t_us[k]), base + k)
-            out.append((k, replace(det, contact=self.contact_state(filtered, state))))
+            out.append((k, det.with_contact(self.contact_state(filtered, state))))
             self.step_seconds.append(self.last_step_s)
         return out
 
@@ -320,7 +319,7 @@ class Detector:
         if self._shared:
             filtered, window = window, self._derive(window)
         det = self._decide(window, force, t_us, index)
-        return replace(det, contact=self.contact_state(filtered, state))
+        return det.with_contact(self.contact_state(filtered, state))
 
     def _decide(self, window: np.ndarray, force: np.ndarray, t_us: int, index: int) -> Detection:
         """A completed window (its last sample ``force``, ``index``): contact gate, model step, decision."""
@@ -420,7 +419,7 @@ class HeuristicDetector:
         d = self._det.push(force, t_us, disp)
         if d is not None:
             self.windows += 1
-            d = replace(d, contact=self.contact.latest)
+            d = d.with_contact(self.contact.latest)
         return d
 
     def push_many(

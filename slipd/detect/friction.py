@@ -14,9 +14,8 @@ a new object.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-
-import numpy as np
 
 
 @dataclass(frozen=True)
@@ -44,20 +43,21 @@ class FrictionEstimator:
         self._s = 0.0  # weighted sum of squared deviations
         self.samples = 0
 
-    def update(self, util: np.ndarray, fz: np.ndarray, p_slip: np.ndarray) -> FrictionEstimate | None:
+    def update(self, util: Sequence[float], fz: Sequence[float], p_slip: Sequence[float]) -> FrictionEstimate | None:
         """Add this decision's sliding pillars; returns the estimate (None while none was seen sliding)."""
-        use = (np.asarray(p_slip) >= 0.5) & (np.asarray(fz) > self.min_fz_n) & np.isfinite(util)
-        use &= np.asarray(util) < self.max_mu  # a ratio beyond any real friction is a glitch, not a sample
-        if use.any():
+        # A ratio beyond any real friction (max_mu) is a glitch, not a sample.
+        use = [(float(u), float(w)) for u, w, q in zip(util, fz, p_slip, strict=True)
+               if q >= 0.5 and w > self.min_fz_n and math.isfinite(u) and u < self.max_mu]
+        if use:
             self._w *= self.forget
             self._s *= self.forget
-            for u, w in zip(np.asarray(util, np.float64)[use], np.asarray(fz, np.float64)[use], strict=True):
+            for u, w in use:
                 # West's weighted incremental mean and variance.
                 self._w += w
                 d = u - self._m
                 self._m += d * w / self._w
                 self._s += w * d * (u - self._m)
-            self.samples += int(use.sum())
+            self.samples += len(use)
         return self.estimate()
 
     def estimate(self) -> FrictionEstimate | None:

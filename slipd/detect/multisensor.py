@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import replace
 
 import numpy as np
 
@@ -133,5 +132,5 @@ class MultiDetector:
                 else:
                     self.step_seconds.append(None)
                     d.pillar_p = None
-                out.append((kk, replace(det, contact=d.contact_state(wins[s][m][2], wins[s][m][3]))))
+                out.append((kk, det.with_contact(d.contact_state(wins[s][m][2], wins[s][m][3]))))
         return out

@@ -26,6 +26,7 @@ per-pillar head (manifest ``outputs`` naming ``p_pillar``) may fill the same fie
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,6 +56,23 @@ class PillarSlipParams:
     """Log-odds moved towards stick per window without evidence."""
     limit: float = 6.0
     """Log-odds bound (the state stays finite and recovers within a few windows)."""
+    fall: float = 0.1
+    """A pillar whose utilisation fell by this share over the window while its normal force rose sticks: a
+    sliding tip carries mu * Fz, so a tighter grip raises its tangential force with it (issue 16: the grip
+    that caught a slip must clear the slip state, or the hold rule below keeps it sliding)."""
+
+
+def utilisation(last: list[list[float]]) -> tuple[list[float], list[float], list[bool]]:
+    """Normal forces, utilisations |Ft| / Fz and contact flags of the nine pillars from one sample's
+    ``[[fx, fy, fz], ...]`` (plain floats and one loop: nine-element numpy calls cost more than the arithmetic,
+    and this runs on the hot path once per decision)."""
+    thr = CONTACT_THRESHOLD_N
+    fz, util, contact = [], [], []
+    for fx, fy, z in last:
+        fz.append(z)
+        util.append(math.hypot(fx, fy) / (z if z > thr else thr))
+        contact.append(z > thr)
+    return fz, util, contact
 
 
 class PillarSlip:
@@ -62,54 +80,67 @@ class PillarSlip:
 
     def __init__(self, params: PillarSlipParams | None = None) -> None:
         self.p = params or PillarSlipParams()
-        self._logit = np.full(N_PILLARS, -self.p.limit)
+        self._logit = [-self.p.limit] * N_PILLARS
 
     def reset(self) -> None:
         """A new contact: every pillar sticks."""
-        self._logit[:] = -self.p.limit
+        self._logit = [-self.p.limit] * N_PILLARS
 
     def update(self, window: np.ndarray) -> np.ndarray:
         """One window of filtered forces [W, 9, 3] (tared, finite); returns P(slip) per pillar [9]."""
-        p = self.p
         w = np.asarray(window).reshape(-1, N_PILLARS, 3)
-        # Only the window's first and last samples matter: convert those two, not the whole window (hot path).
-        first, last = w[0].astype(np.float64), w[-1].astype(np.float64)
-        fz = last[:, 2]
-        contact = fz > CONTACT_THRESHOLD_N
-        if not contact.any():
+        return np.array(self.step(w[0].tolist(), w[-1].tolist()))
+
+    def step(self, first: list[list[float]], last: list[list[float]]) -> list[float]:
+        """``update`` on a window's first and last samples (``[[fx, fy, fz], ...]``: only those two matter). Plain
+        loops over the nine pillars: this runs on the hot path once per decision and sensor."""
+        p = self.p
+        fz, util, contact = utilisation(last)
+        fz0, util0, _ = utilisation(first)
+        rate = [math.hypot(b[0] - a[0], b[1] - a[1]) for a, b in zip(first, last)]
+        ref = top = -1.0
+        for i in range(N_PILLARS):
+            if contact[i]:
+                ref = max(ref, rate[i])
+                top = max(top, util[i])
+        if ref < 0.0:  # no pillar in contact
             self.reset()
-            return self.probability()
-        ft = last[:, :2]
-        util = np.hypot(ft[:, 0], ft[:, 1]) / np.maximum(fz, CONTACT_THRESHOLD_N)
-        d = ft - first[:, :2]
-        rate = np.hypot(d[:, 0], d[:, 1])
-        ref = float(rate[contact].max())
-        top = float(util[contact].max())
-        near = util / top if top > 0 else np.zeros(N_PILLARS)
-        step = np.zeros(N_PILLARS)
+            return self.probability_list()
+        near = [u / top for u in util] if top > 0 else [0.0] * N_PILLARS
+        step = [0.0] * N_PILLARS
         if ref > p.rate_floor_n:
-            lag = 1.0 - rate / ref
             # Equal utilisation across pillars of different normal force: a sticking contact shares its
             # load by deflection (equal Ft, so unequal Ft / Fz); only the friction limit equalises Ft / Fz.
-            even = contact & (near > p.even)
-            informative = even.sum() > 1 and fz[even].max() > p.fz_ratio * fz[even].min()
-            sliding = ((lag > p.lag) & (near > p.near)) | (even if informative else False)
-            sticking = (lag < p.lag * 0.5) | (near < p.far)
-            step = np.where(sliding, p.step, np.where(sticking, -p.step, 0.0))
+            even = [contact[i] and near[i] > p.even for i in range(N_PILLARS)]
+            fz_even = [fz[i] for i in range(N_PILLARS) if even[i]]
+            informative = len(fz_even) > 1 and max(fz_even) > p.fz_ratio * min(fz_even)
+            for i in range(N_PILLARS):
+                lag = 1.0 - rate[i] / ref
+                if (lag > p.lag and near[i] > p.near) or (informative and even[i]):
+                    step[i] = p.step  # stopped following the load at the top utilisation: sliding
+                elif lag < p.lag * 0.5 or near[i] < p.far:
+                    step[i] = -p.step  # follows the load, or uses clearly less of its cone: sticking
         else:
             # No load change. Gross slip keeps the sliding pillars at one (the top) utilisation: they hold
             # their state; a pillar below the top decays towards stick (a Coulomb hold does not slide).
-            top_set = contact & (near > p.near)
-            held = top_set.sum() > 1 and bool((self._logit[top_set] > 0).mean() > 0.5)
-            step = np.full(N_PILLARS, -p.decay)
-            if held:
-                step[top_set] = 0.0
-            step[near < p.far] = -p.step
-        step[~contact] = -p.step
-        np.clip(self._logit + step, -p.limit, p.limit, out=self._logit)
-        return self.probability()
+            top_set = [contact[i] and near[i] > p.near for i in range(N_PILLARS)]
+            n_top = sum(top_set)
+            slid = sum(1 for i in range(N_PILLARS) if top_set[i] and self._logit[i] > 0)
+            held = n_top > 1 and slid / n_top > 0.5
+            for i in range(N_PILLARS):
+                step[i] = -p.step if near[i] < p.far else 0.0 if held and top_set[i] else -p.decay
+        lim, logit = p.limit, self._logit
+        for i in range(N_PILLARS):
+            if not contact[i] or (util[i] < (1.0 - p.fall) * util0[i] and fz[i] > fz0[i]):
+                # Off the surface; or its utilisation fell while its normal force rose (``fall``): sticks.
+                step[i] = -p.step
+            logit[i] = min(lim, max(-lim, logit[i] + step[i]))
+        return self.probability_list()
+
+    def probability_list(self) -> list[float]:
+        """P(slip) per pillar, as plain floats."""
+        return [1.0 / (1.0 + math.exp(-lg)) for lg in self._logit]
 
     def probability(self) -> np.ndarray:
         """P(slip) per pillar [9] (a fresh array)."""
-        out: np.ndarray = 1.0 / (1.0 + np.exp(-self._logit))
-        return out
+        return np.array(self.probability_list())

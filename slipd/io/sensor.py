@@ -269,7 +269,7 @@ class SerialSensor:
                 break
             self._on_readable(prompt=False)
         if self._held and self._fd >= 0:
-            self._flush_held()
+            self._flush_held(force=True)
 
     def send_command(self, data: bytes) -> None:
         """Write a controller command (see slipd.io.pts: CMD_BIAS, rate_command(...)). SensorError if not open."""
@@ -311,7 +311,7 @@ class SerialSensor:
         self._connected.set()
         log.info("%s: sensor port open", self.port)
 
-    def pause(self, seconds: float, rate_hz: float) -> bool:
+    def pause(self, seconds: float, rate_hz: float, drained: bool = False) -> bool:
         """Stop watching the port for up to ``seconds``; the frames that arrive meanwhile are read in one go.
 
         The control loop calls this when it knows no decision is due before then: frames wait in the
@@ -319,13 +319,14 @@ class SerialSensor:
         1 ms frame. The pause is refused when bytes are already waiting (the loop is behind: read first)
         and capped so that the frames due meanwhile fill at most ``PAUSE_BUFFER_FRACTION`` of the kernel's
         4 KiB line-discipline buffer: a full buffer throttles the device (USB CDC stops fetching, so frames
-        would queue, or be lost, on its side). Returns True when the reader was paused.
+        would queue, or be lost, on its side). ``drained``: the caller's read just emptied the port (it returned
+        less than it asked for), so the kernel need not be asked. Returns True when the reader was paused.
         """
         if self._fd < 0 or self._loop is None or self._resume_handle is not None or seconds <= 0:
             return False
         if self.frame_bytes > 0 and rate_hz > 0:
             seconds = min(seconds, PAUSE_BUFFER_FRACTION * TTY_BUFFER_BYTES / (self.frame_bytes * rate_hz))
-        if seconds < 1e-3 or self.pending_bytes() > 0:
+        if seconds < 1e-3 or (not drained and self.pending_bytes() > 0):
             return False
         if self._watching:
             self._loop.remove_reader(self._fd)
@@ -460,10 +461,19 @@ class SerialSensor:
             return
         self._deliver(n, now, prompt)
 
-    def _flush_held(self) -> None:
-        """The hold's time is up and no read ended it (the stream stopped, or slowed): hand over what is held."""
-        self._flush_handle = None
-        if self._held and self._fd >= 0:
+    def _flush_held(self, force: bool = False) -> None:
+        """The hold's time may be up: hand over what is held when no read ended the hold in time (the stream
+        stopped, or slowed); a later hold that is still young re-arms the timer for its own deadline.
+        ``force``: hand it over now (a stop)."""
+        if self._flush_handle is not None:
+            self._flush_handle.cancel()  # a no-op when this is the timer's own call
+            self._flush_handle = None
+        if not self._held or self._fd < 0:
+            return
+        deadline = self._hold_since + self._hold_max_s
+        if not force and self._loop is not None and time.monotonic() < deadline:
+            self._flush_handle = self._loop.call_at(deadline, self._flush_held)
+        else:
             self._hold_frames = 0
             # Stamped with the last read's time, not the flush's: these frames are that old, and liveness
             # (a stall, a missing decision) counts from when data last arrived.
@@ -472,9 +482,6 @@ class SerialSensor:
     def _deliver(self, n: int, now: float, prompt: bool = False) -> None:
         """Decode the held bytes and the ``n`` just read, account for them and hand them to the consumer."""
         held, self._held = self._held, 0
-        if self._flush_handle is not None:
-            self._flush_handle.cancel()
-            self._flush_handle = None
         frames: list[Frame] | None = None
         if self.on_block is not None:
             block = self.decoder.feed_block(self._rview[:n])
@@ -533,9 +540,11 @@ class SerialSensor:
             self._hold_frames = 0
             return False
         self._held_read_t = now
-        if self._held == 0 and self._loop is not None:
-            # However the stream goes on (or stops), what is held reaches the consumer within max_s.
-            self._flush_handle = self._loop.call_later(self._hold_max_s, self._flush_held)
+        if self._held == 0 and self._flush_handle is None and self._loop is not None:
+            # However the stream goes on (or stops), what is held reaches the consumer within max_s. One timer
+            # serves every hold: a delivery leaves it armed (it then finds nothing held, or re-arms for the
+            # newer hold's deadline), so a hold per decision adds no timer to the loop's heap.
+            self._flush_handle = self._loop.call_at(now + self._hold_max_s, self._flush_held)
         self._held += n
         self._held_frames += done
         if done:
@@ -546,7 +555,7 @@ class SerialSensor:
             return True
         due = self.expected_arrival(want - self._held_frames)
         if due is not None:
-            self.pause(due - self._hold_margin_s - now, 1.0 / self.period_s)
+            self.pause(due - self._hold_margin_s - now, 1.0 / self.period_s, drained=n < len(self._rbuf))
         return True
 
     def _account(self, block: FrameBlock) -> np.ndarray | None:
