@@ -116,11 +116,11 @@ class ContactStream:
         w = window.reshape(self.spec.window, N_PILLARS, 3)
         # Nine pillars once per decision: plain floats (a numpy call on nine values costs more than its work).
         last = w[-1].tolist()
+        ends = fz, util, contact = utilisation(last)
         if pillar_p is None:
-            p, source = self.pillars.step(w[0].tolist(), last), "features"
+            p, source = self.pillars.step(w[0].tolist(), last, ends), "features"
         else:
             p, source = np.asarray(pillar_p, np.float64).tolist(), "model"
-        fz, util, contact = utilisation(last)
         grip = fx = fy = shear = 0.0
         top = -1.0
         for (x, y, z), u, c in zip(last, util, contact):

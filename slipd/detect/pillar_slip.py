@@ -91,11 +91,13 @@ class PillarSlip:
         w = np.asarray(window).reshape(-1, N_PILLARS, 3)
         return np.array(self.step(w[0].tolist(), w[-1].tolist()))
 
-    def step(self, first: list[list[float]], last: list[list[float]]) -> list[float]:
+    def step(self, first: list[list[float]], last: list[list[float]],
+             ends: tuple[list[float], list[float], list[bool]] | None = None) -> list[float]:
         """``update`` on a window's first and last samples (``[[fx, fy, fz], ...]``: only those two matter). Plain
-        loops over the nine pillars: this runs on the hot path once per decision and sensor."""
+        loops over the nine pillars: this runs on the hot path once per decision and sensor. ``ends``:
+        ``utilisation(last)`` where the caller has it already."""
         p = self.p
-        fz, util, contact = utilisation(last)
+        fz, util, contact = ends or utilisation(last)
         fz0, util0, _ = utilisation(first)
         rate = [math.hypot(b[0] - a[0], b[1] - a[1]) for a, b in zip(first, last)]
         ref = top = -1.0
