@@ -253,26 +253,48 @@ class ReactionConfig(_Section):
         "friction use and risk (reaction.grip_*), the arm stops only at grip_stop_risk or at the force limit",
     )
     grip_margin: float = Field(
-        0.7, gt=0.0, le=1.0, description="grip_control: keep |load| / (friction x grip) below this share"
+        0.7, gt=0.0, le=1.0, description="grip_control: keep the friction use, shear / (friction x grip), at this "
+        "share (the friction is the sliding pillars' estimate, i.e. the kinetic coefficient)"
     )
     grip_max_force_n: float = Field(
         30.0, gt=0.0, le=200.0, description="grip_control: the object's force limit; the grip never exceeds it (N)"
     )
+    grip_catch: float = Field(
+        2.0, ge=1.0, le=10.0, description="grip_control: at the start of a slip the grip jumps to this multiple of "
+        "itself (a sliding contact's shear is its kinetic friction, not the load, so the need is unknown)"
+    )
+    grip_takeover_after_s: float = Field(
+        0.1, ge=0.0, le=60.0, description="grip_control: take the grip over (force control at the force the hold "
+        "setting produced) once it stayed steady this long, so that a catch is one effort change"
+    )
+    grip_twist: float = Field(
+        1.15, ge=1.0, le=100.0, description="grip_control: a slip whose pillar shear is this multiple of the net load "
+        "is a twist (off-centre object turning): the arm stops at once, as the grip alone cannot hold a torque "
+        "while the lift goes on"
+    )
     grip_rise_n_s: float = Field(
-        200.0, gt=0.0, le=10_000.0, description="grip_control: fastest grip increase (N/s): the servo's rate limit"
+        300.0, gt=0.0, le=10_000.0, description="grip_control: fastest grip increase (N/s), about the jaw's own rate "
+        "when it closes by position; a faster jump splays the pillars and makes a loaded contact slip all at once"
     )
     grip_relax_n_s: float = Field(
-        2.0, ge=0.0, le=1000.0, description="grip_control: relaxation towards the holding force (N/s)"
+        2.0, ge=0.0, le=1000.0, description="grip_control: relaxation towards the required (at least the holding) "
+        "force (N/s)"
     )
     grip_relax_after_s: float = Field(
-        1.0, ge=0.0, le=3600.0, description="grip_control: relax only after the risk stayed below grip_raise_risk "
-        "this long"
+        1.0, ge=0.0, le=3600.0, description="grip_control: relax only after the contact stayed quiet (no alarm, "
+        "risk below grip_raise_risk) this long"
     )
     grip_raise_risk: float = Field(
-        0.3, ge=0.0, le=1.0, description="grip_control: contact risk above which the grip rises in proportion to it"
+        0.5, ge=0.0, le=1.0, description="grip_control: contact risk from which the contact counts as slipping "
+        "(as does the detector's alarm): a new slip is caught at once, then the grip follows the requirement"
     )
     grip_stop_risk: float = Field(
-        0.9, ge=0.0, le=1.0, description="grip_control: contact risk at which the arm is stopped as well"
+        0.9, ge=0.0, le=1.0, description="grip_control: contact risk at which the arm is stopped as well (once it "
+        "lasted grip_stop_after_s)"
+    )
+    grip_stop_after_s: float = Field(
+        0.15, ge=0.0, le=60.0, description="grip_control: how long the risk must stay at grip_stop_risk before the "
+        "arm stops (the grip had its chance to catch the slip)"
     )
     grip_update_hz: float = Field(
         62.0, gt=0.0, le=1000.0, description="grip_control: most grip commands per second (the servo's update rate)"

@@ -12,8 +12,9 @@ Policies:
 - ``rearm_after_s``: after a reaction, further alarms within this time do not re-issue the same
   commands (the grasp is being secured already), except a graded escalation.
 - ``policy``: ``stop_and_secure`` (the above) or ``grip_control``: the grip follows every decision's contact
-  state (``slipd.daemon.grip_control``: least grip that keeps a friction margin; the arm stops only at a
-  high risk or at the force limit); alarms then raise the grip instead of running the actions.
+  state (``slipd.daemon.grip_control``: least grip that keeps a friction margin, a slip caught at once; the
+  arm stops only at a held high risk, at the force limit, or for a twist); alarms then raise the grip instead
+  of running the actions.
 Fail-safe (sensor stall, model failure, a device error while reacting): stop the arm, keep the grip.
 
 A tighten that failed (the servo did not answer) stays owed until the grasp is reset: ``retry_tighten``

@@ -392,8 +392,11 @@ def summarise(physics: RigPhysics, scene_path: Any, react: bool, daemon_log: str
     alarms = [float(m) - offset for m in _ALARM_RE.findall(daemon_log)]
     alarm_s = alarms[0] if alarms else None
     stop_i = _index_of(mono, ur_state.last_stop_received_t) if ur_state.stop_count else None
-    tighten = [w.t for w in writes if w.address in (116, 30) and
-               int.from_bytes(bytes(w.data[:2]), "little") == secure_position]
+    # A reaction is a write from the lift on: a tighten (the secure goal position) or, under grip_control, a new
+    # grip force (Goal PWM). grip_control's take-over at the hold force goes out before the lift: not a reaction.
+    t_lift = mono[lift] if n else 0.0
+    tighten = [w.t for w in writes if w.t >= t_lift and (w.address == 100 or (
+        w.address in (116, 30) and int.from_bytes(bytes(w.data[:2]), "little") == secure_position))]
     tighten_i = _index_of(mono, tighten[0]) if tighten else None
     reached = max([i for i in (stop_i, tighten_i) if i is not None], default=None)
     speed = np.hypot(*np.gradient(motion[:, :2], DT_S, axis=0).T) if n > 2 else np.zeros(n)

@@ -105,3 +105,33 @@ def test_a_detector_on_all_nine_pillars_shares_its_filtered_window_with_the_cont
     one = Detector(ens, Decision(), offset=offset)
     singles = [d.contact for d in (one.push(x, i * 1000) for i, x in enumerate(f)) if d is not None]
     assert got == expected == singles and len(expected) == (900 - 40) // ens.feature_spec.step + 1
+
+
+def test_a_grip_that_caught_the_slip_clears_the_slip_state_and_keeps_the_friction() -> None:
+    """Issue 16: after the corners slid, the grip doubles with the load held: the corners' utilisation halves,
+    so they stick (no lingering slip state), and their sticking ratios never pull the friction estimate down."""
+    mu = 0.5
+    f = _loading(600, {0, 2, 6, 8}, mu=mu)
+    stream = ContactStream(FeatureSpec(window=40, stride=10))
+    stream.push_many(f)
+    before = stream.latest
+    assert before is not None and before.friction is not None and max(before.pillar_slip) > 0.9
+    hold = np.repeat(f[-1:], 400, axis=0)
+    hold[:100, :, 2] *= np.linspace(1.0, 2.0, 100)[:, None]  # the grip rises over 0.1 s, tangential forces stay
+    hold[100:, :, 2] *= 2.0
+    stream.push_many(hold)
+    after = stream.latest
+    assert after is not None and max(after.pillar_slip) < 0.5
+    assert after.friction is not None and abs(after.friction - before.friction) < 0.01
+    assert after.risk < 0.5
+
+
+def test_shear_counts_a_twist_that_cancels_in_the_net_load() -> None:
+    f = np.zeros((100, 9, 3))
+    f[:, :, 2] = FZ
+    f[:, [0, 3, 6], 1] = 0.2  # one column pushed up, the other down: a torque, no net load
+    f[:, [2, 5, 8], 1] = -0.2
+    stream = ContactStream(FeatureSpec(window=40, stride=10))
+    stream.push_many(f)
+    s = stream.latest
+    assert s is not None and s.load_n < 1e-6 and s.shear_n is not None and abs(s.shear_n - 1.2) < 1e-6
