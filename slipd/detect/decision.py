@@ -78,8 +78,9 @@ class Decision:
         self.alarm = alarm
         frac = None
         if p_members is not None:
-            pm = np.asarray(p_members, dtype=np.float64).reshape(-1)
-            frac = int(np.count_nonzero(pm >= self.threshold)) / pm.size if pm.size else 0.0
+            # Five members once per decision: plain floats (float32 values compared exactly as float64).
+            pm = np.asarray(p_members).reshape(-1).tolist()
+            frac = sum(1 for v in pm if v >= self.threshold) / len(pm) if pm else 0.0
         return DecisionResult(alarm, rising, min(1.0, p / self.threshold), frac)
 
 

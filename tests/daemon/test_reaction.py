@@ -1,6 +1,7 @@
 """Reaction policy (unit level: recording doubles of the devices; the real drivers are tested end to end)."""
 
 import threading
+import time
 
 from slipd.daemon.reaction import Reaction
 from slipd.daemon.worker import DeviceWorker
@@ -80,10 +81,21 @@ def test_gripper_failure_falls_back_to_arm_stop() -> None:
     assert r.failsafe_count == 1 and "tighten_gripper" in r.records[0].errors
 
 
+def _until(cond, timeout: float = 5.0) -> bool:
+    """Poll ``cond`` until true or ``timeout``: a future's done callbacks run in its worker after ``exception()``
+    has returned in the caller, so what a callback sets is not there yet when the future is."""
+    end = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.005)
+    return True
+
+
 def test_failed_tighten_is_owed_and_retried_once_the_servo_answers() -> None:
     r, arm, grip, _ = _reaction(graded=True, grip_fail=True)
     _wait(r.on_alarm(0.6))
-    assert arm.event.wait(5) and r.tighten_owed == 0.6
+    assert arm.event.wait(5) and _until(lambda: r.tighten_owed == 0.6)
     grip.fail = False  # the servo answers again
     _wait([r.retry_tighten()])
     assert grip.calls == [("tighten", 0.6)]
