@@ -213,7 +213,11 @@ class GripController:
             self._low_since = None
             # While it slides the shear is mu * grip, so the requirement grows with the grip by itself (1 / margin
             # per servo response) until the contact holds; a new slip is caught at once.
-            if new_slip:
+            # Every friction estimate errs low, so the use computed with it errs high: a contact whose computed use
+            # is below halfway from the margin to the limit cannot be sliding as a whole (an alarm on a load that
+            # changes, or on the pillars splaying under a rising grip). It keeps its requirement, without a catch.
+            plausible = mu is None or shear / (mu * grip) >= (1.0 + s.margin) / 2
+            if new_slip and plausible:
                 self._catch_n = self._slip_grip * s.catch
             want = max(required, self._catch_n)
         else:

@@ -64,7 +64,7 @@ def test_what_the_closing_left_is_not_a_slip_nor_the_friction() -> None:
     t = _run(c, t, 20, 20.0, 1.0, 0.05, 0.7)  # loaded: 1 / (0.05 * 0.8) = 25 N if that friction were believed
     assert c.target == 20.0 and stops == []
     t = _run(c, t, 5, 20.0, 1.0, 0.05, 0.2)  # the stale risk has gone
-    t = _run(c, t, 1, 20.0, 1.5, 0.1, 0.7)  # a real slip now, with a friction estimate that moved
+    t = _run(c, t, 1, 20.0, 2.0, 0.1, 0.7)  # a real slip now, with a friction estimate that moved
     assert c.target is not None and c.target > 20.0
 
 
@@ -102,15 +102,32 @@ def test_the_requirement_counts_the_twist_and_a_twist_stops_the_arm_at_once() ->
     jaw = Jaw()
     c, stops, _ = _ctl(jaw, catch=2.0, margin=0.8, twist=1.15, max_force_n=40.0)
     t = _run(c, 0.0, 20, 20.0, 0.0, None, 0.0)
-    t = _run(c, t, 1, 20.0, 1.0, 0.1, 0.6, alarm=True, shear=1.1)  # slides straight down
+    t = _run(c, t, 1, 20.0, 1.0, 0.06, 0.6, alarm=True, shear=1.1)  # slides straight down
     assert stops == [] and c.target is not None and c.target > 20.0
-    t = _run(c, t, 1, 20.0, 1.0, 0.1, 0.9, alarm=True, shear=2.0)  # and turns
+    t = _run(c, t, 1, 20.0, 0.6, 0.06, 0.9, alarm=True, shear=2.0)  # and turns
     assert stops == ["grip control: twist"]
     # The catch is called off (the arm stop holds a twist; a grip jump makes the pillars slip all at once):
-    # the grip follows the net load's requirement, 1 / (0.1 * 0.8) = 12.5 N, kept at the grip it has.
+    # the grip follows the net load's requirement, 0.6 / (0.06 * 0.8) = 12.5 N, kept at the grip it has.
     assert c.target is not None and c.target <= 20.0 + 1e-9
-    t = _run(c, t, 20, 20.0, 1.0, 0.1, 0.9, alarm=True, shear=2.0)
+    t = _run(c, t, 20, 20.0, 0.6, 0.06, 0.9, alarm=True, shear=2.0)
     assert c.target is not None and c.target <= 20.0 + 1e-9 and len(stops) == 1
+
+
+def test_no_catch_where_the_friction_in_use_rules_a_slide_out() -> None:
+    """Every friction estimate errs low, so the use computed with it errs high: an alarm on a contact whose computed
+    use is below halfway from the margin to the limit (a changing load, pillars splaying under a rising grip) keeps
+    the requirement without a catch; one at the limit is caught."""
+    jaw = Jaw()
+    c, _, _ = _ctl(jaw, catch=2.0, margin=0.8, max_force_n=40.0)
+    t = _run(c, 0.0, 20, 20.0, 0.0, None, 0.0)
+    t = _run(c, t, 5, 20.0, 1.0, 0.1, 0.0)  # a friction estimate from slid pillars
+    t = _run(c, t, 5, 20.0, 1.0, 0.1, 0.0, alarm=True)  # use 1 / (0.1 * 20) = 0.5
+    assert c.target == 20.0
+    t = _run(c, t, 120, 20.0, 1.0, 0.1, 0.0)  # quiet past relax_after_s: the next alarm is a new slip
+    g = c.target
+    assert g is not None
+    _run(c, t, 10, g, 0.1 * g, 0.1, 0.0, alarm=True)  # at the limit
+    assert c.target is not None and abs(c.target - 2.0 * g) < 1e-9
 
 
 def test_never_beyond_the_force_limit_and_the_arm_stops_there() -> None:
