@@ -2,6 +2,7 @@
 decision strides 40 / 20 / 10, the decode-only baseline and the machine's floor for this work, side by side.
 
     python tools/bench_daemon.py [--seconds 30] [--model slipd/models/slip_ensemble_int8.json] [--json FILE]
+    python tools/bench_daemon.py --baseline-tree /tmp/base --strides 10 [--reps 4] [--seconds 15]
 
 Per configuration (sensors x stride):
 
@@ -15,6 +16,9 @@ Per configuration (sensors x stride):
 2. **CPU share**: ``slipd run`` as its own process, fed 1 kHz frames of a quiet hold (in contact, so the model
    steps on every window of every sensor), CPU seconds per wall second from /proc (process CPU time: valid on
    a loaded machine; the load average is printed beside it).
+
+``--baseline-tree DIR`` measures what a change saves: the CPU share of this tree and of another checkout's
+``slipd`` (e.g. ``git worktree add /tmp/base <commit>``), runs alternating on the same stream.
 
 Beside them: a process that only reads and decodes the same frames (``--decode-only``, one and two sensors,
 reading every frame as it arrives), and the floor of the work on this machine: the bytes (frames read once,
@@ -177,9 +181,9 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int) -> 
 
 
 # ---------------------------------------------------------------------------------------------- CPU
-def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None) -> float:
+def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None, tree: Path | None = None) -> float:
     """CPU seconds per wall second of one process reading the 1 kHz stream (``slipd run``; decode-only when
-    ``stride`` is None)."""
+    ``stride`` is None). ``tree``: run the ``slipd`` of that source tree instead of this one (``--baseline-tree``)."""
     from slipd.sim.devices.mx28 import EmulatedMX28
     from slipd.sim.devices.papillarray import EmulatedPapillArray
 
@@ -190,7 +194,11 @@ def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None) -> 
         else:
             cfg = _config(Path(tmp), model, sensor.port, servo.port, sensors, stride)
             cmd = [sys.executable, "-m", "slipd", "run", "--config", str(cfg)]
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        env = None
+        if tree is not None:  # the other tree's package first on the path (an editable install points here)
+            env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])}
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+                                cwd=tree if tree is not None else None)
         try:
             time.sleep(4.0)  # start-up (imports, warm-up) is not the steady state
             sensor.start()
@@ -265,6 +273,32 @@ def floor_share(model: Path, sensors: int, stride: int, bw: float, flops_rate: f
 
 
 # ---------------------------------------------------------------------------------------------- main
+def compare_trees(args: argparse.Namespace) -> int:
+    """``--baseline-tree``: CPU share of this tree and of the baseline, alternating (A B B A ...) so that a drift
+    in the machine's state hits both alike; mean and each run per configuration."""
+    trees = {"baseline": args.baseline_tree.resolve(), "this tree": ROOT}
+    print(f"A/B CPU share, {args.seconds:g} s per run, {args.reps} runs each, baseline {trees['baseline']}, "
+          f"load average {os.getloadavg()[0]:.2f}")
+    out = []
+    for sensors in args.sensors:
+        for stride in args.strides:
+            got: dict[str, list[float]] = {k: [] for k in trees}
+            for r in range(args.reps):
+                for name in (trees if r % 2 == 0 else reversed(list(trees))):
+                    got[name].append(100 * cpu_share(args.model, args.seconds, sensors, stride, trees[name]))
+            row = {"sensors": sensors, "stride": stride, **{k: v for k, v in got.items()}}
+            out.append(row)
+            a, b = (float(np.mean(got[k])) for k in trees)
+            print(f"  {sensors} sensor(s) stride {stride}: baseline {a:.2f} % -> this tree {b:.2f} % "
+                  f"({100 * (b - a) / a:+.0f} %); runs {[round(x, 1) for x in got['baseline']]} / "
+                  f"{[round(x, 1) for x in got['this tree']]}", flush=True)
+    print(f"load average at the end {os.getloadavg()[0]:.2f}")
+    if args.json:
+        args.json.write_text(json.dumps({"ab": out, "baseline": str(trees["baseline"]), "seconds": args.seconds},
+                                        indent=1))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run every configuration and print them side by side."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -274,11 +308,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sensors", type=int, nargs="*", default=[1, 2], help="sensor counts to run")
     p.add_argument("--strides", type=int, nargs="*", default=list(STRIDES), help="decision strides to run")
     p.add_argument("--json", type=Path, help="also write the figures as JSON: {runs: [...]}")
+    p.add_argument("--baseline-tree", type=Path, metavar="DIR",
+                   help="A/B the CPU share instead: this tree against the slipd of another checkout (e.g. `git "
+                        "worktree add /tmp/base <commit>`), alternating runs on the same stream, at --strides")
+    p.add_argument("--reps", type=int, default=4, help="with --baseline-tree: runs of each tree per configuration")
     p.add_argument("--decode-only", metavar="PORT", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.decode_only:
         decode_only(args.decode_only, args.sensors[0])
         return 0
+    if args.baseline_tree:
+        return compare_trees(args)
     logging.getLogger("slipd").setLevel(logging.ERROR)  # one alarm per window here: keep the log quiet
     load0 = os.getloadavg()[0]
     runs: list[dict[str, Any]] = []
