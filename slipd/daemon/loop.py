@@ -336,26 +336,18 @@ class Daemon:
             vals = np.concatenate([vals, disp.reshape(n, self.sensors, -1)], axis=2)
         finite = np.isfinite(vals).all(axis=2)  # [n, S]
         prev = self._prev_sample
-        all_finite = bool(finite.all())
-        if all_finite and prev is not None:
-            # The common block: every sample finite, so a sensor is fresh when any of its values changed
-            # anywhere in the block (against the sample before it): two comparisons instead of per-sample masks.
-            fresh = (vals[0] != prev).any(axis=1)
-            if n > 1:
-                fresh |= (vals[1:] != vals[:-1]).any(axis=(0, 2))
-        else:
-            changed = np.empty((n, self.sensors), bool)
-            changed[0] = True if prev is None else (vals[0] != prev).any(axis=1)
-            if n > 1:
-                changed[1:] = (vals[1:] != vals[:-1]).any(axis=2)
-            fresh = (finite & changed).any(axis=0)
+        changed = np.empty((n, self.sensors), bool)
+        changed[0] = True if prev is None else (vals[0] != prev).any(axis=1)
+        if n > 1:
+            changed[1:] = (vals[1:] != vals[:-1]).any(axis=2)
         self._prev_sample = vals[-1].copy()
+        fresh = (finite & changed).any(axis=0)
         if fresh.any():
             # When the data arrived (a held block can be handed over up to half a stall timeout later).
             arrived = self.sensor.last_frame_time if self.sensor is not None else None
             self._fresh_ts[fresh] = time.monotonic() if arrived is None else arrived
             self._fresh_t = float(self._fresh_ts.min())
-        if all_finite:
+        if finite.all():
             self._nonfinite_run[:] = 0
             return
         # Rare (a fault): follow each sensor's run of non-finite samples across blocks; a run longer than the

@@ -26,14 +26,13 @@ def contact_risk(fz: Sequence[float], util: Sequence[float], p_slip: Sequence[fl
 
     A loop over the nine pillars (once per decision on the hot path: cheaper than numpy on nine values)."""
     thr = CONTACT_THRESHOLD_N
-    known = mu is not None and mu > 0.0 and margin > 0.0
+    limit = mu if mu is not None and mu > 0.0 and margin > 0.0 else None  # None: only the slip counts
     num = den = 0.0
     for z, u, q in zip(fz, util, p_slip, strict=True):
         if z > thr:
             share = float(q)
-            if known:
-                assert mu is not None
-                share = max(share, min(1.0, max(0.0, (u / mu - (1.0 - margin)) / margin)))
+            if limit is not None:
+                share = max(share, min(1.0, max(0.0, (u / limit - (1.0 - margin)) / margin)))
             num += z * share
             den += z
     if den == 0.0:
