@@ -332,3 +332,15 @@ def test_only_trains_the_listed_members_and_they_equal_a_full_run(data_dir: Path
         assert torch.equal(value, part["state_dict"][key]), key
     with pytest.raises(SystemExit):
         T.main([*args, "--out", str(tmp_path / "bad"), "--only", "2"])
+
+
+def test_early_weights_mark_the_first_windows_of_each_positive_run() -> None:
+    # Two lanes: lane 0 has two positive runs (the second longer than the early span); lane 1 starts a new
+    # sequence (keep 0) in the middle of positives, which starts a new run.
+    y = torch.tensor([[0, 1, 1, 1, 0, 1, 1, 1, 1, 1], [1, 1, 1, 1, 1, 1, 0, 0, 0, 0]])
+    keep = torch.ones(2, 10)
+    keep[1, 3] = 0.0
+    w = T.early_weights(y, keep, 2, 5.0)
+    assert w[0].tolist() == [1, 5, 5, 1, 1, 5, 5, 1, 1, 1]
+    assert w[1].tolist() == [5, 5, 1, 5, 5, 1, 1, 1, 1, 1]
+    assert torch.equal(T.early_weights(y, keep, 0, 5.0), torch.ones(2, 10))
