@@ -522,7 +522,13 @@ def main(argv: list[str] | None = None) -> int:
         from slipd.detect.manifest import update_metrics
 
         key = f"eval_{folder.name}"
-        update_metrics(args.model, {key: {"data": str(folder), "threshold": threshold, **summary.to_dict()}})
+        rec = summary.to_dict()
+        # The headline scalar beside the full summary (``slipd models`` prints scalars): online success where the
+        # set has gripper trials, else offline success.
+        head = rec["online"] if rec.get("online") else rec.get("offline")
+        scalar = {f"{folder.name}_{'online_' if rec.get('online') else ''}success": round(head["success_rate"], 4)} \
+            if head and head.get("success_rate") is not None else {}
+        update_metrics(args.model, {key: {"data": str(folder), "threshold": threshold, **rec}, **scalar})
         print(f"recorded {key} in {args.model}")
     return 0
 

@@ -361,15 +361,51 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--holds-limit", type=int, default=0, help="the same for the holds, per hold type")
     p.add_argument("--out", default=str(ROOT / "reports" / "robustness"),
                    help="report path without suffix (.md and .json are written)")
+    p.add_argument("--record-manifest", action="store_true",
+                   help="merge the --model's figures (all families, holds, folds) into its manifest's metrics")
+    p.add_argument("--from-report", metavar="JSON",
+                   help="with --record-manifest: record from this written report instead of running again")
     args = p.parse_args(argv)
-    report = run(args)
-    print_report(report)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")
-    out.with_suffix(".md").write_text(markdown(report))
-    print(f"\nwrote {out.with_suffix('.md')} and {out.with_suffix('.json')} ({report['seconds']} s)")
+    if args.record_manifest and not args.model:
+        p.error("--record-manifest needs --model")
+    if args.from_report:
+        if not args.record_manifest:
+            p.error("--from-report is for --record-manifest")
+        report = json.loads(Path(args.from_report).read_text())
+        if str(args.model) not in {d["source"] for d in report["detectors"]}:
+            p.error(f"--from-report {args.from_report} did not benchmark {args.model}")
+    else:
+        report = run(args)
+        print_report(report)
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")
+        out.with_suffix(".md").write_text(markdown(report))
+        print(f"\nwrote {out.with_suffix('.md')} and {out.with_suffix('.json')} ({report['seconds']} s)")
+    if args.record_manifest:
+        from slipd.detect.manifest import update_metrics
+
+        update_metrics(args.model, manifest_figures(report, args.out if not args.from_report else args.from_report))
+        print(f"recorded the robustness figures in {args.model}")
     return 0
+
+
+def manifest_figures(report: dict, where: str) -> dict:
+    """The model's figures as the manifest keeps them (``slipd models`` prints the scalars)."""
+    fams = report["families"].get("slipd", {})
+    holds = report["holds"].get("slipd", {})
+    md = Path(where).with_suffix(".md").resolve()
+    rob: dict = {"report": str(md.relative_to(ROOT)) if md.is_relative_to(ROOT) else str(md),
+                 "robust_all": fams.get("all"), "holds_all": holds.get("all"),
+                 "lofo": {fam: {k: f[k] for k in ("success", "balanced", "stop_false_alarms")}
+                          for fam, f in (report.get("lofo") or {}).items()}}
+    out: dict = {"robustness": rob}
+    if fams.get("all"):
+        out["robust_test_success"] = round(fams["all"]["success"], 4)
+    if holds.get("all"):
+        out["holds_false_alarms_per_hour"] = round(holds["all"]["false_alarms_per_hour"], 4)
+        out["holds_p_slip_margin"] = round(holds["all"]["margin"], 4)
+    return out
 
 
 if __name__ == "__main__":

@@ -237,8 +237,15 @@ def test_evaluate_model_end_to_end(scenes: Path, tmp_path: Path) -> None:
     # The figures went into the manifest, which still loads (hash of the ONNX file unchanged).
     from slipd.detect.manifest import load_manifest
 
-    recorded = load_manifest(tmp_path / "tiny.json").metrics[f"eval_{scenes.name}"]
+    metrics = load_manifest(tmp_path / "tiny.json").metrics
+    recorded = metrics[f"eval_{scenes.name}"]
     assert recorded["offline"] == data["summary"]["offline"]
+    # ... with its headline scalar (online success where the scenes have gripper trials, else offline), which
+    # ``slipd models`` prints.
+    online = data["summary"].get("online")
+    key, head = (f"{scenes.name}_online_success", online) if online else (f"{scenes.name}_success",
+                                                                           data["summary"]["offline"])
+    assert metrics[key] == round(head["success_rate"], 4)
     results = [SceneResult(**r) for r in data["scenes"]]
     again = summarize(results).to_dict()
     assert again == data["summary"]

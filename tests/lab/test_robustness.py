@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from slipd.sim import parse_scene
 from slipd.sim.datasets import MEASUREMENT, write_dataset
 from slipd.sim.scene import generate_batch
@@ -52,3 +54,20 @@ def test_robustness_tool_runs_end_to_end(tmp_path, capsys):
     printed = capsys.readouterr().out
     for title in ("Every detector on every physics family", "Holds:", "Leave-one-family-out", "Seeds:"):
         assert title in text and title in printed
+    # Recording the figures into a manifest reuses the written report and keeps the manifest loadable.
+    import shutil
+
+    from slipd.detect.manifest import load_manifest
+
+    for f in ("slip_ensemble_int8.json", "slip_ensemble_int8.onnx"):
+        shutil.copy(f"slipd/models/{f}", tmp_path / f)
+    model = str(tmp_path / "slip_ensemble_int8.json")
+    with pytest.raises(SystemExit):  # a report of another model is refused
+        main(["--model", model, "--record-manifest", "--from-report", str(out.with_suffix(".json"))])
+    report["detectors"][0]["source"] = model
+    out.with_suffix(".json").write_text(json.dumps(report))
+    assert main(["--model", model, "--record-manifest", "--from-report", str(out.with_suffix(".json"))]) == 0
+    metrics = load_manifest(model).metrics
+    assert metrics["robust_test_success"] == round(fam["success"], 4)
+    assert metrics["robustness"]["lofo"]["viscoelastic"]["success"] == report["lofo"]["viscoelastic"]["success"]
+    assert metrics["holds_p_slip_margin"] == round(holds["all"]["margin"], 4)
