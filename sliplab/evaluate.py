@@ -525,9 +525,10 @@ def main(argv: list[str] | None = None) -> int:
         rec = summary.to_dict()
         # The headline scalar beside the full summary (``slipd models`` prints scalars): online success where the
         # set has gripper trials, else offline success.
-        head = rec["online"] if rec.get("online") else rec.get("offline")
-        scalar = {f"{folder.name}_{'online_' if rec.get('online') else ''}success": round(head["success_rate"], 4)} \
-            if head and head.get("success_rate") is not None else {}
+        online = rec.get("online")
+        name, head = (f"{folder.name}_online_success", online) if online else (f"{folder.name}_success",
+                                                                               rec.get("offline"))
+        scalar = {name: round(head["success_rate"], 4)} if head and head.get("success_rate") is not None else {}
         update_metrics(args.model, {key: {"data": str(folder), "threshold": threshold, **rec}, **scalar})
         print(f"recorded {key} in {args.model}")
     return 0

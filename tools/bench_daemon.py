@@ -286,7 +286,7 @@ def compare_trees(args: argparse.Namespace) -> int:
             for r in range(args.reps):
                 for name in (trees if r % 2 == 0 else reversed(list(trees))):
                     got[name].append(100 * cpu_share(args.model, args.seconds, sensors, stride, trees[name]))
-            row = {"sensors": sensors, "stride": stride, **{k: v for k, v in got.items()}}
+            row = {"sensors": sensors, "stride": stride, **got}
             out.append(row)
             a, b = (float(np.mean(got[k])) for k in trees)
             print(f"  {sensors} sensor(s) stride {stride}: baseline {a:.2f} % -> this tree {b:.2f} % "
