@@ -58,7 +58,12 @@ OBJECTS: dict[str, dict[str, Any]] = {
     "pringles_can": {"mass_kg": 0.3, "mu_s": 0.12, "mu_k": 0.1, "size_mm": 75.0, "curvature_1_mm": 1 / 37},
     "thermos_flask": {"mass_kg": 1.0, "mu_s": 0.2, "mu_k": 0.16, "size_mm": 70.0, "curvature_1_mm": 1 / 35},
 }
-OFFCENTRE_MM = 15.0
+OFFCENTRE_MM = 4.0
+"""Centre of mass beside the grasp in off-centre lifts. The secure grip of a stop trial must hold the object (no
+gross motion), and the torque of an off-centre weight is held by the grip times the contacts' short lever arms:
+``python tools/stabilize.py --holding`` finds every object held by its stop trial's grip at 4 mm (at 1.2-1.3 x the
+least grip that holds it), while at 15 mm (generator ``slipd.sim/2``) no grip up to 60 N holds any of them, so
+every off-centre "stop" trial turned some 80 degrees under a no-slip label."""
 GRIP_FRACTIONS = (0.6, 0.75, 0.9)
 """Slip trials grip at these fractions of the force that would just hold the load."""
 TRANSFER_MOTIONS = ("lift", "lift_offcentre", "push")

@@ -53,8 +53,10 @@ from slipd.sim.physics import (
     sensor_params,
 )
 
-GENERATOR_VERSION = "slipd.sim/2"
-"""2: the reported tip displacements carry the force measurement error (``physics.measured_disp``)."""
+GENERATOR_VERSION = "slipd.sim/3"
+"""2: the reported tip displacements carry the force measurement error (``physics.measured_disp``). 3: off-centre
+lifts put the centre of mass 4 mm beside the grasp instead of 15 mm (``datasets.OFFCENTRE_MM``), so that a stop trial's
+secure grip holds the object."""
 GROSS_MM, GROSS_DEG = 2.0, 2.0
 UR_LEVELS = {"low": (4.0, 10.0), "medium": (10.0, 50.0), "high": (40.0, 100.0)}
 """UR ``movel`` speed (mm/s) and acceleration (mm/s^2) levels of the method's online trials."""

@@ -28,10 +28,12 @@ def test_an_under_gripped_object_slips_below_its_holding_grip_and_is_held_above_
     assert tr[1] < 0.5 and rot[1] < 0.5
 
 
-def test_an_off_centre_object_turns_at_the_servos_full_force() -> None:
-    """The torque of an off-centre weight needs far more grip than the weight: the rig's grip control cannot
-    complete such a lift without stopping the arm (reports/holding.md)."""
-    res = least_holding_grip(load_scene(SCENES / "coffee_jar_offcentre.yaml"), max_n=40.0, step_n=10.0)
+def test_an_off_centre_weight_needs_grip_times_lever_arms() -> None:
+    """The rig's off-centre coffee jar (4 mm) is held within the servo's 40 N; 15 mm out (generator slipd.sim/2) it
+    turns at any grip up to 60 N: the contacts' lever arms are a few millimetres."""
+    scene = load_scene(SCENES / "coffee_jar_offcentre.yaml")
+    res = least_holding_grip(scene, max_n=60.0, step_n=5.0)
+    assert res.least_n is not None and res.least_n <= 40.0
+    far = scene.model_copy(update={"object": scene.object.model_copy(update={"com_offset_mm": (15.0, 0.0)})})
+    res = least_holding_grip(far, max_n=60.0, step_n=10.0)
     assert res.least_n is None and res.rotation_deg[-1] > 10.0
-    held = least_holding_grip(load_scene(SCENES / "coffee_jar_undergrip.yaml"), max_n=40.0, step_n=5.0)
-    assert held.least_n is not None and 15.0 <= held.least_n <= 30.0

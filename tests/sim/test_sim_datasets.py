@@ -89,3 +89,16 @@ def test_realism_runs_on_recordings(robust_folder, reference_ckpt_dir, capsys):
     assert realism.main(["--recordings", str(robust_folder), "--limit", "5", "--ckpt", str(reference_ckpt_dir)]) == 0
     out = capsys.readouterr().out
     assert "5 of 5 recordings" in out and "physics family" in out and "stick_slip" in out
+
+
+def test_every_stop_trial_of_the_transfer_design_holds_its_object():
+    """A stop trial is labelled no-slip throughout, so its secure grip must hold: no gross motion (2 mm / 2 deg) at
+    the fastest lift. Off-centre lifts are the hard case (generator slipd.sim/2 put the centre of mass 15 mm out,
+    where no grip up to 60 N holds any object, and every off-centre stop trial turned ~80 deg)."""
+    from slipd.sim.scene import GROSS_DEG, GROSS_MM, generate_batch, parse_scene
+
+    stops = [d for d in transfer_design() if d["trial"] == "stop" and d["motion"]["level"] == "high"]
+    recs = generate_batch([parse_scene(d) for d in stops], [0] * len(stops))
+    for d, r in zip(stops, recs, strict=True):
+        mot = r.object_motion - r.object_motion[0]
+        assert np.hypot(mot[:, 0], mot[:, 1]).max() < GROSS_MM and np.abs(mot[:, 2]).max() < GROSS_DEG, d["name"]
