@@ -34,11 +34,11 @@ from slipd.sim.scene import (
     secure_grip_n,
 )
 
-SETS = ("offline", "transfer", "robust", "holds", "grips")
+SETS = ("offline", "transfer", "robust", "holds", "grips", "twists")
 SPLITS = ("train", "test")
 _SPLIT_BASE = {"train": 0, "test": 1 << 30}
-_SET_ID = {"offline": 1, "transfer": 2, "robust": 3, "holds": 4, "grips": 5}
-_TAGGED = ("robust", "holds", "grips")
+_SET_ID = {"offline": 1, "transfer": 2, "robust": 3, "holds": 4, "grips": 5, "twists": 6}
+_TAGGED = ("robust", "holds", "grips", "twists")
 
 # Effects of a realistic measurement chain, listed by every data-set scene.
 MEASUREMENT = [{"name": "lowpass"}, {"name": "noise"}, {"name": "quantisation"}]
@@ -141,14 +141,17 @@ def offline_scene(rng: np.random.Generator, index: int, stop_prob: float | None 
 
 def gripper_scene(obj_name: str, motion: str, level: str, grip_fraction: float | None,
                   name: str | None = None, close_s: float | None = None, settle_s: float | None = None,
-                  sensor: str = "v2") -> dict[str, Any]:
+                  sensor: str = "v2", offcentre_mm: float = OFFCENTRE_MM) -> dict[str, Any]:
     """One gripper trial on the v2 sensor. ``grip_fraction`` None = a secure-grip stop trial.
 
     ``close_s``/``settle_s``: how fast the grip closes and how long it holds still before the arm moves
-    (default: the scene defaults, as in the transfer design); the recording grows by the extra settle."""
+    (default: the scene defaults, as in the transfer design); the recording grows by the extra settle.
+    ``offcentre_mm``: where an off-centre lift puts the centre of mass (a stop trial needs one its grip holds)."""
+    if grip_fraction is None and motion == "lift_offcentre" and offcentre_mm != OFFCENTRE_MM:
+        raise ValueError(f"a stop trial's secure grip holds an off-centre object at {OFFCENTRE_MM} mm only")
     spec = dict(OBJECTS[obj_name])
     offcentre = motion == "lift_offcentre"
-    spec["com_offset_mm"] = [OFFCENTRE_MM, 0.0] if offcentre else [0.0, 0.0]
+    spec["com_offset_mm"] = [float(offcentre_mm), 0.0] if offcentre else [0.0, 0.0]
     obj = ObjectModel(name=obj_name, **spec)
     kind = "push" if motion == "push" else "lift"
     resist = 0.5 * obj.mass_kg * 9.81
@@ -157,7 +160,7 @@ def gripper_scene(obj_name: str, motion: str, level: str, grip_fraction: float |
     else:
         hold = obj.mass_kg * 9.81 / (2 * obj.mu_s) if kind == "lift" else resist / (2 * obj.mu_s)
         if offcentre:
-            hold *= 1.0 + OFFCENTRE_MM / 20.0  # the twist needs more grip than the weight alone
+            hold *= 1.0 + offcentre_mm / 20.0  # the twist needs more grip than the weight alone
         grip = grip_fraction * hold
     effects: list[dict[str, Any]] = [*MEASUREMENT, {"name": "servo_lag"}]
     if kind == "lift":
@@ -206,7 +209,7 @@ def dataset_scenes(set_name: str, split: str, count: int | None, seed: int,
         for i in range(n):
             rng = np.random.default_rng([_SET_ID[set_name], _SPLIT_BASE[split] >> 20, seed, i])
             d = (robust_scene(rng, i) if set_name == "robust" else grip_scene(rng, i) if set_name == "grips"
-                 else hold_scene(rng, i, hold_s))
+                 else twist_scene(rng, i) if set_name == "twists" else hold_scene(rng, i, hold_s))
             out.append((d, scene_seed(set_name, split, seed, i)))
         return out
     if set_name == "offline":
@@ -404,6 +407,24 @@ def grip_scene(rng: np.random.Generator, index: int) -> dict[str, Any]:
                       settle_s=_pre_motion_hold(rng), sensor=str(rng.choice(["v1", "v2"])))
     d["name"] = f"grip_{index:05d}_{d['name']}"
     return {**d, "_tags": {"physics_family": "stick_slip", "scenario": "grip"}}
+
+
+TWIST_OFFSET_MM = (8.0, 20.0)
+"""Centre of mass beside the grasp in the ``twists`` set: beyond what any grip within the servo's force holds."""
+
+
+def twist_scene(rng: np.random.Generator, index: int) -> dict[str, Any]:
+    """One recording of the ``twists`` set: an off-centre lift whose centre of mass is 8-20 mm beside the grasp
+    (``TWIST_OFFSET_MM``), at the transfer design's grip fractions and levels, with the ``grips`` set's closing and
+    settling times, v1 or v2. At such offsets no grip up to the servo's force holds the object (``tools/stabilize.py
+    --holding``), so there are no stop trials: every recording is a slip trial, a twist the transfer design's 4 mm
+    off-centre lifts do not reach, labelled by the per-pillar truth like every other."""
+    obj = str(rng.choice(list(OBJECTS)))
+    d = gripper_scene(obj, "lift_offcentre", str(rng.choice(LEVELS)), float(rng.choice(GRIP_FRACTIONS)),
+                      close_s=_loguniform(rng, 0.05, 2.0), settle_s=_pre_motion_hold(rng),
+                      sensor=str(rng.choice(["v1", "v2"])), offcentre_mm=float(rng.uniform(*TWIST_OFFSET_MM)))
+    d["name"] = f"twist_{index:05d}_{d['name']}"
+    return {**d, "_tags": {"physics_family": "stick_slip", "scenario": "twist"}}
 
 
 def hold_scene(rng: np.random.Generator, index: int, hold_s: float = HOLD_S) -> dict[str, Any]:

@@ -102,3 +102,14 @@ def test_every_stop_trial_of_the_transfer_design_holds_its_object():
     for d, r in zip(stops, recs, strict=True):
         mot = r.object_motion - r.object_motion[0]
         assert np.hypot(mot[:, 0], mot[:, 1]).max() < GROSS_MM and np.abs(mot[:, 2]).max() < GROSS_DEG, d["name"]
+
+
+def test_the_twists_set_is_off_centre_slip_trials_beyond_any_secure_grip():
+    from slipd.sim.datasets import TWIST_OFFSET_MM, gripper_scene
+
+    scenes = [d for d, _ in dataset_scenes("twists", "train", 20, 0)]
+    assert all(d["trial"] == "slip" and d["_tags"]["scenario"] == "twist" for d in scenes)
+    offsets = [d["object"]["com_offset_mm"][0] for d in scenes]
+    assert all(TWIST_OFFSET_MM[0] <= x <= TWIST_OFFSET_MM[1] for x in offsets) and len(set(offsets)) == 20
+    with pytest.raises(ValueError, match="stop trial"):
+        gripper_scene("coffee_jar", "lift_offcentre", "high", None, offcentre_mm=15.0)
