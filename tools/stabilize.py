@@ -143,6 +143,11 @@ TARGETS = "issue 16's done-when"
 HOLD_LIMIT_N = GRIP["reaction.grip_max_force_n"]
 
 
+def _report_path(args: argparse.Namespace, name: str) -> Path:
+    """``--out`` where given, else ``reports/<name>`` (the default ``--out`` is the stabilisation report's)."""
+    return ROOT / "reports" / name if args.out == ROOT / "reports" / "stabilize.md" else args.out
+
+
 def holding_table(objects: list[str], limit_n: float = HOLD_LIMIT_N) -> dict[tuple[str, str], dict[str, Any]]:
     """Per (object, scenario): the scene's grip, the least grip that holds it through the lift (open loop, up to
     1.5 x the limit; None beyond) and the object's motion at the limit (``slipd.sim.holding``)."""
@@ -165,7 +170,7 @@ def holding_table(objects: list[str], limit_n: float = HOLD_LIMIT_N) -> dict[tup
 def holding_main(args: argparse.Namespace) -> int:
     """``--holding``: the physics' bound, per object and scenario, as a markdown table (and JSON beside it)."""
     table = holding_table(args.objects.split(","))
-    out = ROOT / "reports" / "holding.md" if args.out == ROOT / "reports" / "stabilize.md" else args.out
+    out = _report_path(args, "holding.md")
     lines = ["# What grip holds each rig object through the lift (the physics, no detector)", "",
              f"Regenerate: `python tools/stabilize.py --holding` (`slipd.sim.holding`). Each scene's object is lifted "
              "open loop through the rig's lift (table under it, the scene's UR speed and acceleration, 100 mm, then "
@@ -200,7 +205,7 @@ def grip_main(args: argparse.Namespace) -> int:
     objects = args.objects.split(",")
     if args.from_json is not None:
         rows = json.loads(args.from_json.read_text())
-        md = ROOT / "reports" / "grip_control.md" if args.out == ROOT / "reports" / "stabilize.md" else args.out
+        md = _report_path(args, "grip_control.md")
         md.write_text(grip_report(rows, args, args.from_json))
         print(f"wrote {md} from {args.from_json}")
         return 0
@@ -225,7 +230,7 @@ def grip_main(args: argparse.Namespace) -> int:
     out = args.json or ROOT / "reports" / "grip_control.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(rows, indent=1))
-    md = ROOT / "reports" / "grip_control.md" if args.out == ROOT / "reports" / "stabilize.md" else args.out
+    md = _report_path(args, "grip_control.md")
     md.write_text(grip_report(rows, args, out))
     print(f"wrote {out} and {md}")
     return 0
@@ -271,9 +276,6 @@ def grip_report(rows: list[dict], args: argparse.Namespace, json_path: Path) -> 
                          f"{_ms([r['rotation_deg'] for r in sel])} | {sum(r['dropped'] for r in sel)} | "
                          f"{_ms([r['peak_grip_n'] for r in sel])} | {_ms([r['mean_grip_n'] for r in sel])} | "
                          f"{sum(not r['arm_stopped'] for r in sel)}/{len(sel)} |")
-    lines += ["", "Per object (mean over the repetitions):", "",
-              "| object | scenario | policy | translation (mm) | rotation (deg) | dropped | peak grip (N) | "
-              "mean grip (N) | arm stopped |", "|---|---|---|---|---|---|---|---|---|"]
     # The physics' bound (--holding): which lifts any policy can complete without an arm stop within the limit.
     hold = holding_table(list(dict.fromkeys(r["object"] for r in main_rows)))
     holdable = [r for r in main_rows if r["policy"] == "grip_control" and hold[(r["object"], r["scenario"])]
@@ -284,6 +286,9 @@ def grip_report(rows: list[dict], args: argparse.Namespace, json_path: Path) -> 
               "holds through the lift at all; no policy completes the others without stopping the arm. Of the holdable "
               "lifts, "
               f"{sum(not r['arm_stopped'] for r in holdable)}/{len(holdable)} went on without an arm stop."]
+    lines += ["", "Per object (mean over the repetitions):", "",
+              "| object | scenario | policy | translation (mm) | rotation (deg) | dropped | peak grip (N) | "
+              "mean grip (N) | arm stopped |", "|---|---|---|---|---|---|---|---|---|"]
     keys = dict.fromkeys((r["object"], r["scenario"], r["policy"]) for r in rows)
     extra_rows = [r for r in rows if r["scenario"] == "extra"]
     for obj, scen, pol in keys:

@@ -16,10 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slipd.sim import effects as fx
-from slipd.sim.physics import DT_S, GripperStepper, ObjectParams, sensor_params
-from slipd.sim.rig import LIFT_MM
-from slipd.sim.scene import GROSS_DEG, GROSS_MM, GripperScene, gripper_context
+from slipd.sim.physics import DT_S
+from slipd.sim.rig import LIFT_MM, scene_physics
+from slipd.sim.scene import GROSS_DEG, GROSS_MM, GripperScene
 
 SETTLE_S = 0.3
 """Still grasp on the table before the lift (the grip's contact settles)."""
@@ -54,14 +53,7 @@ def holding_trial(scene: GripperScene, grips_n: np.ndarray, *, hold_s: float = 1
     """(translation mm, rotation deg) at the end of an open-loop lift and hold, one per grip (one batch)."""
     grips = np.asarray(grips_n, np.float64)
     b = len(grips)
-    ctx = gripper_context(scene)
-    effects = scene.build_effects()
-    for stage in ("contact", "motion", "load"):
-        fx.run_stage(stage, effects, ctx, seed)
-    o = scene.object
-    obj = ObjectParams(o.mass_kg, o.mu_s, o.mu_k, o.size_mm, scene.rigid_kt_n_mm)
-    st = GripperStepper(sensor_params(scene.sensor), obj, b, ctx.contact_offset[None], ctx.contact_mask[None],
-                        np.full(b, bool(ctx.table)))
+    _, ctx, st = scene_physics(scene, seed, b)
     load = np.broadcast_to(np.asarray(ctx.gravity[0], np.float64), (b, 2))
     com = np.broadcast_to(np.asarray(ctx.com_offset, np.float64), (b, 2))
     v, a = scene.motion.speed_accel()

@@ -119,6 +119,23 @@ class RigResult:
               "machine"] if self.sensor_stalls else [])
 
 
+def scene_physics(scene: GripperScene, seed: int, batch: int = 1
+                  ) -> tuple[list[fx.Effect], fx.SimContext, GripperStepper]:
+    """A gripper scene's physics as the rig runs it: its effects, its context after the contact, motion and load
+    stages, and a ``GripperStepper`` holding ``batch`` copies of its object (``slipd.sim.holding`` runs a batch of
+    grips through the same physics)."""
+    effects = scene.build_effects()
+    ctx = gripper_context(scene)
+    for stage in ("contact", "motion", "load"):
+        fx.run_stage(stage, effects, ctx, seed)
+    o = scene.object
+    stepper = GripperStepper(
+        sensor_params(scene.sensor), ObjectParams(o.mass_kg, o.mu_s, o.mu_k, o.size_mm, scene.rigid_kt_n_mm), batch,
+        ctx.contact_offset[None], ctx.contact_mask[None], np.full(batch, bool(ctx.table)),
+    )
+    return effects, ctx, stepper
+
+
 class RigPhysics:
     """The physics side of the rig: one GripperStepper advanced per sensor frame from device state."""
 
@@ -126,16 +143,8 @@ class RigPhysics:
         self.scene = scene
         self.seed = seed
         self.sensor = sensor_params(scene.sensor)
-        self.effects = scene.build_effects()
-        ctx = gripper_context(scene)
-        for stage in ("contact", "motion", "load"):
-            fx.run_stage(stage, self.effects, ctx, seed)
+        self.effects, ctx, self.stepper = scene_physics(scene, seed)
         self.ctx = ctx
-        o = scene.object
-        self.stepper = GripperStepper(
-            self.sensor, ObjectParams(o.mass_kg, o.mu_s, o.mu_k, o.size_mm, scene.rigid_kt_n_mm), 1,
-            ctx.contact_offset[None], ctx.contact_mask[None], np.array([ctx.table]),
-        )
         self.load = np.asarray(ctx.gravity[0], np.float64)[None]
         self.com = np.asarray(ctx.com_offset, np.float64)[None]
         self.devices = devices
