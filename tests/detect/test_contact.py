@@ -64,6 +64,12 @@ def test_friction_estimator_weights_and_spread() -> None:
     # A ratio no real friction has (a glitch) is not a sample.
     r2 = est.update(np.array([50.0, 0, 0, 0, 0, 0, 0, 0, 0]), np.full(9, 3.0), np.eye(9)[0])
     assert r2 is not None and abs(r2.mu - 0.5) < 1e-6
+    # A pillar whose normal force rose 10 % since the last decision is gripped harder, not sliding: no sample; the
+    # same ratio at a steady normal force is one.
+    r3 = est.update(np.full(9, 0.2), np.full(9, 3.3), np.eye(9)[0])
+    assert r3 is not None and abs(r3.mu - 0.5) < 1e-6
+    r4 = est.update(np.full(9, 0.2), np.full(9, 3.3), np.eye(9)[0])
+    assert r4 is not None and r4.mu < 0.5
 
 
 def test_contact_risk_is_the_load_weighted_share_at_risk() -> None:
