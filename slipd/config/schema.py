@@ -267,10 +267,11 @@ class ReactionConfig(_Section):
         0.1, ge=0.0, le=60.0, description="grip_control: take the grip over (force control at the force the hold "
         "setting produced) once it stayed steady this long, so that a catch is one effort change"
     )
-    grip_twist: float = Field(
-        1.15, ge=1.0, le=100.0, description="grip_control: a slip whose pillar shear is this multiple of the net load "
-        "is a twist (off-centre object turning): the arm stops at once, as the grip alone cannot hold a torque "
-        "while the lift goes on"
+    grip_twist: float | None = Field(
+        None, ge=1.0, le=100.0, description="grip_control: a slip whose pillar shear is this multiple of the net load "
+        "is a twist (an off-centre object turning) and stops the arm at once; null (the default): a twist is a slip "
+        "like any other, which the grip catches, and the force limit stops the arm for a torque it cannot hold. "
+        "Set it for objects held far from their centre of mass, where millimetre lever arms hold little torque"
     )
     grip_rise_n_s: float = Field(
         300.0, gt=0.0, le=10_000.0, description="grip_control: fastest grip increase (N/s), about the jaw's own rate "

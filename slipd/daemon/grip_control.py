@@ -28,9 +28,11 @@ relaxes at ``relax_n_s`` down to it, never below the grip the hold setting produ
 is bounded by ``rise_n_s`` (a faster jump splays the pillars and makes a loaded contact slip all at once) and the
 target never exceeds ``max_force_n`` (the object's force limit).
 
-A twist: a slip whose shear is ``twist`` x the net load or more is an off-centre object turning. The pillars'
-lever arms are a few millimetres, so grip buys little torque: the arm stops at once (the lift no longer adds
-load), the catch is called off and the requirement is the net load's from then on.
+A twist (only where ``twist`` is set): a slip whose shear is ``twist`` x the net load or more is an off-centre object
+turning. The pillars' lever arms are a few millimetres, so grip buys little torque: the arm stops at once (the lift
+no longer adds load), the catch is called off and the requirement is the net load's from then on. Off by default: on
+the rig every off-centre object (centre of mass 4 mm out) is held within the servo's force, and the rule stopped
+lifts the grip finishes; a torque the grip cannot hold still stops the arm at the force limit.
 
 A contact on one pillar never shows the asynchronous deceleration the pillar estimator reads, so its friction
 stays unknown. While the alarm is up and the catch has not yet raised the grip, the whole contact slides on its
@@ -39,11 +41,11 @@ comes early): the controller feeds it to its own ``FrictionEstimator`` (the esti
 and uses it until the contact's own estimate exists. Without the contact's own estimate the target does not
 relax below the grip that ended the last slip.
 
-The arm is stopped (once per grasp) for a twist, when the risk stayed at ``stop_risk`` for ``stop_after_s`` (the
-grip had its chance to catch the slip), or at the force limit: the object needs more than it may take, or it
-still slips with the grip there. Commands go to the gripper's worker thread at most ``update_hz`` times a second
-(the MX-28 refreshes at about 62 Hz), and only when the previous one has finished: a slow servo gets the newest
-target, never a queue. Fail safe as the reaction: a grip command that fails stops the arm
+The arm is stopped (once per grasp) for a twist (where set), when the risk stayed at ``stop_risk`` for
+``stop_after_s`` (the grip had its chance to catch the slip), or at the force limit: the object needs more than it
+may take, or it still slips with the grip there. Commands go to the gripper's worker thread at most ``update_hz``
+times a second (the MX-28 refreshes at about 62 Hz), and only when the previous one has finished: a slow servo gets
+the newest target, never a queue. Fail safe as the reaction: a grip command that fails stops the arm
 (``Reaction.failsafe``).
 """
 from __future__ import annotations
@@ -88,9 +90,10 @@ class GripControlSettings:
     """At the start of a slip the target jumps to this multiple of the grip (the load is unknown while it slides)."""
     takeover_after_s: float = 0.1
     """The controller takes the grip over (by force, at the force it has) once it stayed steady this long."""
-    twist: float = 1.15
+    twist: float | None = None
     """A slip whose shear is this multiple of the net load or more is a twist (an off-centre object turning): the
-    pillars' short lever arms need far more grip against a torque than against a load, so the arm stops at once."""
+    pillars' short lever arms need far more grip against a torque than against a load, so the arm stops at once.
+    None: no twist rule (a twist is a slip the grip catches; the force limit stops the arm)."""
     rise_n_s: float = 300.0
     """Fastest increase of the target (N/s): about the jaw's rate when it closes by position."""
     relax_n_s: float = 2.0
@@ -216,7 +219,10 @@ class GripController:
             # Every friction estimate errs low, so the use computed with it errs high: a contact whose computed use
             # is below halfway from the margin to the limit cannot be sliding as a whole (an alarm on a load that
             # changes, or on the pillars splaying under a rising grip). It keeps its requirement, without a catch.
-            plausible = mu is None or shear / (mu * grip) >= (1.0 + s.margin) / 2
+            # The computed use can also be low where the estimate comes from pillars whose ratio exceeds the contact's
+            # (light edge pillars of a curved object, a load off-centre): the alarm and the risk agreeing is a slip.
+            plausible = (mu is None or shear / (mu * grip) >= (1.0 + s.margin) / 2
+                         or (alarm and state.risk >= s.raise_risk))
             if new_slip and plausible:
                 self._catch_n = self._slip_grip * s.catch
             want = max(required, self._catch_n)
@@ -247,7 +253,8 @@ class GripController:
         else:
             self._high_since = None
         high = self._high_since is not None and now - self._high_since >= s.stop_after_s
-        twisting = slipping and shear >= s.twist * state.load_n and shear > MIN_TWIST_SHEAR_N
+        twisting = (s.twist is not None and slipping and shear >= s.twist * state.load_n
+                    and shear > MIN_TWIST_SHEAR_N)
         if twisting and not self._twist:
             self._twist = True
             self._catch_n = 0.0  # the arm stop holds a twist; a grip jump would make the pillars slip all at once

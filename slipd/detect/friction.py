@@ -10,6 +10,10 @@ decisions), its uncertainty the weighted standard deviation of those samples (pi
 and noise); both are None until a pillar has been seen sliding. ``reset`` on release: a new grasp may be
 a new object.
 
+A pillar needs a normal force above ``min_fz_n`` and above ``edge_share`` of the contact's heaviest pillar:
+a pillar at the edge of a curved object carries a fraction of the load, and its ratio, noise and offsets
+over a small force, runs above the contact's (a grip set from it holds too little).
+
 A pillar whose normal force rose by more than ``max_fz_rise`` since the previous decision is no sample: a
 tightening grip (the grip controller catching a slip) makes it stick below its limit while its slip state
 lags for a few decisions, and those falling ratios would pull the estimate down just when the controller
@@ -36,8 +40,9 @@ class FrictionEstimator:
     """Weighted, forgetting mean of the sliding pillars' utilisation (see the module docstring)."""
 
     def __init__(self, min_fz_n: float = 1.0, forget: float = 0.995, max_mu: float = 3.0,
-                 max_fz_rise: float = 0.05) -> None:
+                 max_fz_rise: float = 0.05, edge_share: float = 0.0) -> None:
         self.min_fz_n = float(min_fz_n)
+        self.edge_share = float(edge_share)
         self.max_fz_rise = float(max_fz_rise)
         self.forget = float(forget)
         self.max_mu = float(max_mu)
@@ -54,10 +59,11 @@ class FrictionEstimator:
     def update(self, util: Sequence[float], fz: Sequence[float], p_slip: Sequence[float]) -> FrictionEstimate | None:
         """Add this decision's sliding pillars; returns the estimate (None while none was seen sliding)."""
         # A ratio beyond any real friction (max_mu) is a glitch, not a sample.
+        floor = max(self.min_fz_n, self.edge_share * max(fz))
         prev = self._fz if self._fz is not None else fz
         rise = 1.0 + self.max_fz_rise
         use = [(float(u), float(w)) for u, w, w0, q in zip(util, fz, prev, p_slip, strict=True)
-               if q >= 0.5 and w > self.min_fz_n and math.isfinite(u) and u < self.max_mu and w <= rise * w0]
+               if q >= 0.5 and w > floor and math.isfinite(u) and u < self.max_mu and w <= rise * w0]
         self._fz = list(fz)
         if use:
             self._w *= self.forget

@@ -113,6 +113,29 @@ def test_the_requirement_counts_the_twist_and_a_twist_stops_the_arm_at_once() ->
     assert c.target is not None and c.target <= 20.0 + 1e-9 and len(stops) == 1
 
 
+def test_by_default_a_twist_is_a_slip_the_grip_catches() -> None:
+    """Without ``twist`` (the default) a turning contact keeps the lift going: the catch raises the grip, and only
+    the force limit stops the arm."""
+    jaw = Jaw()
+    c, stops, _ = _ctl(jaw, catch=2.0, margin=0.8, max_force_n=40.0)
+    t = _run(c, 0.0, 20, 20.0, 0.0, None, 0.0)
+    t = _run(c, t, 20, 20.0, 0.6, 0.06, 0.8, alarm=True, shear=1.5)  # turns: shear 2.5 times the load
+    assert stops == [] and c.target is not None and c.target > 30.0
+    _run(c, t, 50, 39.5, 2.4, 0.06, 0.8, alarm=True, shear=4.0)  # still slips with the grip at the limit
+    assert stops == ["grip control: grip at its limit"]
+
+
+def test_an_alarm_with_the_risk_up_is_caught_whatever_the_friction_in_use() -> None:
+    """A friction estimate from light edge pillars can exceed the contact's sliding ratio, so the computed use is
+    low while the whole contact slides: the alarm and the risk agreeing is a slip all the same."""
+    jaw = Jaw()
+    c, _, _ = _ctl(jaw, catch=2.0, margin=0.85, max_force_n=40.0)
+    t = _run(c, 0.0, 20, 17.7, 0.0, None, 0.0)
+    t = _run(c, t, 5, 17.7, 2.1, 0.149, 0.0)
+    _run(c, t, 2, 17.7, 2.14, 0.149, 0.56, alarm=True)  # use 2.14 / (0.149 * 17.7) = 0.81
+    assert c.target is not None and abs(c.target - min(2.0 * 17.7, 17.7 + 300.0 * 0.02)) < 1e-6
+
+
 def test_no_catch_where_the_friction_in_use_rules_a_slide_out() -> None:
     """Every friction estimate errs low, so the use computed with it errs high: an alarm on a contact whose computed
     use is below halfway from the margin to the limit (a changing load, pillars splaying under a rising grip) keeps

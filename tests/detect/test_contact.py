@@ -72,6 +72,21 @@ def test_friction_estimator_weights_and_spread() -> None:
     assert r4 is not None and r4.mu < 0.5
 
 
+def test_friction_ignores_the_light_edge_pillars_of_a_curved_contact() -> None:
+    """The rig's shampoo bottle: the middle column carries 5-6 N, its neighbours 0.7 N at a higher, noisier ratio."""
+    fz = np.array([0, 5.1, 0, 0.7, 6.1, 0.7, 0, 5.1, 0])
+    util = np.array([0, 0.12, 0, 0.145, 0.12, 0.14, 0, 0.12, 0])
+    edge = FrictionEstimator(min_fz_n=0.5, edge_share=0.2)
+    r = edge.update(util, fz, np.array([0, 0, 0, 1.0, 0, 0, 0, 0, 0]))
+    assert r is None  # only the edge pillar was seen sliding: no sample
+    r = edge.update(util, fz, (fz > 0).astype(float))
+    assert r is not None and abs(r.mu - 0.12) < 1e-9
+    # a push on light pillars alone (every one under 1 N) still gives samples
+    light = FrictionEstimator(min_fz_n=0.5, edge_share=0.2)
+    r = light.update(np.full(9, 0.3), np.full(9, 0.8), np.ones(9))
+    assert r is not None and abs(r.mu - 0.3) < 1e-9
+
+
 def test_contact_risk_is_the_load_weighted_share_at_risk() -> None:
     fz = np.array([1.0, 3.0, 0, 0, 0, 0, 0, 0, 0])
     p = np.array([1.0, 0, 0, 0, 0, 0, 0, 0, 0])
