@@ -71,15 +71,16 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str, sensors: int, stride: int) -> Path:
+def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str, sensors: int, stride: int,
+            policy: str = "stop_and_secure") -> Path:
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
     cfg["model"].update(manifest=str(model.resolve()), detector="onnx", stride=stride)
     cfg["sensor"].update(port=sensor_port, tare="startup", tare_samples=300, stall_timeout_ms=1000, sensors=sensors)
     cfg["gripper"]["port"] = servo_port
     cfg["arm"]["enabled"] = False
-    cfg["reaction"].update(actions=["tighten_gripper"], on_failsafe="log_only", rearm_after_s=0.0)
+    cfg["reaction"].update(actions=["tighten_gripper"], on_failsafe="log_only", rearm_after_s=0.0, policy=policy)
     cfg["recorder"]["enabled"] = False
-    path = tmp / f"bench-{sensors}-{stride}.yaml"
+    path = tmp / f"bench-{sensors}-{stride}-{policy}.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
 
@@ -181,9 +182,11 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int) -> 
 
 
 # ---------------------------------------------------------------------------------------------- CPU
-def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None, tree: Path | None = None) -> float:
+def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None, tree: Path | None = None,
+              policy: str = "stop_and_secure") -> float:
     """CPU seconds per wall second of one process reading the 1 kHz stream (``slipd run``; decode-only when
-    ``stride`` is None). ``tree``: run the ``slipd`` of that source tree instead of this one (``--baseline-tree``)."""
+    ``stride`` is None). ``tree``: run the ``slipd`` of that source tree instead of this one (``--baseline-tree``).
+    ``policy`` grip_control: the grip controller takes the quiet grasp over and runs on every decision."""
     from slipd.sim.devices.mx28 import EmulatedMX28
     from slipd.sim.devices.papillarray import EmulatedPapillArray
 
@@ -192,7 +195,7 @@ def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None, tre
         if stride is None:
             cmd = [sys.executable, __file__, "--decode-only", sensor.port, "--sensors", str(sensors)]
         else:
-            cfg = _config(Path(tmp), model, sensor.port, servo.port, sensors, stride)
+            cfg = _config(Path(tmp), model, sensor.port, servo.port, sensors, stride, policy)
             cmd = [sys.executable, "-m", "slipd", "run", "--config", str(cfg)]
         env = None
         if tree is not None:  # the other tree's package first on the path (an editable install points here)
@@ -312,6 +315,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="A/B the CPU share instead: this tree against the slipd of another checkout (e.g. `git "
                         "worktree add /tmp/base <commit>`), alternating runs on the same stream, at --strides")
     p.add_argument("--reps", type=int, default=4, help="with --baseline-tree: runs of each tree per configuration")
+    p.add_argument("--grip-control", action="store_true",
+                   help="issue 16: also the CPU share with reaction.policy grip_control (the controller holding the "
+                        "quiet grasp, updated on every decision), beside stop-and-secure's in the same run")
     p.add_argument("--decode-only", metavar="PORT", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.decode_only:
@@ -327,6 +333,9 @@ def main(argv: list[str] | None = None) -> int:
             run: dict[str, Any] = {"sensors": sensors, "stride": stride}
             run.update(reaction_latency(args.model, args.seconds, sensors, stride))
             run["cpu_percent"] = 100 * cpu_share(args.model, args.seconds, sensors, stride)
+            if args.grip_control:
+                run["cpu_percent_grip_control"] = 100 * cpu_share(args.model, args.seconds, sensors, stride,
+                                                                  policy="grip_control")
             runs.append(run)
             print(f"  {sensors} sensor(s) stride {stride}: {run['cpu_percent']:.1f} % CPU, p99 "
                   f"{run['latency_p99_ms']:.2f} ms", flush=True)
@@ -351,6 +360,10 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['latency_p99_ms']:>7.2f} {r['latency_max_ms']:>7.2f} "
               f"{r['decision_p50_ms']:>10.2f} / {r['decision_p99_ms']:<7.2f} {r['alarms']:>7} {r['frames_sent']:>7} "
               f"{r['frames_lost']:>5} {r['floor_percent']:>8.3f}  {target}")
+    for r in runs:
+        if "cpu_percent_grip_control" in r:
+            print(f"{r['sensors']:>7} {r['stride']:>6} {r['cpu_percent_grip_control']:>7.1f}  with reaction.policy "
+                  f"grip_control (stop_and_secure above: {r['cpu_percent']:.1f})")
     for s, cpu in base.items():
         print(f"{s:>7} {'decode-only (every frame as it arrives)':<40} {cpu:>5.1f} % CPU")
     print(f"floor: bytes over {bw / 1e9:.1f} GB/s (copy) + FLOPs over {flops_rate / 1e9:.1f} GFLOP/s (float32 "
