@@ -7,7 +7,9 @@ stride 40 / 10) with the offset of its unloaded start. Two figures:
 
 * **per-pillar slip**: at every window end, each pillar in contact (filtered Fz > 0.5 N) is one case,
   predicted slipping when P(slip) >= 0.5, truth the simulator's per-pillar ``slip``; precision, recall
-  and F1 pooled over all cases, per pillar, per set and per physics family;
+  and F1 pooled over all cases, per pillar, per set, per physics family and per phase of the scene's
+  timeline (press, hold, move, release; 'other': the unloaded start and scenes without a timeline, the
+  gripper's) -- which says where the estimate loses its precision;
 * **friction**: on every slip trial, the estimate 0.2 s after the truth's gross-slip time (all considered
   pillars slipping; the onset + 0.5 s where there is none) against the truth: the scene's kinetic
   coefficient ``mu_k`` (a sliding tip's |Ft| / Fz), and where the scene has per-pillar friction spread,
@@ -72,11 +74,26 @@ def _states(rec: Recording, model: str | None) -> Any:
             yield j, d.contact, rec.force[j, :, 2] - offset[:, 2]  # the tared normal forces at the window's end
 
 
+def phase_bounds(meta: dict[str, Any]) -> list[tuple[float, float, str]]:
+    """(start s, end s, op) of each segment of a scene's timeline (after its unloaded ``pre_s``); [] without one."""
+    scene = meta.get("scene")
+    if not isinstance(scene, dict) or not scene.get("timeline"):
+        return []
+    out, t = [], float(scene.get("pre_s", 0.0))
+    for seg in scene["timeline"]:
+        out.append((t, t + float(seg["duration_s"]), str(seg["op"])))
+        t += float(seg["duration_s"])
+    return out
+
+
 def score_recording(path: str, model: str | None = None) -> dict[str, Any]:
-    """Stream one recording; per-pillar counts and the friction estimate at gross slip."""
+    """Stream one recording; per-pillar counts (per pillar and per timeline phase) and the friction estimate at
+    gross slip."""
     rec = Recording.load(path)
     meta = rec.meta
     counts = np.zeros((9, 3), np.int64)  # tp, fp, fn per pillar
+    bounds = phase_bounds(meta)
+    phases: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(3, np.int64))
     ev = rec.events
     at = ev["gross_slip"] + 0.2 if "gross_slip" in ev else (ev["onset"] + 0.5 if "onset" in ev else None)
     at_i = None if at is None else min(int(at * rec.rate_hz), len(rec) - 1)
@@ -89,6 +106,9 @@ def score_recording(path: str, model: str | None = None) -> dict[str, Any]:
             counts[:, 0] += pred & tr
             counts[:, 1] += pred & ~tr
             counts[:, 2] += ~pred & tr
+            t = j / rec.rate_hz
+            ph = next((op for a, b, op in bounds if a <= t < b), "other")
+            phases[ph] += (int((pred & tr).sum()), int((pred & ~tr).sum()), int((~pred & tr).sum()))
         if at_i is not None and j <= at_i:
             est = st.friction
     truth = truth_friction(meta)
@@ -102,6 +122,7 @@ def score_recording(path: str, model: str | None = None) -> dict[str, Any]:
             truth = (truth[0], truth[1] * float(np.dot(w, mult) / w.sum()))
     return {"file": Path(path).name, "family": meta.get("physics_family", meta.get("scene", {}).get("family", "?")),
             "kind": meta.get("kind"), "counts": counts.tolist(), "friction": est,
+            "phases": {k: v.tolist() for k, v in phases.items()},
             "mu_s": None if truth is None else truth[0], "mu_k": None if truth is None else truth[1],
             "controller_friction": meta.get("friction_est")}
 
@@ -134,8 +155,15 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         if r["friction"] is not None:
             errs[r["family"]].append((r["friction"] - r["mu_k"]) / r["mu_k"])
     within = [v for vs in fam.values() for v in vs]
+    by_phase: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(3, np.int64))
+    for r in rows:
+        for ph, c in r.get("phases", {}).items():
+            by_phase[ph] += c
+    phase = {ph: dict(zip(("precision", "recall", "f1"), prf(*map(int, c)), strict=True))
+             | {"tp": int(c[0]), "fp": int(c[1]), "fn": int(c[2])} for ph, c in sorted(by_phase.items())}
     return {
-        "pillar": {"precision": pooled[0], "recall": pooled[1], "f1": pooled[2], "f1_per_pillar": per_pillar},
+        "pillar": {"precision": pooled[0], "recall": pooled[1], "f1": pooled[2], "f1_per_pillar": per_pillar,
+                   "per_phase": phase},
         "friction": {"trials": len(within), "within_15pct": float(np.mean(within)) if within else 0.0,
                      "per_family": {f: {"trials": len(v), "within_15pct": float(np.mean(v)),
                                         "median_rel_error": float(np.median(errs[f])) if errs[f] else None}
@@ -181,6 +209,8 @@ def _print(title: str, s: dict[str, Any]) -> None:
     pl, fr = s["pillar"], s["friction"]
     print(f"{title}: per-pillar slip P {pl['precision']:.3f} R {pl['recall']:.3f} F1 {pl['f1']:.3f} "
           f"(per pillar {' '.join(f'{f:.2f}' for f in pl['f1_per_pillar'])})")
+    print("  per phase: " + ", ".join(f"{ph} P {v['precision']:.2f} R {v['recall']:.2f} (fp {v['fp']}, fn {v['fn']})"
+                                     for ph, v in pl["per_phase"].items()))
     print(f"  friction within 15 % of mu_k on {fr['within_15pct']:.1%} of {fr['trials']} slip trials; " + ", ".join(
         f"{f} {v['within_15pct']:.0%} of {v['trials']} (median error {v['median_rel_error']:+.1%})"
         if v["median_rel_error"] is not None else f"{f} {v['within_15pct']:.0%} of {v['trials']}"
