@@ -2,8 +2,9 @@
 
     python tools/evaluate.py --contact [--sets robust,transfer,offline] [--split test] [--json OUT]
 
-Every recording streams through ``ContactStream`` (the daemon's code, the detector's default window and
-stride 40 / 10) with the offset of its unloaded start. Two figures:
+Every recording streams through ``ContactStream`` (the daemon's code, with the shipped model's feature layout:
+window 40, stride 10, median 5, as the daemon's detector shares its filtered window) with the offset of its
+unloaded start. Two figures:
 
 * **per-pillar slip**: at every window end, each pillar in contact (filtered Fz > 0.5 N) is one case,
   predicted slipping when P(slip) >= 0.5, truth the simulator's per-pillar ``slip``; precision, recall
@@ -34,11 +35,15 @@ import numpy as np
 from slipd.detect.build import build_detector
 from slipd.detect.contact import ContactStream
 from slipd.detect.ensemble import Ensemble
-from slipd.detect.features import FeatureSpec, stretch_offset
+from slipd.detect.features import stretch_offset
+from slipd.detect.manifest import load_manifest
+from slipd.models import DEFAULT_MODEL, packaged
 from slipd.recording import Recording
 from sliplab.paths import ROOT
 
-SPEC = FeatureSpec(window=40, stride=10)
+SPEC = load_manifest(packaged(DEFAULT_MODEL), check_graph=False).spec
+"""The shipped model's feature layout: its window, stride and median are what the daemon's contact state sees (the
+detector shares its filtered window with the contact stream, ``ContactStream.shares_window``)."""
 TOLERANCE = 0.15
 
 
