@@ -108,12 +108,10 @@ def score_recording(path: str, model: str | None = None) -> dict[str, Any]:
             c = np.asarray(st.pillar_slip) >= 0.5
             fz_ok = fz > 0.5
             pred, tr = c & fz_ok, rec.slip[j] & fz_ok
-            counts[:, 0] += pred & tr
-            counts[:, 1] += pred & ~tr
-            counts[:, 2] += ~pred & tr
+            case = np.stack([pred & tr, pred & ~tr, ~pred & tr], axis=1)  # tp, fp, fn per pillar
+            counts += case
             t = j / rec.rate_hz
-            ph = next((op for a, b, op in bounds if a <= t < b), "other")
-            phases[ph] += (int((pred & tr).sum()), int((pred & ~tr).sum()), int((~pred & tr).sum()))
+            phases[next((op for a, b, op in bounds if a <= t < b), "other")] += case.sum(0)
         if at_i is not None and j <= at_i:
             est = st.friction
     truth = truth_friction(meta)

@@ -58,10 +58,10 @@ class FrictionEstimator:
 
     def update(self, util: Sequence[float], fz: Sequence[float], p_slip: Sequence[float]) -> FrictionEstimate | None:
         """Add this decision's sliding pillars; returns the estimate (None while none was seen sliding)."""
-        # A ratio beyond any real friction (max_mu) is a glitch, not a sample.
         floor = max(self.min_fz_n, self.edge_share * max(fz))
         prev = self._fz if self._fz is not None else fz
         rise = 1.0 + self.max_fz_rise
+        # A ratio beyond any real friction (max_mu) is a glitch, not a sample.
         use = [(float(u), float(w)) for u, w, w0, q in zip(util, fz, prev, p_slip, strict=True)
                if q >= 0.5 and w > floor and math.isfinite(u) and u < self.max_mu and w <= rise * w0]
         self._fz = list(fz)
