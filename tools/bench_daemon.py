@@ -142,9 +142,9 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int) -> 
         decision.threshold = 1e-9  # every window alarms ...
         update = decision.update
 
-        def always_rising(p: float, pm: Any = None) -> Any:
+        def always_rising(p: float, pm: Any = None, may_raise: bool = True) -> Any:
             decision.reset()  # ... and rises again
-            return update(p, pm)
+            return update(p, pm, may_raise)
 
         decision.update = always_rising  # type: ignore[method-assign]
         parent.send("clear")

@@ -214,6 +214,12 @@ class DecisionConfig(_Section):
     min_consecutive: int = Field(
         1, ge=1, le=100, description="decisions in a row at or above the threshold before the alarm is raised"
     )
+    press_rise: float | None = Field(
+        0.1, gt=0.0, le=10.0,
+        description="press hold: no alarm is raised while the contact's summed normal force rose by more than "
+        "this share within the last window (40 ms), since a press loads the pillars without slipping them; "
+        "null: off",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> DecisionConfig:

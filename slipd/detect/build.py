@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from slipd.detect.decision import Decision
-from slipd.detect.detector import Detector, HeuristicDetector, SlipDetector
+from slipd.detect.detector import PRESS_RISE, Detector, HeuristicDetector, SlipDetector
 from slipd.detect.multisensor import MultiDetector
 
 if TYPE_CHECKING:
@@ -28,20 +28,22 @@ def build_detector(
 ) -> SlipDetector:
     """The one place a detector is built from a config: the daemon, replay and the rig all call it.
 
-    ``cfg`` None means the model's own settings (stride, threshold, no hysteresis). The tare: an explicit
-    ``offset`` ([9, 3], or [S, 9, 3] one per sensor) wins; else ``tare_samples`` (a start-up tare of that
-    many samples; 0 means the sensor zeroes itself, offset 0); else the config's ``sensor.tare``.
+    ``cfg`` None means the model's own settings (stride, threshold, no hysteresis, the default press hold).
+    The tare: an explicit ``offset`` ([9, 3], or [S, 9, 3] one per sensor) wins; else ``tare_samples`` (a
+    start-up tare of that many samples; 0 means the sensor zeroes itself, offset 0); else the config's ``sensor.tare``.
     ``sensors``: the arrays per frame (default: the config's ``sensor.sensors``, else 1); with more than
     one, a ``slipd.detect.multisensor.MultiDetector`` of one ``Detector`` per sensor, one model call for all.
     """
     spec = ensemble.feature_spec
     threshold, hysteresis, consecutive = ensemble.threshold, 0.0, 1
+    press_rise: float | None = PRESS_RISE
     if cfg is not None:
         if cfg.model.stride:
             spec = spec.with_(stride=cfg.model.stride)
         threshold = cfg.decision.effective_threshold(ensemble.threshold)
         hysteresis = cfg.decision.hysteresis
         consecutive = cfg.decision.min_consecutive
+        press_rise = cfg.decision.press_rise
     if offset is None:
         if tare_samples is None:
             startup = cfg is not None and cfg.sensor.tare == "startup"
@@ -63,8 +65,8 @@ def build_detector(
         return MultiDetector([
             Detector(ensemble, Decision(threshold=threshold, hysteresis=hysteresis, min_consecutive=consecutive),
                      spec, offset=None if offsets is None else offsets[s], tare_samples=tare_samples or 0,
-                     row=s, rows=sensors)
+                     row=s, rows=sensors, press_rise=press_rise)
             for s in range(sensors)
         ])
     decision = Decision(threshold=threshold, hysteresis=hysteresis, min_consecutive=consecutive)
-    return Detector(ensemble, decision, spec, offset=offset, tare_samples=tare_samples or 0)
+    return Detector(ensemble, decision, spec, offset=offset, tare_samples=tare_samples or 0, press_rise=press_rise)

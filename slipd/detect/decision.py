@@ -59,9 +59,11 @@ class Decision:
         self.alarm = False
         self._above = 0
 
-    def update(self, p_slip: float, p_members: np.ndarray | None = None) -> DecisionResult:
+    def update(self, p_slip: float, p_members: np.ndarray | None = None, may_raise: bool = True) -> DecisionResult:
         """Feed one step's mean P(slip) (and optionally the members' [Z]); return the decision.
 
+        ``may_raise`` False holds a lowered alarm down on this update (the detector's press hold): the count of
+        decisions above the threshold goes on, and a raised alarm is kept or cleared as usual.
         A non-finite or out-of-range ``p_slip`` raises ``ValueError`` and leaves the state unchanged.
         """
         p = float(p_slip)
@@ -73,7 +75,7 @@ class Decision:
             alarm = p >= self.threshold - self.hysteresis
         else:
             # Raising needs min_consecutive decisions in a row at or above the threshold.
-            alarm = self._above >= self.min_consecutive
+            alarm = may_raise and self._above >= self.min_consecutive
         rising = alarm and not self.alarm
         self.alarm = alarm
         frac = None

@@ -86,3 +86,13 @@ def test_min_consecutive_needs_a_run_above_threshold() -> None:
     d = Decision(threshold=0.5, min_consecutive=3)
     got = [d.update(p).alarm for p in (0.6, 0.7, 0.4, 0.6, 0.6, 0.6, 0.7)]
     assert got == [False, False, False, False, False, True, True]
+
+
+def test_a_held_update_does_not_raise_but_keeps_a_raised_alarm() -> None:
+    d = Decision(threshold=0.5)
+    r = d.update(0.9, may_raise=False)
+    assert not r.alarm and not r.rising_edge
+    r = d.update(0.9)
+    assert r.alarm and r.rising_edge
+    assert d.update(0.9, may_raise=False).alarm  # raised stays raised
+    assert not d.update(0.1, may_raise=False).alarm  # and clears as usual

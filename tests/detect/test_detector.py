@@ -159,3 +159,43 @@ def test_free_air_for_minutes_stays_quiet_and_a_new_contact_starts_from_h0(ens: 
     ref = [d.p_slip for _, d in fresh.push_many(grasp, np.arange(len(grasp)))]
     assert max(after) > 0
     np.testing.assert_allclose(after, ref, atol=1e-6)
+
+
+def _press(seed: int = 3) -> np.ndarray:
+    """Free air for 300 ms, then every pillar pressed from 0 to 5 N over 500 ms, then held for 700 ms."""
+    rng = np.random.default_rng(seed)
+    n = 1500
+    f = rng.normal(0, 0.01, (n, 9, 3)).astype(np.float32)
+    ramp = np.clip((np.arange(n) - 300) / 500, 0, 1) * 5.0
+    f[:, :, 2] += ramp[:, None].astype(np.float32)
+    return f
+
+
+@pytest.mark.parametrize("sensors", [1, 2])
+def test_a_press_holds_the_alarm_down_and_leaves_the_model_as_it_is(ens: Ensemble, sensors: int) -> None:
+    from slipd.detect.build import build_detector
+    from slipd.detect.detector import PRESS_RISE
+
+    force = _press()
+    spec = ens.feature_spec.with_(stride=10)
+    runs = {}
+    for rise in (PRESS_RISE, None):
+        ens.reset()
+        # A threshold so low that every stepped window alarms: the hold alone keeps the alarm down.
+        if sensors == 1:
+            det = Detector(ens, Decision(threshold=1e-6), spec, offset=np.zeros((9, 3)), press_rise=rise)
+            runs[rise] = run_recording(det, force)
+        else:
+            multi = build_detector(None, ens, offset=np.zeros((9, 3)), sensors=2)
+            for d in multi.detectors:  # type: ignore[attr-defined]
+                d.decision, d.press_rise = Decision(threshold=1e-6), rise
+            both = run_recording(multi, np.stack([force, force], axis=1))
+            runs[rise] = [d for d in both if d.sensor == 1]
+    held, free = runs[PRESS_RISE], runs[None]
+    first = {k: next(d.index for d in v if d.rising_edge) for k, v in runs.items()}
+    assert first[None] < 300 + 120  # without the hold: soon after the contact is made (0.5 N at 350)
+    # With it: not while the load rises by more than 10 % per 40 ms (a linear 0 -> 45 N ramp over 500 ms does
+    # until 440 ms in), and at once after.
+    assert 300 + 420 <= first[PRESS_RISE] <= 300 + 480
+    # The model stepped alike: the hold acts on the decision only.
+    np.testing.assert_allclose([d.p_slip for d in held], [d.p_slip for d in free], atol=1e-6)
