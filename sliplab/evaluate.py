@@ -103,6 +103,7 @@ class ModelRunner:
 
     def __init__(self, manifest: str, hysteresis: float = 0.0, threshold: float | None = None,
                  stride: int | None = None) -> None:
+        from slipd.config.schema import DecisionConfig
         from slipd.detect.decision import Decision  # onnxruntime only when a model is evaluated
         from slipd.detect.ensemble import Ensemble
 
@@ -111,7 +112,11 @@ class ModelRunner:
         if stride is not None:  # decisions every `stride` samples through window/stride phase-shifted streams
             self.spec = self.spec.with_(stride=0 if stride == self.spec.window else stride)
         self.threshold = float(threshold if threshold is not None else self.ensemble.threshold)
-        self.decision = Decision(threshold=self.threshold, hysteresis=hysteresis)
+        # The daemon's default decision rule (the config's defaults), the threshold and hysteresis as given.
+        rule = DecisionConfig()
+        self.decision = Decision(threshold=self.threshold, hysteresis=hysteresis,
+                                 min_consecutive=rule.min_consecutive)
+        self.press_rise = rule.press_rise
         self.label = f"model {manifest}"
 
     def trace(self, rec: Recording) -> Trace:
@@ -120,7 +125,7 @@ class ModelRunner:
 
         self.ensemble.reset()
         self.decision.reset()
-        det = Detector(self.ensemble, self.decision, self.spec, **tare_args(rec, self.spec))
+        det = Detector(self.ensemble, self.decision, self.spec, press_rise=self.press_rise, **tare_args(rec, self.spec))
         return Trace.from_detections(run_recording(det, rec.force, rec.t_us), rec.t_us)
 
 

@@ -212,7 +212,9 @@ class DecisionConfig(_Section):
         0.0, ge=0.0, lt=0.5, description="alarm clears only when p_slip < threshold - hysteresis (0: off)"
     )
     min_consecutive: int = Field(
-        1, ge=1, le=100, description="decisions in a row at or above the threshold before the alarm is raised"
+        2, ge=1, le=100,
+        description="decisions in a row at or above the threshold before the alarm is raised (2 at stride 10: two "
+        "phase-shifted GRU streams agree, 10 ms; 1: the method's per-window rule)",
     )
     press_rise: float | None = Field(
         0.1, gt=0.0, le=10.0,

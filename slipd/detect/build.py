@@ -9,8 +9,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from slipd.config.schema import DecisionConfig
 from slipd.detect.decision import Decision
-from slipd.detect.detector import PRESS_RISE, Detector, HeuristicDetector, SlipDetector
+from slipd.detect.detector import Detector, HeuristicDetector, SlipDetector
 from slipd.detect.multisensor import MultiDetector
 
 if TYPE_CHECKING:
@@ -28,22 +29,19 @@ def build_detector(
 ) -> SlipDetector:
     """The one place a detector is built from a config: the daemon, replay and the rig all call it.
 
-    ``cfg`` None means the model's own settings (stride, threshold, no hysteresis, the default press hold).
+    ``cfg`` None means the model's own stride and threshold with the default config's decision rule
+    (``DecisionConfig``: no hysteresis, two decisions in a row, the press hold), as evaluation uses.
     The tare: an explicit ``offset`` ([9, 3], or [S, 9, 3] one per sensor) wins; else ``tare_samples`` (a
     start-up tare of that many samples; 0 means the sensor zeroes itself, offset 0); else the config's ``sensor.tare``.
     ``sensors``: the arrays per frame (default: the config's ``sensor.sensors``, else 1); with more than
     one, a ``slipd.detect.multisensor.MultiDetector`` of one ``Detector`` per sensor, one model call for all.
     """
     spec = ensemble.feature_spec
-    threshold, hysteresis, consecutive = ensemble.threshold, 0.0, 1
-    press_rise: float | None = PRESS_RISE
-    if cfg is not None:
-        if cfg.model.stride:
-            spec = spec.with_(stride=cfg.model.stride)
-        threshold = cfg.decision.effective_threshold(ensemble.threshold)
-        hysteresis = cfg.decision.hysteresis
-        consecutive = cfg.decision.min_consecutive
-        press_rise = cfg.decision.press_rise
+    if cfg is not None and cfg.model.stride:
+        spec = spec.with_(stride=cfg.model.stride)
+    rule = cfg.decision if cfg is not None else DecisionConfig()  # no config: the default config's rule
+    threshold = rule.effective_threshold(ensemble.threshold)
+    hysteresis, consecutive, press_rise = rule.hysteresis, rule.min_consecutive, rule.press_rise
     if offset is None:
         if tare_samples is None:
             startup = cfg is not None and cfg.sensor.tare == "startup"
