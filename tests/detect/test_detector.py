@@ -199,3 +199,18 @@ def test_a_press_holds_the_alarm_down_and_leaves_the_model_as_it_is(ens: Ensembl
     assert 300 + 420 <= first[PRESS_RISE] <= 300 + 480
     # The model stepped alike: the hold acts on the decision only.
     np.testing.assert_allclose([d.p_slip for d in held], [d.p_slip for d in free], atol=1e-6)
+
+
+def test_without_a_config_the_detector_and_evaluation_take_the_default_configs_rule(ens: Ensemble,
+                                                                                 tiny_model_json) -> None:
+    from slipd.config.schema import DecisionConfig
+    from slipd.detect.build import build_detector
+    from sliplab.evaluate import ModelRunner
+
+    rule = DecisionConfig()
+    assert rule.min_consecutive == 2 and rule.press_rise == 0.1
+    det = build_detector(None, ens, offset=np.zeros((9, 3)))
+    assert isinstance(det, Detector)
+    assert (det.decision.min_consecutive, det.press_rise) == (rule.min_consecutive, rule.press_rise)
+    runner = ModelRunner(str(tiny_model_json))
+    assert (runner.decision.min_consecutive, runner.press_rise) == (rule.min_consecutive, rule.press_rise)
