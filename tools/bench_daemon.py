@@ -140,6 +140,7 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int) -> 
         subs = getattr(daemon.detector, "detectors", [daemon.detector])
         decision = subs[-1].decision  # one sensor's decisions: the second finger's when there are two
         decision.threshold = 1e-9  # every window alarms ...
+        decision.min_consecutive = 1  # (the alarm is cleared after each decision: no run of two could form)
         update = decision.update
 
         def always_rising(p: float, pm: Any = None, may_raise: bool = True) -> Any:
