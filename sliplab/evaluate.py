@@ -104,18 +104,17 @@ class ModelRunner:
     def __init__(self, manifest: str, hysteresis: float = 0.0, threshold: float | None = None,
                  stride: int | None = None) -> None:
         from slipd.config.schema import DecisionConfig
-        from slipd.detect.decision import Decision  # onnxruntime only when a model is evaluated
+        from slipd.detect.build import build_decision  # onnxruntime only when a model is evaluated
         from slipd.detect.ensemble import Ensemble
 
         self.ensemble = Ensemble.load(manifest)
         self.spec = self.ensemble.feature_spec
         if stride is not None:  # decisions every `stride` samples through window/stride phase-shifted streams
             self.spec = self.spec.with_(stride=0 if stride == self.spec.window else stride)
-        self.threshold = float(threshold if threshold is not None else self.ensemble.threshold)
         # The daemon's default decision rule (the config's defaults), the threshold and hysteresis as given.
-        rule = DecisionConfig()
-        self.decision = Decision(threshold=self.threshold, hysteresis=hysteresis,
-                                 min_consecutive=rule.min_consecutive)
+        rule = DecisionConfig(threshold=threshold, hysteresis=hysteresis)
+        self.threshold = rule.effective_threshold(self.ensemble.threshold)
+        self.decision = build_decision(rule, self.ensemble.threshold)
         self.press_rise = rule.press_rise
         self.label = f"model {manifest}"
 

@@ -40,8 +40,6 @@ def build_detector(
     if cfg is not None and cfg.model.stride:
         spec = spec.with_(stride=cfg.model.stride)
     rule = cfg.decision if cfg is not None else DecisionConfig()  # no config: the default config's rule
-    threshold = rule.effective_threshold(ensemble.threshold)
-    hysteresis, consecutive, press_rise = rule.hysteresis, rule.min_consecutive, rule.press_rise
     if offset is None:
         if tare_samples is None:
             startup = cfg is not None and cfg.sensor.tare == "startup"
@@ -61,10 +59,17 @@ def build_detector(
     if sensors > 1:
         offsets = None if offset is None else np.broadcast_to(np.asarray(offset, np.float32), (sensors, 9, 3))
         return MultiDetector([
-            Detector(ensemble, Decision(threshold=threshold, hysteresis=hysteresis, min_consecutive=consecutive),
-                     spec, offset=None if offsets is None else offsets[s], tare_samples=tare_samples or 0,
-                     row=s, rows=sensors, press_rise=press_rise)
+            Detector(ensemble, build_decision(rule, ensemble.threshold), spec,
+                     offset=None if offsets is None else offsets[s], tare_samples=tare_samples or 0,
+                     row=s, rows=sensors, press_rise=rule.press_rise)
             for s in range(sensors)
         ])
-    decision = Decision(threshold=threshold, hysteresis=hysteresis, min_consecutive=consecutive)
-    return Detector(ensemble, decision, spec, offset=offset, tare_samples=tare_samples or 0, press_rise=press_rise)
+    return Detector(ensemble, build_decision(rule, ensemble.threshold), spec, offset=offset,
+                    tare_samples=tare_samples or 0, press_rise=rule.press_rise)
+
+
+def build_decision(rule: DecisionConfig, model_threshold: float) -> Decision:
+    """A config's decision section as the ``Decision`` it asks for (the threshold: the section's, else the
+    model's); the press hold is the detector's (``rule.press_rise``)."""
+    return Decision(threshold=rule.effective_threshold(model_threshold), hysteresis=rule.hysteresis,
+                    min_consecutive=rule.min_consecutive)

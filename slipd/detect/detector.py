@@ -24,12 +24,14 @@ free air. ``ContactGate`` is that rule; training (``sliplab.train``) runs the sa
 recording's windows, so the model learns exactly the sequences the gate lets through.
 
 Press hold: a press loads the pillars, it does not slip them. While the contact's summed (tared) normal force
-has risen by more than ``press_rise`` (a share, 0.1) over the last window's span (40 ms), a lowered alarm is
-not raised; the model still steps, so its state is the same as without the hold, and a raised alarm is kept.
+has risen by more than ``press_rise`` (a share; ``decision.press_rise``, 0.1 by default) over the last window's
+span (40 ms), a lowered alarm is not raised; the model still steps, so its state is the same as without the
+hold, and a raised alarm is kept.
 Under a physics the model never saw (velocity-weakening friction with membrane coupling: the edge pillars
 splay while the plate is pressed) the utilisation of a press can look like incipient slip; the normal force
 says it is a press. A slip under a grip that is being tightened waits for the tightening to slow: 40 ms at
-the 10 % rise a fast grip closes with. ``None`` turns the hold off.
+the 10 % rise a fast grip closes with. ``None`` (a bare ``Detector``'s default, the method's rule) turns the
+hold off; ``slipd.detect.build`` sets it from the config.
 """
 
 from __future__ import annotations
@@ -158,10 +160,8 @@ def gate_windows(force_tared: np.ndarray, spec: FeatureSpec) -> np.ndarray:
     return np.array([gate.check(force_tared[i, :, 2], int(i))[0] for i in ends], bool)
 
 
-PRESS_RISE = 0.1
-"""The press hold's default: a rise of the summed normal force by 10 % within one window (module docstring)."""
 PRESS_MIN_N = 0.1
-"""...and by at least 0.1 N, so the noise of a light contact (a few tenths of a newton) does not hold alarms."""
+"""A press hold needs a rise of at least 0.1 N as well, so the noise of a light contact does not hold alarms."""
 
 
 class Detector:
@@ -184,7 +184,7 @@ class Detector:
         *,
         row: int | None = None,
         rows: int = 1,
-        press_rise: float | None = PRESS_RISE,
+        press_rise: float | None = None,
     ) -> None:
         self.ensemble = ensemble
         self.row = row
@@ -210,7 +210,7 @@ class Detector:
         self.gate = ContactGate(self.spec.median // 2, self.spec.step / self.spec.rate_hz)
         self.press_rise = press_rise
         # The summed normal force at the ends of the last window/step windows: the oldest is one window back.
-        self._loads = np.full(self.n_streams, np.nan)
+        self._loads = [math.nan] * self.n_streams
         self._load_i = 0
         self.pressing = False
         """The press hold is on: the latest window's summed normal force rose by ``press_rise`` in a window."""
@@ -237,7 +237,7 @@ class Detector:
         self.decision.reset()
         self.windows = 0
         self.gate.reset()
-        self._loads[:] = np.nan
+        self._loads = [math.nan] * self.n_streams
         self.pressing = False
         self.resets += 1
         if retare and self.tare_samples:
@@ -389,6 +389,8 @@ class Detector:
     def _gate(self, force: np.ndarray, t_us: int, index: int) -> Detection | None:
         """The contact gate on a completed window: its Detection (p 0) while closed, None when the model
         must step. Also tracks the press hold (``pressing``) that ``_finish`` applies."""
+        if self.press_rise is None and not self.contact_gate:
+            return None
         # Checked once per window, on its last sample (tared, as the model sees it).
         fz = np.asarray(force, np.float32).reshape(9, 3)[:, 2] - self.features._offset[2::3]
         if self.press_rise is not None:
@@ -417,7 +419,7 @@ class Detector:
         load = float(np.maximum(fz, 0.0).sum())  # np.nansum costs ten times more on the hot path
         if not math.isfinite(load):
             load = math.nan  # a non-finite sample: no rise can be measured against it, nor one window on
-        before = float(self._loads[self._load_i])  # the slot written n_streams windows (one window) ago
+        before = self._loads[self._load_i]  # the slot written n_streams windows (one window) ago
         self._loads[self._load_i] = load
         self._load_i = (self._load_i + 1) % len(self._loads)
         # NaN (the first window after a restart, a non-finite sample) compares False: no hold.

@@ -173,9 +173,10 @@ def _press(seed: int = 3) -> np.ndarray:
 
 @pytest.mark.parametrize("sensors", [1, 2])
 def test_a_press_holds_the_alarm_down_and_leaves_the_model_as_it_is(ens: Ensemble, sensors: int) -> None:
+    from slipd.config.schema import DecisionConfig
     from slipd.detect.build import build_detector
-    from slipd.detect.detector import PRESS_RISE
 
+    PRESS_RISE = DecisionConfig().press_rise
     force = _press()
     spec = ens.feature_spec.with_(stride=10)
     runs = {}
