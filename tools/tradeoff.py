@@ -5,6 +5,7 @@
                              [--train-args "--channels util --label-span slip ..."] [--every 1] [--workers 2]
                              [--retrain-epochs 8] [--cache out/tradeoff] [--no-retrain]
                              [--heldout out/datasets/robust_test] [--heldout-limit 50]
+                             [--lofo stick_slip=out/lofo5_stick_slip ...]
 
 Two groups of points, each compared within itself:
 
@@ -32,6 +33,10 @@ point is also run on those recordings (``--heldout-limit`` of them, spread over 
 scored with the offline criterion as ``tools/robustness.py`` does: success, balanced success, stop/hold false
 alarms, latency, and success per physics family. The report says whether the run's training data held the
 same families (then the figures are on unseen recordings of seen families, not on unseen families).
+With ``--lofo FAMILY=RUN ...`` (the leave-one-family-out training runs of ``tools/robustness.py``, each with at
+least as many members as the largest Z) every ensemble point is also built from each fold's members (its first Z,
+its precision) and each family's held-out recordings are run by the fold trained without that family: the
+held-out figures are then on unseen physics, beside the own-split figures of the same point.
 
 Writes ``reports/tradeoff.md`` (the table, the knee: the cheapest point within 1 point of the best
 success rate) and ``reports/tradeoff.png`` (two panels: success against compute per decision, log scale,
@@ -85,6 +90,8 @@ class Point:
     threshold: float = 0.5
     manifest: str = ""
     figures: dict = field(default_factory=dict)
+    folds: dict = field(default_factory=dict)
+    """Held-out family -> this point's model built from the members of the fold trained without it (``--lofo``)."""
 
 
 def sweep_points(threshold: float, retrain: bool) -> list[Point]:
@@ -113,38 +120,53 @@ def _export(run_dir: Path, out: Path, precision: str, threshold: float) -> Path:
     return out.with_suffix(".json")
 
 
+def _members(run: Path) -> list[Path]:
+    return sorted(run.glob("member_*.pt"), key=lambda p: int(p.stem.rsplit("_", 1)[1]))
+
+
+def _ensemble_model(run: Path, sub: Path, pt: Point) -> str:
+    """The manifest of ``pt``'s ensemble point (its first Z members, its precision) from the members of ``run``,
+    exported into ``sub`` (cached)."""
+    sub.mkdir(parents=True, exist_ok=True)
+    for k, src in enumerate(_members(run)[: pt.members]):
+        link = sub / f"member_{k}.pt"
+        if not link.exists():
+            link.symlink_to(src.resolve())
+    out = sub / f"z{pt.members}_{pt.precision}.onnx"
+    manifest = out.with_suffix(".json")
+    if not manifest.exists():
+        _export(sub, out, pt.precision, pt.threshold)
+    return str(manifest)
+
+
 def build_models(points: list[Point], run: Path, args: argparse.Namespace) -> None:
-    """Export (and for the retrained group, train) the model of every point; cached in ``args.cache``."""
+    """Export (and for the retrained group, train) the model of every point; cached in ``args.cache``. With
+    ``args.lofo`` (family -> fold run) each ensemble point is also built from every fold's members."""
     cache = args.cache
-    members = sorted(run.glob("member_*.pt"), key=lambda p: int(p.stem.rsplit("_", 1)[1]))
     for pt in points:
         if pt.group == "ensemble":
-            sub = cache / f"ens_z{pt.members}"
-            sub.mkdir(parents=True, exist_ok=True)
-            for k, src in enumerate(members[: pt.members]):
-                link = sub / f"member_{k}.pt"
-                if not link.exists():
-                    link.symlink_to(src.resolve())
-            out = sub / f"z{pt.members}_{pt.precision}.onnx"
-        else:
-            sub = cache / f"train_w{pt.window}_m{pt.median}"
-            if not (sub / "member_0.pt").exists():
-                cmd = [sys.executable, str(ROOT / "tools" / "train.py"), "--data", *map(str, args.train_data),
-                       "--out", str(sub), "--members", "1", "--epochs", str(args.retrain_epochs),
-                       "--optimizer", "adam", "--lr", "1e-3", "--pillars", "all", "--threads", "2", "--no-eval",
-                       "--quiet", "--window", str(pt.window), "--median", str(pt.median),
-                       *shlex.split(args.train_args)]
-                print(f"training {pt.name}: {' '.join(cmd[1:])}", flush=True)
-                t0 = time.perf_counter()
-                subprocess.run(cmd, check=True)
-                print(f"  {time.perf_counter() - t0:.0f} s", flush=True)
-            out = sub / f"w{pt.window}_m{pt.median}_{pt.precision}.onnx"
+            pt.manifest = _ensemble_model(run, cache / f"ens_z{pt.members}", pt)
+            pt.folds = {fam: _ensemble_model(fold, cache / f"lofo_{fam}" / f"ens_z{pt.members}", pt)
+                        for fam, fold in args.lofo.items()}
+            continue
+        # The retrained group: one member per point, trained here.
+        sub = cache / f"train_w{pt.window}_m{pt.median}"
+        if not (sub / "member_0.pt").exists():
+            cmd = [sys.executable, str(ROOT / "tools" / "train.py"), "--data", *map(str, args.train_data),
+                   "--out", str(sub), "--members", "1", "--epochs", str(args.retrain_epochs),
+                   "--optimizer", "adam", "--lr", "1e-3", "--pillars", "all", "--threads", "2", "--no-eval",
+                   "--quiet", "--window", str(pt.window), "--median", str(pt.median),
+                   *shlex.split(args.train_args)]
+            print(f"training {pt.name}: {' '.join(cmd[1:])}", flush=True)
+            t0 = time.perf_counter()
+            subprocess.run(cmd, check=True)
+            print(f"  {time.perf_counter() - t0:.0f} s", flush=True)
+        out = sub / f"w{pt.window}_m{pt.median}_{pt.precision}.onnx"
         manifest = out.with_suffix(".json")
         if not manifest.exists():
             _export(sub, out, pt.precision, pt.threshold)
         pt.manifest = str(manifest)
-        if pt.group == "retrained":
-            pt.threshold = _tuned_threshold(pt, sub, args)
+        pt.threshold = _tuned_threshold(pt, sub, args)
 
 
 def _tuned_threshold(pt: Point, sub: Path, args: argparse.Namespace) -> float:
@@ -181,11 +203,23 @@ def accuracy(pt: Point, paths: list[Path], workers: int) -> dict:
 
 def heldout_accuracy(pt: Point, paths: list[Path], tag: dict, workers: int) -> dict:
     """Offline figures of one point on the held-out recordings, overall and per physics family
-    (``sliplab.robustness.figures``: the robustness report's criterion)."""
+    (``sliplab.robustness.figures``: the robustness report's criterion). With ``pt.folds`` each family's
+    recordings are run by that point's model from the fold trained without the family (held-out physics);
+    otherwise by the point's own model."""
     from sliplab.robustness import figures, group
 
-    results = evaluate_paths(paths, "model", (pt.manifest, 0.0, pt.threshold, pt.stride), workers=workers,
-                             progress=False)
+    if pt.folds:
+        by_family: dict[str, list[Path]] = {}
+        for q in paths:
+            by_family.setdefault(str(tag.get(q.stem, {}).get("physics_family")), []).append(q)
+        missing = sorted(set(by_family) - set(pt.folds))
+        if missing:
+            raise SystemExit(f"tradeoff: --lofo names no fold for the held-out families {', '.join(missing)}")
+        results = [r for fam, qs in sorted(by_family.items()) for r in evaluate_paths(
+            qs, "model", (pt.folds[fam], 0.0, pt.threshold, pt.stride), workers=workers, progress=False)]
+    else:
+        results = evaluate_paths(paths, "model", (pt.manifest, 0.0, pt.threshold, pt.stride), workers=workers,
+                                 progress=False)
     out = figures(results)
     out["families"] = {fam: figures(rs)["success"] for fam, rs in group(results, tag, "physics_family").items()}
     return out
@@ -298,7 +332,14 @@ def write_report(points: list[Point], torch_us: np.ndarray | None, args: argpars
              f"`{args.data}`; the method's {points[0].figures.get('criterion', 'offline')} criterion). "
              "Speed: one thread, B = 1; CPU share = per-sample "
              "feature cost x 1000 + decision cost x decisions per second, as a share of one core.", ""]
-    if args.heldout_paths:
+    if args.heldout_paths and args.lofo:
+        lines += [f"Held-out families: {len(args.heldout_paths)} recordings of `{args.heldout}` (a spread subset over "
+                  f"the physics families, `--heldout-limit {args.heldout_limit}`), offline criterion as in "
+                  "`tools/robustness.py`; each family's recordings are run by the same point (its first Z members, "
+                  "its precision and stride) built from the fold trained without that family ("
+                  + ", ".join(f"{fam}: `{run}`" for fam, run in args.lofo.items())
+                  + "), so the held-out columns are on physics the point's members never saw.", ""]
+    elif args.heldout_paths:
         note = heldout_note(points[0].manifest, args.heldout)
         lines += [f"Held-out: {len(args.heldout_paths)} recordings of `{args.heldout}` (a spread subset over the "
                   f"physics families, `--heldout-limit {args.heldout_limit}`), offline criterion as in "
@@ -534,7 +575,22 @@ def main(argv: list[str] | None = None) -> int:
                          "on it (offline criterion), per physics family")
     ap.add_argument("--heldout-limit", type=int, default=50,
                     help="held-out recordings used, spread over the physics families (0: all)")
+    ap.add_argument("--lofo", nargs="+", default=[], metavar="FAMILY=RUN",
+                    help="leave-one-family-out training runs: each --heldout family is run by the point built from "
+                         "the fold trained without it (needs --heldout)")
     args = ap.parse_args(argv)
+    folds: dict[str, Path] = {}
+    for item in args.lofo:
+        fam, sep, fold = item.partition("=")
+        if not sep or not fam or not fold:
+            raise SystemExit(f"tradeoff: --lofo {item!r}: expected FAMILY=RUN")
+        have = len(_members(Path(fold)))
+        if have < max(p.members for p in sweep_points(args.threshold, False)):
+            raise SystemExit(f"tradeoff: --lofo {item}: {have} member_<k>.pt, the sweep needs 5")
+        folds[fam] = Path(fold)
+    args.lofo = folds
+    if args.lofo and args.heldout is None:
+        raise SystemExit("tradeoff: --lofo needs --heldout")
     args.paths = list_recordings(args.data)[:: args.every]
     if not args.paths:
         raise SystemExit(f"tradeoff: no recordings in {args.data}")
@@ -590,7 +646,8 @@ def main(argv: list[str] | None = None) -> int:
     args.report.write_text(report)
     crit = points[0].figures.get("criterion", "offline")
     plot(points, args.report.with_suffix(".png"), own_label=f"{args.data.name} ({crit} criterion)",
-         heldout_label=f"{args.heldout.name} (offline criterion)" if args.heldout_paths else "held-out")
+         heldout_label=(f"held-out family (fold trained without it), {args.heldout.name}" if args.lofo else
+                        f"{args.heldout.name} (offline criterion)") if args.heldout_paths else "held-out")
     (args.cache / "tradeoff.json").write_text(json.dumps(
         {"command": cmd, "torch_reference_us": None if torch_us is None else
          {"median": float(np.median(torch_us)), "p99": float(np.percentile(torch_us, 99))},

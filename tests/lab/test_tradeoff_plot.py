@@ -73,3 +73,32 @@ def test_heldout_note_says_whether_the_families_were_trained_on(tmp_path):
     assert "same physics families" in mod.heldout_note(str(m), held)
     m.write_text(json.dumps({"provenance": {"data": ["out/datasets/grips_train"]}}))
     assert "holds no `robust` set" in mod.heldout_note(str(m), held)
+
+
+def test_held_out_families_are_run_by_the_fold_trained_without_them(tmp_path, monkeypatch):
+    """--lofo: each family's held-out recordings go to that family's fold model; a family without a fold stops."""
+    import sliplab.robustness as robustness
+
+    mod = _tradeoff()
+    calls = []
+
+    def fake_evaluate(paths, kind, args, workers, progress):
+        calls.append((sorted(p.stem for p in paths), args[0]))
+        return [(None, None, type("T", (), {"name": p.stem})()) for p in paths]
+
+    monkeypatch.setattr(mod, "evaluate_paths", fake_evaluate)
+    monkeypatch.setattr(robustness, "figures", lambda results: {"success": len(results)})
+    paths = [tmp_path / f"{name}.npz" for name in ("a1", "a2", "b1")]
+    tag = {"a1": {"physics_family": "alpha"}, "a2": {"physics_family": "alpha"}, "b1": {"physics_family": "beta"}}
+    pt = mod.Point("Z=1", "ensemble", "members", members=1, manifest="own.json",
+                   folds={"alpha": "fold_alpha.json", "beta": "fold_beta.json"})
+    out = mod.heldout_accuracy(pt, paths, tag, workers=1)
+    assert sorted(calls) == [(["a1", "a2"], "fold_alpha.json"), (["b1"], "fold_beta.json")]
+    assert out["success"] == 3 and out["families"] == {"alpha": 2, "beta": 1}
+    pt.folds = {"alpha": "fold_alpha.json"}
+    with pytest.raises(SystemExit, match="beta"):
+        mod.heldout_accuracy(pt, paths, tag, workers=1)
+    pt.folds = {}  # without folds the point's own model runs every family
+    calls.clear()
+    mod.heldout_accuracy(pt, paths, tag, workers=1)
+    assert calls == [(["a1", "a2", "b1"], "own.json")]
