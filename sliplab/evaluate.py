@@ -113,8 +113,8 @@ class ModelRunner:
             self.spec = self.spec.with_(stride=0 if stride == self.spec.window else stride)
         # The daemon's default decision rule (the config's defaults), the threshold and hysteresis as given.
         rule = DecisionConfig(threshold=threshold, hysteresis=hysteresis)
-        self.threshold = rule.effective_threshold(self.ensemble.threshold)
         self.decision = build_decision(rule, self.ensemble.threshold)
+        self.threshold = self.decision.threshold
         self.press_rise = rule.press_rise
         self.label = f"model {manifest}"
 

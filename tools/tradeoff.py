@@ -110,8 +110,11 @@ def sweep_points(threshold: float, retrain: bool) -> list[Point]:
 
 # ------------------------------------------------------------------------------------------ models
 def _export(run_dir: Path, out: Path, precision: str, threshold: float) -> Path:
+    """The manifest of ``run_dir``'s members exported to ``out`` (cached: an existing manifest is reused)."""
     from sliplab.export import main as export_main
 
+    if out.with_suffix(".json").exists():
+        return out.with_suffix(".json")
     args = ["--run", str(run_dir), "--out", str(out), "--threshold", str(threshold)]
     if precision != "fp32":
         args.append(f"--{precision}")
@@ -132,11 +135,7 @@ def _ensemble_model(run: Path, sub: Path, pt: Point) -> str:
         link = sub / f"member_{k}.pt"
         if not link.exists():
             link.symlink_to(src.resolve())
-    out = sub / f"z{pt.members}_{pt.precision}.onnx"
-    manifest = out.with_suffix(".json")
-    if not manifest.exists():
-        _export(sub, out, pt.precision, pt.threshold)
-    return str(manifest)
+    return str(_export(sub, sub / f"z{pt.members}_{pt.precision}.onnx", pt.precision, pt.threshold))
 
 
 def build_models(points: list[Point], run: Path, args: argparse.Namespace) -> None:
@@ -161,11 +160,8 @@ def build_models(points: list[Point], run: Path, args: argparse.Namespace) -> No
             t0 = time.perf_counter()
             subprocess.run(cmd, check=True)
             print(f"  {time.perf_counter() - t0:.0f} s", flush=True)
-        out = sub / f"w{pt.window}_m{pt.median}_{pt.precision}.onnx"
-        manifest = out.with_suffix(".json")
-        if not manifest.exists():
-            _export(sub, out, pt.precision, pt.threshold)
-        pt.manifest = str(manifest)
+        pt.manifest = str(_export(sub, sub / f"w{pt.window}_m{pt.median}_{pt.precision}.onnx", pt.precision,
+                                  pt.threshold))
         pt.threshold = _tuned_threshold(pt, sub, args)
 
 
@@ -580,13 +576,14 @@ def main(argv: list[str] | None = None) -> int:
                          "the fold trained without it (needs --heldout)")
     args = ap.parse_args(argv)
     folds: dict[str, Path] = {}
+    need = max(p.members for p in sweep_points(args.threshold, False))  # the largest Z of the ensemble group
     for item in args.lofo:
         fam, sep, fold = item.partition("=")
         if not sep or not fam or not fold:
             raise SystemExit(f"tradeoff: --lofo {item!r}: expected FAMILY=RUN")
         have = len(_members(Path(fold)))
-        if have < max(p.members for p in sweep_points(args.threshold, False)):
-            raise SystemExit(f"tradeoff: --lofo {item}: {have} member_<k>.pt, the sweep needs 5")
+        if have < need:
+            raise SystemExit(f"tradeoff: --lofo {item}: {have} member_<k>.pt, the sweep needs {need}")
         folds[fam] = Path(fold)
     args.lofo = folds
     if args.lofo and args.heldout is None:
