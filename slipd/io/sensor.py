@@ -75,11 +75,16 @@ _SERIAL_STRUCT_BYTES = 128  # larger than the kernel's struct on every ABI; the 
 
 FTDI_SYSFS = "/sys/bus/usb-serial/devices"
 TTY_BUFFER_BYTES = 4096
-"""The kernel's n_tty read buffer: what a paused reader may let pile up before the device is throttled."""
-PAUSE_BUFFER_FRACTION = 0.75
-"""Share of ``TTY_BUFFER_BYTES`` a pause may fill: 7 frames of 433 bytes at 1 kHz, leaving ~2 ms of slack for a
-late timer before the kernel throttles the device (which delays frames, never drops them silently: the packet
-counter would show it). Half the buffer cost ~1.5 points more CPU (more reads per second)."""
+"""The kernel's n_tty read buffer: one read() returns at most this less one byte, and a buffer this full throttles
+the port."""
+PAUSE_SPILL_BYTES = 1024
+"""What a pause may let pile up beyond ``TTY_BUFFER_BYTES``. Throttling loses nothing by itself: the bytes already
+on their way wait in the tty's flip buffer (a pty's writer does not block before 64 KiB; USB CDC ACM keeps its 16
+read URBs in flight, 2 KiB at full speed and 16 KiB at high speed, before the device sees a NAK), and a read that
+empties the line discipline's buffer pulls them through at once (``_on_readable`` reads on). 1 KiB (2.4 ms of
+one-sensor frames at 1 kHz) lets one pause cover a 10 ms decision (4.3 KiB; it covered 7 frames when pauses stopped
+at 75 % of the kernel buffer, so most decisions took three reads instead of two) and keeps at least as much again
+for a late timer. Should the device ever be held back, the packet counter says so (``dropped_frames``)."""
 HOLD_MAX_FRAMES = 256
 """Most frames held back at once (a bound on the decoder storage a hold may use)."""
 ARRIVAL_REANCHOR_S = 0.003
@@ -317,15 +322,16 @@ class SerialSensor:
         The control loop calls this when it knows no decision is due before then: frames wait in the
         kernel's tty buffer, nothing is lost, and the loop wakes a few times per window instead of once per
         1 ms frame. The pause is refused when bytes are already waiting (the loop is behind: read first)
-        and capped so that the frames due meanwhile fill at most ``PAUSE_BUFFER_FRACTION`` of the kernel's
-        4 KiB line-discipline buffer: a full buffer throttles the device (USB CDC stops fetching, so frames
-        would queue, or be lost, on its side). ``drained``: the caller's read just emptied the port (it returned
-        less than it asked for), so the kernel need not be asked. Returns True when the reader was paused.
+        and capped so that the frames due meanwhile fill the kernel's 4 KiB line-discipline buffer and spill at
+        most ``PAUSE_SPILL_BYTES`` beyond it, which waits in the tty's flip buffer and is read in the same wake-up
+        (a device held back further would queue frames, or lose them, on its side). ``drained``: the caller's
+        read just emptied the port (it returned less than it asked for), so the kernel need not be asked.
+        Returns True when the reader was paused.
         """
         if self._fd < 0 or self._loop is None or self._resume_handle is not None or seconds <= 0:
             return False
         if self.frame_bytes > 0 and rate_hz > 0:
-            seconds = min(seconds, PAUSE_BUFFER_FRACTION * TTY_BUFFER_BYTES / (self.frame_bytes * rate_hz))
+            seconds = min(seconds, (TTY_BUFFER_BYTES + PAUSE_SPILL_BYTES) / (self.frame_bytes * rate_hz))
         if seconds < 1e-3 or (not drained and self.pending_bytes() > 0):
             return False
         if self._watching:
@@ -452,6 +458,16 @@ class SerialSensor:
             reason = "hangup (EIO)" if exc.errno == errno.EIO else f"read error: {exc}"
             self._lost(reason)
             return
+        last = n
+        while last >= TTY_BUFFER_BYTES - 1 and n < len(self._rbuf):
+            # The line discipline's buffer was full: what came after waits in the flip buffer, and the next read
+            # pushes it through (the kernel flushes it synchronously), so a pause that spilled
+            # (``PAUSE_SPILL_BYTES``) costs one wake-up, not two.
+            try:
+                last = os.readv(self._fd, [self._rview[n:]])
+            except OSError:
+                break  # drained (EAGAIN); an error on the port shows on the next read, after these bytes
+            n += last
         if n == 0:
             if not empty_ok:
                 self._lost("EOF")

@@ -13,7 +13,7 @@ import pytest
 
 from slipd.io.pts import CMD_BIAS, CMD_SLIP_ON, Frame, encode_frame, rate_command
 from slipd.io.sensor import (
-    PAUSE_BUFFER_FRACTION,
+    PAUSE_SPILL_BYTES,
     TTY_BUFFER_BYTES,
     SensorError,
     SerialSensor,
@@ -411,9 +411,32 @@ def test_paused_reader_loses_nothing_and_refuses_when_behind(emulator_factory) -
     assert [f.counter for f in col.frames] == list(range(800))
     assert s.pauses > 0 and s.frame_bytes > 0
     assert max(batches) > 1  # frames were coalesced
-    # The cap: a pause never lets more than PAUSE_BUFFER_FRACTION of the kernel's 4 KiB buffer pile up.
-    cap_frames = PAUSE_BUFFER_FRACTION * TTY_BUFFER_BYTES / s.frame_bytes
+    # The cap: a pause never lets more than the kernel's 4 KiB buffer and PAUSE_SPILL_BYTES pile up.
+    cap_frames = (TTY_BUFFER_BYTES + PAUSE_SPILL_BYTES) / s.frame_bytes
     assert sum(batches) / len(batches) <= cap_frames + 2
+
+
+def test_one_wake_up_reads_past_the_kernel_buffer(emulator_factory) -> None:
+    # A pause may spill past the line discipline's 4 KiB (PAUSE_SPILL_BYTES): one read returns at most 4095
+    # bytes, and the reader must read on in the same wake-up, so every frame that waited comes in one batch.
+    emu = emulator_factory(synthetic_recording(12))
+    batches: list[list[int]] = []
+
+    async def main() -> int:
+        s = SerialSensor(emu.port, lambda frames: batches.append([f.counter for f in frames]))
+        await s.start()
+        s._loop.remove_reader(s._fd)  # nobody reads: all 12 frames (more than 4 KiB) pile up in the kernel
+        emu.start()
+        await until(lambda: emu.finished.is_set())
+        await asyncio.sleep(0.05)
+        s._on_readable()
+        frame_bytes = s.frame_bytes
+        await s.stop()
+        return frame_bytes
+
+    frame_bytes = asyncio.run(main())
+    assert 12 * frame_bytes > TTY_BUFFER_BYTES
+    assert batches == [list(range(12))]
 
 
 def test_pause_is_refused_while_bytes_wait(emulator_factory) -> None:
