@@ -18,7 +18,8 @@ Per configuration (sensors x stride):
    a loaded machine; the load average is printed beside it).
 
 ``--baseline-tree DIR`` measures what a change saves: the CPU share of this tree and of another checkout's
-``slipd`` (e.g. ``git worktree add /tmp/base <commit>``), runs alternating on the same stream.
+``slipd`` (e.g. ``git worktree add /tmp/base <commit>``), runs alternating on the same stream; with ``--paired``
+both run at once, each on its own stream, and the difference per pair is reported (see ``_paired_shares``).
 
 Beside them: a process that only reads and decodes the same frames (``--decode-only``, one and two sensors,
 reading every frame as it arrives), and the floor of the work on this machine: the bytes (frames read once,
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import concurrent.futures
 import json
 import logging
 import multiprocessing
@@ -277,6 +279,20 @@ def floor_share(model: Path, sensors: int, stride: int, bw: float, flops_rate: f
 
 
 # ---------------------------------------------------------------------------------------------- main
+def _paired_shares(args: argparse.Namespace, sensors: int, stride: int, trees: list[Path]) -> list[float]:
+    """``--paired``: the CPU share of each tree's daemon, all running at once, each on its own emulated stream.
+
+    This machine's idle periods cost more than its busy ones (after a few ms asleep the next decision finds its
+    caches cold: the same hot path takes ~0.2 ms back to back and ~1 ms after a 10 ms sleep), and how often the
+    host lets that happen drifts by several points within minutes. Runs side by side meet the same drift, so
+    their difference is measured far more tightly than that of runs one after another. Their absolute shares
+    read lower than a lone run's (the other pair keeps the cores busier): compare them with each other only."""
+    ctx = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(len(trees), mp_context=ctx) as pool:
+        futures = [pool.submit(cpu_share, args.model, args.seconds, sensors, stride, tree) for tree in trees]
+        return [f.result() for f in futures]
+
+
 def compare_trees(args: argparse.Namespace) -> int:
     """``--baseline-tree``: CPU share of this tree and of the baseline, alternating (A B B A ...) so that a drift
     in the machine's state hits both alike; mean and each run per configuration."""
@@ -288,13 +304,20 @@ def compare_trees(args: argparse.Namespace) -> int:
         for stride in args.strides:
             got: dict[str, list[float]] = {k: [] for k in trees}
             for r in range(args.reps):
+                if args.paired:
+                    for name, share in zip(trees, _paired_shares(args, sensors, stride, list(trees.values()))):
+                        got[name].append(100 * share)
+                    continue
                 for name in (trees if r % 2 == 0 else reversed(list(trees))):
                     got[name].append(100 * cpu_share(args.model, args.seconds, sensors, stride, trees[name]))
-            row = {"sensors": sensors, "stride": stride, **got}
+            diff = np.subtract(got["this tree"], got["baseline"])
+            row = {"sensors": sensors, "stride": stride, **got, "paired": bool(args.paired)}
             out.append(row)
             a, b = (float(np.mean(got[k])) for k in trees)
+            spread = f", difference per pair {diff.mean():+.2f} +- {diff.std(ddof=1):.2f}" if args.paired and \
+                len(diff) > 1 else ""
             print(f"  {sensors} sensor(s) stride {stride}: baseline {a:.2f} % -> this tree {b:.2f} % "
-                  f"({100 * (b - a) / a:+.0f} %); runs {[round(x, 1) for x in got['baseline']]} / "
+                  f"({100 * (b - a) / a:+.0f} %{spread}); runs {[round(x, 1) for x in got['baseline']]} / "
                   f"{[round(x, 1) for x in got['this tree']]}", flush=True)
     print(f"load average at the end {os.getloadavg()[0]:.2f}")
     if args.json:
@@ -316,6 +339,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="A/B the CPU share instead: this tree against the slipd of another checkout (e.g. `git "
                         "worktree add /tmp/base <commit>`), alternating runs on the same stream, at --strides")
     p.add_argument("--reps", type=int, default=4, help="with --baseline-tree: runs of each tree per configuration")
+    p.add_argument("--paired", action="store_true",
+                   help="with --baseline-tree: run the two trees at the same time, each on its own stream, and report "
+                        "the difference per pair (robust to the machine's drift; the shares themselves read lower)")
     p.add_argument("--grip-control", action="store_true",
                    help="issue 16: also the CPU share with reaction.policy grip_control (the controller holding the "
                         "quiet grasp, updated on every decision), beside stop-and-secure's in the same run")

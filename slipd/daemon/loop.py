@@ -334,20 +334,32 @@ class Daemon:
         vals = force.reshape(n, self.sensors, -1)
         if self._reads_disp:
             vals = np.concatenate([vals, disp.reshape(n, self.sensors, -1)], axis=2)
-        finite = np.isfinite(vals).all(axis=2)  # [n, S]
         prev = self._prev_sample
-        changed = np.empty((n, self.sensors), bool)
-        changed[0] = True if prev is None else (vals[0] != prev).any(axis=1)
-        if n > 1:
-            changed[1:] = (vals[1:] != vals[:-1]).any(axis=2)
+        finite = None
+        if np.isfinite(vals).all():
+            # The common block, all finite: a sensor is fresh when any of its samples differs from the one before.
+            if n > 1:
+                fresh = (vals[1:] != vals[:-1]).any(axis=(0, 2))
+                if prev is not None and not fresh.all():
+                    fresh |= (vals[0] != prev).any(axis=1)
+            else:
+                fresh = np.ones(self.sensors, bool) if prev is None else (vals[0] != prev).any(axis=1)
+            if prev is None:
+                fresh[:] = True
+        else:
+            finite = np.isfinite(vals).all(axis=2)  # [n, S]
+            changed = np.empty((n, self.sensors), bool)
+            changed[0] = True if prev is None else (vals[0] != prev).any(axis=1)
+            if n > 1:
+                changed[1:] = (vals[1:] != vals[:-1]).any(axis=2)
+            fresh = (finite & changed).any(axis=0)
         self._prev_sample = vals[-1].copy()
-        fresh = (finite & changed).any(axis=0)
         if fresh.any():
             # When the data arrived (a held block can be handed over up to half a stall timeout later).
             arrived = self.sensor.last_frame_time if self.sensor is not None else None
             self._fresh_ts[fresh] = time.monotonic() if arrived is None else arrived
             self._fresh_t = float(self._fresh_ts.min())
-        if finite.all():
+        if finite is None:
             self._nonfinite_run[:] = 0
             return
         # Rare (a fault): follow each sensor's run of non-finite samples across blocks; a run longer than the

@@ -89,11 +89,17 @@ class _Stream:
 
     def __init__(self, session: ort.InferenceSession, batch: int, z: int, d: int, h: int, pillars: int = 0) -> None:
         self.batch = batch
-        self.p_pillars = np.zeros((batch, pillars), np.float32) if pillars else None
         self.x = np.zeros((batch, d), np.float32)
-        self.h = [np.zeros((z, batch, h), np.float32), np.zeros((z, batch, h), np.float32)]
-        self.p_slip = np.zeros(batch, np.float32)
-        self.p_members = np.zeros((z, batch), np.float32)
+        # Everything the session writes, and both states, side by side in one buffer: a step checks all of it for
+        # non-finite values in one call (the state being replaced is finite already: only finite states are kept).
+        sizes = (batch, z * batch, z * batch * h, z * batch * h, batch * pillars)
+        self.outputs = np.zeros(sum(sizes), np.float32)
+        cuts = np.cumsum(sizes)[:-1]
+        p_slip, p_members, h0, h1, p_pillars = np.split(self.outputs, cuts)
+        self.p_slip = p_slip
+        self.p_members = p_members.reshape(z, batch)
+        self.h = [h0.reshape(z, batch, h), h1.reshape(z, batch, h)]
+        self.p_pillars = p_pillars.reshape(batch, pillars) if pillars else None
         self.cur = 0  # index of the buffer holding the current state
         x_v = ort.OrtValue.ortvalue_from_numpy(self.x)
         h_v = [ort.OrtValue.ortvalue_from_numpy(a) for a in self.h]
@@ -230,8 +236,7 @@ class Ensemble:
             raise ValueError(f"stream {stream} holds {st.batch} sequences, window has {w.shape[0]}; reset it first")
         np.copyto(st.x, w, casting="same_kind")
         self._session.run_with_iobinding(st.bindings[st.cur])
-        h_next = st.h[1 - st.cur]
-        if not (np.isfinite(st.p_members).all() and np.isfinite(st.p_slip).all() and np.isfinite(h_next).all()):
+        if not np.isfinite(st.outputs).all():  # p_slip, p_members, h_next (and p_pillars) in one pass
             st.reset()
             self.nonfinite_outputs += 1
             return self._invalid(w.shape[0], single, STATUS_NONFINITE_OUTPUT)

@@ -129,8 +129,13 @@ class FeatureSpec:
         if not self.derived:
             return filtered
         f = filtered.reshape(len(filtered), len(self.pillars), 3)
-        parts = []
         fz = np.maximum(f[:, :, 2], np.float32(UTIL_FLOOR_N))
+        if self.channels == ("util",):
+            # The shipped model's layout, once per decision on the hot path: no stack of one part (same values).
+            out: np.ndarray = np.hypot(f[:, :, 0], f[:, :, 1])
+            np.divide(out, fz, out=out)
+            return out.reshape(len(filtered), self.n_channels)
+        parts = []
         util = np.hypot(f[:, :, 0], f[:, :, 1]) / fz if {"util", "lutil"} & set(self.channels) else fz
         for c in self.channels:
             if c == "ux":

@@ -90,3 +90,31 @@ def test_only_finger_1_slips_alarm_names_sensor_1_recorder_and_replay_reproduce_
     np.testing.assert_array_equal(dump.force, rec.force[: len(dump)])  # both arrays, bit for bit
     again = [d for d in replay(dump, ens) if d.rising_edge]
     assert [(d.index, d.sensor) for d in again] == offline
+
+
+def test_freshness_is_per_finger_on_every_path(cfg) -> None:
+    """A block is fresh for a finger when any of its samples differs from the one before (the first block always
+    is); a bit-identical finger is not, whether the other one moves or holds a non-finite sample."""
+    daemon = Daemon(override(cfg, {"sensor.sensors": 2}), Ensemble.load(cfg.model.manifest), metrics=Metrics())
+    rng = np.random.default_rng(0)
+    block = rng.normal(0, 0.01, (10, 2, 9, 3)).astype(np.float32)
+    disp = np.zeros_like(block)
+
+    def fresh_after(force: np.ndarray) -> np.ndarray:
+        daemon._fresh_ts[:] = 0.0
+        daemon._check_samples(force, disp)
+        return daemon._fresh_ts > 0.0
+
+    assert fresh_after(block).tolist() == [True, True]  # the first block
+    frozen = block.copy()
+    frozen[:, 1] = block[-1, 1]  # finger 1 repeats its last sample, finger 0 moves
+    assert fresh_after(frozen).tolist() == [True, False]
+    assert fresh_after(np.repeat(frozen[-1:], 10, axis=0)).tolist() == [False, False]
+    one = frozen[-1:].copy()
+    one[0, 0, 4, 2] += 0.5  # one sample, finger 0 only
+    assert fresh_after(one).tolist() == [True, False]
+    bad = np.repeat(one, 10, axis=0)
+    bad[3:, 0, 0, 0] = np.nan  # finger 0 non-finite from the fourth sample on, finger 1 still frozen
+    bad[1, 1, 2, 2] += 0.1
+    assert fresh_after(bad).tolist() == [False, True]
+    assert daemon._nonfinite_run.tolist() == [7, 0]

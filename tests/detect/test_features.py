@@ -210,3 +210,21 @@ def test_push_many_then_push_continue_one_stream() -> None:
     got += [w for s in force[73:] if (w := fs.push(s)) is not None]
     assert np.array_equal(np.array(got), batch_windows(force, spec)[0])
     assert fs.push_many(np.zeros((0, 9, 3), np.float32)) == []
+
+
+def test_util_alone_derives_the_same_values_as_beside_other_channels() -> None:
+    """The shipped layout (``util`` alone) takes a shorter path on the hot path: the same float32 values, bit for
+    bit, as ``util`` computed beside another channel, and a NaN-free floor under the normal force."""
+    from slipd.detect.features import UTIL_FLOOR_N
+
+    rng = np.random.default_rng(3)
+    filtered = rng.normal(0, 1, (40, 27)).astype(np.float32)
+    filtered[5, 2] = 0.0  # a pillar with no normal force: the floor applies
+    nine = tuple(range(9))
+    alone = FeatureSpec(window=40, stride=10, pillars=nine, channels=("util",)).derive(filtered)
+    beside = FeatureSpec(window=40, stride=10, pillars=nine, channels=("util", "fz")).derive(filtered)
+    beside = beside.reshape(40, 9, 2)[:, :, 0]
+    assert alone.dtype == np.float32 and alone.shape == (40, 9)
+    assert np.array_equal(alone, beside)
+    f = filtered.reshape(40, 9, 3)
+    assert alone[5, 0] == np.float32(np.hypot(f[5, 0, 0], f[5, 0, 1]) / np.float32(UTIL_FLOOR_N))
