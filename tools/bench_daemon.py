@@ -235,6 +235,56 @@ def decode_only(port: str, sensors: int) -> None:
     asyncio.run(main())
 
 
+# ---------------------------------------------------------------------------------------------- hot path
+HOT_SLEEP_S = 0.01
+
+
+def hot_path_cost(model: Path, sensors: int, decisions: int = 300) -> dict[str, float]:
+    """The daemon's work per decision without the event loop: 10 encoded frames decoded
+    (``FrameDecoder.feed_block``) and handed to ``Daemon._on_frames`` (freshness, detector, decision, metrics),
+    stride 10, in this process. Timed back to back and after ``HOT_SLEEP_S`` asleep, as the daemon is between
+    decisions: what the code costs, and what the same code costs once the machine has let its caches go cold
+    (on this virtual machine several times more; that difference, not the code, is most of the CPU share)."""
+    from slipd.config import load_config
+    from slipd.daemon.loop import Daemon
+    from slipd.detect.ensemble import Ensemble
+    from slipd.io.pts import Frame, FrameDecoder, encode_frame
+    from slipd.metrics import Metrics
+
+    n = 400 + 10 * (2 * decisions + 20)
+    rec = quiet_hold(n, sensors)
+    z = np.zeros((9, 3), np.float32)
+
+    def frame(i: int) -> bytes:
+        f = rec.force[i] if sensors == 1 else rec.force[i, 0]
+        others = tuple((rec.force[i, k], z) for k in range(1, sensors))
+        return encode_frame(Frame(i + 1, i * 1000, f, z, wrench=np.zeros(6, np.float32),
+                                  slip_state=np.zeros(9, np.int8), friction=np.zeros(9, np.float32), sensor_state=0,
+                                  others=others))
+
+    data = [frame(i) for i in range(n)]
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = load_config(_config(Path(tmp), model, "/dev/null", "/dev/null", sensors, 10))
+        daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics())
+        dec = FrameDecoder(sensors)
+        daemon._on_frames(dec.feed_block(b"".join(data[:400])))  # the tare and the first windows
+        i = 400
+        while daemon.detector.samples_to_decision() != 10:
+            daemon._on_frames(dec.feed_block(data[i]))
+            i += 1
+        got: dict[str, list[float]] = {"back_to_back_us": [], "after_sleep_us": []}
+        for k in range(2 * decisions):
+            key = "after_sleep_us" if k % 2 else "back_to_back_us"
+            chunk = b"".join(data[i : i + 10])
+            i += 10
+            if k % 2:
+                time.sleep(HOT_SLEEP_S)
+            t0 = time.perf_counter()
+            daemon._on_frames(dec.feed_block(chunk))
+            got[key].append(time.perf_counter() - t0)
+    return {k: float(np.median(v[5:])) * 1e6 for k, v in got.items()}
+
+
 # ---------------------------------------------------------------------------------------------- floor
 _RATES = """
 import time, numpy as np
@@ -345,6 +395,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--grip-control", action="store_true",
                    help="issue 16: also the CPU share with reaction.policy grip_control (the controller holding the "
                         "quiet grasp, updated on every decision), beside stop-and-secure's in the same run")
+    p.add_argument("--cpu-runs", type=int, default=3,
+                   help="CPU share: interleaved rounds of --seconds / cpu-runs each; the median is the figure")
     p.add_argument("--decode-only", metavar="PORT", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.decode_only:
@@ -359,20 +411,38 @@ def main(argv: list[str] | None = None) -> int:
         for stride in args.strides:
             run: dict[str, Any] = {"sensors": sensors, "stride": stride}
             run.update(reaction_latency(args.model, args.seconds, sensors, stride))
-            run["cpu_percent"] = 100 * cpu_share(args.model, args.seconds, sensors, stride)
-            if args.grip_control:
-                run["cpu_percent_grip_control"] = 100 * cpu_share(args.model, args.seconds, sensors, stride,
-                                                                  policy="grip_control")
             runs.append(run)
-            print(f"  {sensors} sensor(s) stride {stride}: {run['cpu_percent']:.1f} % CPU, p99 "
-                  f"{run['latency_p99_ms']:.2f} ms", flush=True)
-    base = {s: 100 * cpu_share(args.model, args.seconds, s, None) for s in args.sensors}
+            print(f"  {sensors} sensor(s) stride {stride}: p99 {run['latency_p99_ms']:.2f} ms", flush=True)
+    # The CPU share in --cpu-runs rounds of seconds / cpu_runs each, every configuration once per round in a rotated
+    # order: this machine's drift (several points within minutes, see _paired_shares) then spreads over all of them
+    # alike, and the median of the rounds is the figure (every round is kept in the JSON).
+    per = args.seconds / args.cpu_runs
+    keys: list[tuple[str, int, int | None]] = [("stop_and_secure", r["sensors"], r["stride"]) for r in runs]
+    if args.grip_control:
+        keys += [("grip_control", r["sensors"], r["stride"]) for r in runs]
+    keys += [("decode_only", s, None) for s in args.sensors]
+    shares: dict[tuple[str, int, int | None], list[float]] = {k: [] for k in keys}
+    for rnd in range(args.cpu_runs):
+        shift = rnd * len(keys) // args.cpu_runs
+        for policy, sensors, stride in keys[shift:] + keys[:shift]:
+            pol = "stop_and_secure" if policy == "decode_only" else policy
+            shares[(policy, sensors, stride)].append(100 * cpu_share(args.model, per, sensors, stride, policy=pol))
+        print(f"  CPU round {rnd + 1} of {args.cpu_runs} done", flush=True)
+    for r in runs:
+        got = shares[("stop_and_secure", r["sensors"], r["stride"])]
+        r.update(cpu_percent=float(np.median(got)), cpu_percent_runs=got)
+        if args.grip_control:
+            got = shares[("grip_control", r["sensors"], r["stride"])]
+            r.update(cpu_percent_grip_control=float(np.median(got)), cpu_percent_grip_control_runs=got)
+    base = {s: float(np.median(shares[("decode_only", s, None)])) for s in args.sensors}
+    hot = {s: hot_path_cost(args.model, s) for s in args.sensors}
     bw, flops_rate = machine_rates()
     load1 = os.getloadavg()[0]
 
     print(f"\nslipd daemon at 1 kHz, {args.seconds:g} s per figure, model {args.model.name}, load average "
           f"{load0:.2f} -> {load1:.2f} on {os.cpu_count()} cores (CPU is the process's own time)")
     print("latency: deciding sample written -> tighten bytes at the servo; 'to decision': written -> decision made")
+    print(f"CPU: the median of {args.cpu_runs} interleaved runs of {per:g} s (each run in brackets)")
     print(f"{'sensors':>7} {'stride':>6} {'CPU %':>7} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} "
           f"{'to decision p50/p99':>20} {'alarms':>7} {'sent':>7} {'lost':>5} {'floor %':>8}  target")
     for r in runs:
@@ -386,17 +456,25 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{r['sensors']:>7} {r['stride']:>6} {r['cpu_percent']:>7.1f} {r['latency_p50_ms']:>7.2f} "
               f"{r['latency_p99_ms']:>7.2f} {r['latency_max_ms']:>7.2f} "
               f"{r['decision_p50_ms']:>10.2f} / {r['decision_p99_ms']:<7.2f} {r['alarms']:>7} {r['frames_sent']:>7} "
-              f"{r['frames_lost']:>5} {r['floor_percent']:>8.3f}  {target}")
+              f"{r['frames_lost']:>5} {r['floor_percent']:>8.3f}  {target}  "
+              f"[{', '.join(f'{x:.1f}' for x in r['cpu_percent_runs'])}]")
     for r in runs:
         if "cpu_percent_grip_control" in r:
             print(f"{r['sensors']:>7} {r['stride']:>6} {r['cpu_percent_grip_control']:>7.1f}  with reaction.policy "
                   f"grip_control (stop_and_secure above: {r['cpu_percent']:.1f})")
     for s, cpu in base.items():
         print(f"{s:>7} {'decode-only (every frame as it arrives)':<40} {cpu:>5.1f} % CPU")
+    for s, h in hot.items():
+        print(f"{s:>7} hot path per decision (decode 10 frames, detector, decision), stride 10: "
+              f"{h['back_to_back_us']:.0f} us back to back, {h['after_sleep_us']:.0f} us after "
+              f"{HOT_SLEEP_S * 1e3:g} ms asleep (medians)")
     print(f"floor: bytes over {bw / 1e9:.1f} GB/s (copy) + FLOPs over {flops_rate / 1e9:.1f} GFLOP/s (float32 "
           "matrix product), one thread")
     if args.json:
-        out = {"runs": runs, "decode_only": [{"sensors": s, "cpu_percent": c} for s, c in base.items()],
+        out = {"runs": runs, "decode_only": [{"sensors": s, "cpu_percent": c,
+                                              "cpu_percent_runs": shares[("decode_only", s, None)]}
+                                             for s, c in base.items()],
+               "hot_path": [{"sensors": s, **h} for s, h in hot.items()], "cpu_runs": args.cpu_runs,
                "machine": {"copy_bytes_per_s": bw, "flops_per_s": flops_rate, "load_average": [load0, load1],
                            "cores": os.cpu_count()},
                "seconds": args.seconds, "model": str(args.model)}
