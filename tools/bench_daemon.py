@@ -239,10 +239,10 @@ def decode_only(port: str, sensors: int) -> None:
 HOT_SLEEP_S = 0.01
 
 
-def hot_path_cost(model: Path, sensors: int, decisions: int = 300) -> dict[str, float]:
+def hot_path_cost(model: Path, sensors: int, decisions: int = 300, sleep_s: float = HOT_SLEEP_S) -> dict[str, float]:
     """The daemon's work per decision without the event loop: 10 encoded frames decoded
     (``FrameDecoder.feed_block``) and handed to ``Daemon._on_frames`` (freshness, detector, decision, metrics),
-    stride 10, in this process. Timed back to back and after ``HOT_SLEEP_S`` asleep, as the daemon is between
+    stride 10, in this process. Timed back to back and after ``sleep_s`` asleep, as the daemon is between
     decisions: what the code costs, and what the same code costs once the machine has let its caches go cold
     (on this virtual machine several times more; that difference, not the code, is most of the CPU share)."""
     from slipd.config import load_config
@@ -278,7 +278,7 @@ def hot_path_cost(model: Path, sensors: int, decisions: int = 300) -> dict[str, 
             chunk = b"".join(data[i : i + 10])
             i += 10
             if k % 2:
-                time.sleep(HOT_SLEEP_S)
+                time.sleep(sleep_s)
             t0 = time.perf_counter()
             daemon._on_frames(dec.feed_block(chunk))
             got[key].append(time.perf_counter() - t0)
@@ -397,6 +397,8 @@ def main(argv: list[str] | None = None) -> int:
                         "quiet grasp, updated on every decision), beside stop-and-secure's in the same run")
     p.add_argument("--cpu-runs", type=int, default=3,
                    help="CPU share: interleaved rounds of --seconds / cpu-runs each; the median is the figure")
+    p.add_argument("--hot-path", type=float, nargs="+", metavar="SLEEP_MS",
+                   help="only the hot-path line, after each of these sleeps (ms): its cost against the idle time")
     p.add_argument("--decode-only", metavar="PORT", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.decode_only:
@@ -404,6 +406,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.baseline_tree:
         return compare_trees(args)
+    if args.hot_path:
+        for s in args.sensors:
+            for ms in args.hot_path:
+                h = hot_path_cost(args.model, s, sleep_s=ms / 1e3)
+                print(f"{s} sensor(s): hot path per decision {h['back_to_back_us']:.0f} us back to back, "
+                      f"{h['after_sleep_us']:.0f} us after {ms:g} ms asleep (medians of 300)", flush=True)
+        return 0
     logging.getLogger("slipd").setLevel(logging.ERROR)  # one alarm per window here: keep the log quiet
     load0 = os.getloadavg()[0]
     runs: list[dict[str, Any]] = []
