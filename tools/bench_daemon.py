@@ -237,9 +237,21 @@ def decode_only(port: str, sensors: int) -> None:
 
 # ---------------------------------------------------------------------------------------------- hot path
 HOT_SLEEP_S = 0.01
+HOT_DECISIONS = 300
 
 
-def hot_path_cost(model: Path, sensors: int, decisions: int = 300, sleep_s: float = HOT_SLEEP_S) -> dict[str, float]:
+def _encoded(counter: int, t_us: int, force: np.ndarray) -> bytes:
+    """One PTSCOM frame of ``force`` [S, 9, 3] (sensor 0 first, displacements zero, the optional blocks neutral)."""
+    from slipd.io.pts import Frame, encode_frame
+
+    z = np.zeros((9, 3), np.float32)
+    return encode_frame(Frame(counter, t_us, force[0], z, wrench=np.zeros(6, np.float32),
+                              slip_state=np.zeros(9, np.int8), friction=np.zeros(9, np.float32), sensor_state=0,
+                              others=tuple((f, z) for f in force[1:])))
+
+
+def hot_path_cost(model: Path, sensors: int, decisions: int = HOT_DECISIONS,
+                  sleep_s: float = HOT_SLEEP_S) -> dict[str, float]:
     """The daemon's work per decision without the event loop: 10 encoded frames decoded
     (``FrameDecoder.feed_block``) and handed to ``Daemon._on_frames`` (freshness, detector, decision, metrics),
     stride 10, in this process. Timed back to back and after ``sleep_s`` asleep, as the daemon is between
@@ -248,21 +260,12 @@ def hot_path_cost(model: Path, sensors: int, decisions: int = 300, sleep_s: floa
     from slipd.config import load_config
     from slipd.daemon.loop import Daemon
     from slipd.detect.ensemble import Ensemble
-    from slipd.io.pts import Frame, FrameDecoder, encode_frame
+    from slipd.io.pts import FrameDecoder
     from slipd.metrics import Metrics
 
     n = 400 + 10 * (2 * decisions + 20)
-    rec = quiet_hold(n, sensors)
-    z = np.zeros((9, 3), np.float32)
-
-    def frame(i: int) -> bytes:
-        f = rec.force[i] if sensors == 1 else rec.force[i, 0]
-        others = tuple((rec.force[i, k], z) for k in range(1, sensors))
-        return encode_frame(Frame(i + 1, i * 1000, f, z, wrench=np.zeros(6, np.float32),
-                                  slip_state=np.zeros(9, np.int8), friction=np.zeros(9, np.float32), sensor_state=0,
-                                  others=others))
-
-    data = [frame(i) for i in range(n)]
+    force = quiet_hold(n, sensors).force.reshape(n, sensors, 9, 3)
+    data = [_encoded(i + 1, i * 1000, force[i]) for i in range(n)]
     with tempfile.TemporaryDirectory() as tmp:
         cfg = load_config(_config(Path(tmp), model, "/dev/null", "/dev/null", sensors, 10))
         daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics())
@@ -313,14 +316,11 @@ def floor_share(model: Path, sensors: int, stride: int, bw: float, flops_rate: f
     decoded into arrays once, the 5-sample median of each sensor's 27 channels per sample, a model step per
     sensor every ``stride`` samples."""
     from slipd.detect.manifest import load_manifest, onnx_path_of
-    from slipd.io.pts import Frame, encode_frame
     from sliplab.timing import model_cost
 
     manifest = load_manifest(model, check_graph=False)
     _, step_flops = model_cost(onnx_path_of(manifest, model))
-    z = np.zeros((9, 3), np.float32)
-    frame = encode_frame(Frame(0, 0, z, z, wrench=np.zeros(6, np.float32), slip_state=np.zeros(9, np.int8),
-                               friction=np.zeros(9, np.float32), sensor_state=0, others=((z, z),) * (sensors - 1)))
+    frame = _encoded(0, 0, np.zeros((sensors, 9, 3), np.float32))
     rate = 1000.0
     byte_rate = len(frame) * rate * 2  # read from the port, written into the arrays
     median_flops = sensors * 27 * 7 * rate  # a 5-wide min/max network: 7 comparisons per channel and sample
@@ -411,7 +411,7 @@ def main(argv: list[str] | None = None) -> int:
             for ms in args.hot_path:
                 h = hot_path_cost(args.model, s, sleep_s=ms / 1e3)
                 print(f"{s} sensor(s): hot path per decision {h['back_to_back_us']:.0f} us back to back, "
-                      f"{h['after_sleep_us']:.0f} us after {ms:g} ms asleep (medians of 300)", flush=True)
+                      f"{h['after_sleep_us']:.0f} us after {ms:g} ms asleep (medians of {HOT_DECISIONS})", flush=True)
         return 0
     logging.getLogger("slipd").setLevel(logging.ERROR)  # one alarm per window here: keep the log quiet
     load0 = os.getloadavg()[0]

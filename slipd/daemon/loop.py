@@ -337,15 +337,13 @@ class Daemon:
         prev = self._prev_sample
         finite = None
         if np.isfinite(vals).all():
-            # The common block, all finite: a sensor is fresh when any of its samples differs from the one before.
-            if n > 1:
-                fresh = (vals[1:] != vals[:-1]).any(axis=(0, 2))
-                if prev is not None and not fresh.all():
-                    fresh |= (vals[0] != prev).any(axis=1)
-            else:
-                fresh = np.ones(self.sensors, bool) if prev is None else (vals[0] != prev).any(axis=1)
+            # The common block, all finite: a sensor is fresh when any of its samples differs from the one before
+            # (the first block always is; one sample alone compares only with the block before).
+            fresh = (vals[1:] != vals[:-1]).any(axis=(0, 2))
             if prev is None:
                 fresh[:] = True
+            elif not fresh.all():
+                fresh |= (vals[0] != prev).any(axis=1)
         else:
             finite = np.isfinite(vals).all(axis=2)  # [n, S]
             changed = np.empty((n, self.sensors), bool)
