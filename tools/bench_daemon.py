@@ -22,9 +22,10 @@ Per configuration (sensors x stride):
 both run at once, each on its own stream, and the difference per pair is reported (see ``_paired_shares``).
 
 Beside them: a process that only reads and decodes the same frames (``--decode-only``, one and two sensors,
-reading every frame as it arrives), and the floor of the work on this machine: the bytes (frames read once,
-decoded once) over the measured memory bandwidth plus the FLOPs (model steps, median filter) over the
-measured float32 matrix rate.
+reading every frame as it arrives), an event loop that only wakes 100 times a second (``idle_loop``: what this
+machine charges for the decision rate's wake-ups alone), and the floor of the work on this machine: the bytes
+(frames read once, decoded once) over the measured memory bandwidth plus the FLOPs (model steps, median filter)
+over the measured float32 matrix rate.
 """
 
 from __future__ import annotations
@@ -54,6 +55,8 @@ ROOT = Path(__file__).resolve().parents[1]
 TARGET_P99_MS = 3.0
 TARGET_CPU = {1: 0.08, 2: 0.12}  # stride 10, of one core (issue 15)
 STRIDES = (40, 20, 10)
+IDLE_HZ = 100.0
+"""The ``idle_loop`` baseline's wake-up rate: the daemon's decisions per second at stride 10."""
 
 
 def quiet_hold(n: int, sensors: int = 1, seed: int = 0) -> Recording:
@@ -186,16 +189,19 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int) -> 
 
 # ---------------------------------------------------------------------------------------------- CPU
 def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None, tree: Path | None = None,
-              policy: str = "stop_and_secure") -> float:
+              policy: str = "stop_and_secure", idle_hz: float | None = None) -> float:
     """CPU seconds per wall second of one process reading the 1 kHz stream (``slipd run``; decode-only when
     ``stride`` is None). ``tree``: run the ``slipd`` of that source tree instead of this one (``--baseline-tree``).
-    ``policy`` grip_control: the grip controller takes the quiet grasp over and runs on every decision."""
+    ``policy`` grip_control: the grip controller takes the quiet grasp over and runs on every decision.
+    ``idle_hz``: instead, an event loop that only wakes this often (``idle_loop``), beside the same stream."""
     from slipd.sim.devices.mx28 import EmulatedMX28
     from slipd.sim.devices.papillarray import EmulatedPapillArray
 
     rec = quiet_hold(int((seconds + 30) * 1000), sensors)
     with tempfile.TemporaryDirectory() as tmp, EmulatedMX28() as servo, EmulatedPapillArray(rec) as sensor:
-        if stride is None:
+        if idle_hz is not None:
+            cmd = [sys.executable, __file__, "--idle-loop", str(idle_hz)]
+        elif stride is None:
             cmd = [sys.executable, __file__, "--decode-only", sensor.port, "--sensors", str(sensors)]
         else:
             cfg = _config(Path(tmp), model, sensor.port, servo.port, sensors, stride, policy)
@@ -230,6 +236,26 @@ def decode_only(port: str, sensors: int) -> None:
     async def main() -> None:
         s = SerialSensor(port, on_block=lambda block: None, sensors=sensors)
         await s.start()
+        await asyncio.Event().wait()
+
+    asyncio.run(main())
+
+
+def idle_loop(hz: float) -> None:
+    """Baseline process: an asyncio event loop (the daemon's) that wakes ``hz`` times a second on an absolute
+    schedule and does nothing else. On a machine whose cores go cold while idle (this virtual machine: see
+    ``hot_path_cost``) a wake-up alone costs far more than its instructions; this line shows how much of the
+    daemon's share the machine charges for waking at the decision rate at all."""
+    import numpy  # noqa: F401  (the daemon's process holds it too: same memory footprint to wake into)
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+
+        def tick(k: int) -> None:
+            loop.call_at(start + k / hz, tick, k + 1)
+
+        tick(1)
         await asyncio.Event().wait()
 
     asyncio.run(main())
@@ -400,9 +426,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hot-path", type=float, nargs="+", metavar="SLEEP_MS",
                    help="only the hot-path line, after each of these sleeps (ms): its cost against the idle time")
     p.add_argument("--decode-only", metavar="PORT", help=argparse.SUPPRESS)
+    p.add_argument("--idle-loop", type=float, metavar="HZ", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.decode_only:
         decode_only(args.decode_only, args.sensors[0])
+        return 0
+    if args.idle_loop:
+        idle_loop(args.idle_loop)
         return 0
     if args.baseline_tree:
         return compare_trees(args)
@@ -430,12 +460,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.grip_control:
         keys += [("grip_control", r["sensors"], r["stride"]) for r in runs]
     keys += [("decode_only", s, None) for s in args.sensors]
+    keys += [("idle_loop", 1, None)]  # the decision rate at stride 10: 100 wake-ups a second
     shares: dict[tuple[str, int, int | None], list[float]] = {k: [] for k in keys}
     for rnd in range(args.cpu_runs):
         shift = rnd * len(keys) // args.cpu_runs
         for policy, sensors, stride in keys[shift:] + keys[:shift]:
-            pol = "stop_and_secure" if policy == "decode_only" else policy
-            shares[(policy, sensors, stride)].append(100 * cpu_share(args.model, per, sensors, stride, policy=pol))
+            pol = "stop_and_secure" if policy in ("decode_only", "idle_loop") else policy
+            idle = IDLE_HZ if policy == "idle_loop" else None
+            shares[(policy, sensors, stride)].append(100 * cpu_share(args.model, per, sensors, stride, policy=pol,
+                                                                     idle_hz=idle))
         print(f"  CPU round {rnd + 1} of {args.cpu_runs} done", flush=True)
     for r in runs:
         got = shares[("stop_and_secure", r["sensors"], r["stride"])]
@@ -444,6 +477,7 @@ def main(argv: list[str] | None = None) -> int:
             got = shares[("grip_control", r["sensors"], r["stride"])]
             r.update(cpu_percent_grip_control=float(np.median(got)), cpu_percent_grip_control_runs=got)
     base = {s: float(np.median(shares[("decode_only", s, None)])) for s in args.sensors}
+    idle_runs = shares[("idle_loop", 1, None)]
     hot = {s: hot_path_cost(args.model, s) for s in args.sensors}
     bw, flops_rate = machine_rates()
     load1 = os.getloadavg()[0]
@@ -473,6 +507,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"grip_control (stop_and_secure above: {r['cpu_percent']:.1f})")
     for s, cpu in base.items():
         print(f"{s:>7} {'decode-only (every frame as it arrives)':<40} {cpu:>5.1f} % CPU")
+    print(f"{'-':>7} {f'event loop waking {IDLE_HZ:g} times a second, nothing else':<40} "
+          f"{float(np.median(idle_runs)):>5.1f} % CPU  [{', '.join(f'{x:.1f}' for x in idle_runs)}]")
     for s, h in hot.items():
         print(f"{s:>7} hot path per decision (decode 10 frames, detector, decision), stride 10: "
               f"{h['back_to_back_us']:.0f} us back to back, {h['after_sleep_us']:.0f} us after "
@@ -483,6 +519,7 @@ def main(argv: list[str] | None = None) -> int:
         out = {"runs": runs, "decode_only": [{"sensors": s, "cpu_percent": c,
                                               "cpu_percent_runs": shares[("decode_only", s, None)]}
                                              for s, c in base.items()],
+               "idle_loop": {"hz": IDLE_HZ, "cpu_percent": float(np.median(idle_runs)), "cpu_percent_runs": idle_runs},
                "hot_path": [{"sensors": s, **h} for s, h in hot.items()], "cpu_runs": args.cpu_runs,
                "machine": {"copy_bytes_per_s": bw, "flops_per_s": flops_rate, "load_average": [load0, load1],
                            "cores": os.cpu_count()},
