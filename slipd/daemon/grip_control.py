@@ -21,8 +21,11 @@ A slip: the contact *slips* while the detector's alarm is up or the risk is at `
 slides the measured shear is the kinetic friction, mu * grip, not the load, so the load it needs to hold is
 unknown; a new slip is therefore caught at once: the target jumps to ``catch`` x the grip it slipped at (and at
 least to the requirement) and stays there while the slip lasts, and the requirement, which grows with the grip
-while the contact slides, takes it further if needed. A slip that resumes within ``relax_after_s`` of the last
-one is the same slip (an alarm or a risk flickering as the contact settles): no new catch. Once the contact
+while the contact slides, takes it further if needed. A slip whose friction use first rules a whole-contact slide
+out (see below) is caught once the use reaches the limit, from the grip it has then: a load that grows slowly (a
+cup being filled) slides the whole contact off while the requirement creeps up with the grip at the servo's pace.
+A slip that resumes within ``relax_after_s`` of the last one is the same slip (an alarm or a risk flickering as the
+contact settles): no new catch. Once the contact
 holds, the requirement comes from the real load again: after it stayed quiet for ``relax_after_s`` the target
 relaxes at ``relax_n_s`` down to it, never below the grip the hold setting produced (``hold_n``). Every increase
 is bounded by ``rise_n_s`` (a faster jump splays the pillars and makes a loaded contact slip all at once) and the
@@ -143,6 +146,7 @@ class GripController:
         self._steady_n, self._steady_since = 0.0, math.inf
         self._slip_grip = 0.0
         self._catch_n = 0.0  # the catch's level, held while the slip lasts
+        self._caught = False  # this slip (with the flickers that belong to it) has had its catch
         self._mu: float | None = None  # the highest friction estimate of the grasp
         self._twist = False
         self._grasp_mu: float | None = None  # the contact's friction estimate at the take-over (the closing's)
@@ -174,8 +178,12 @@ class GripController:
             # the load (the slip states and friction samples they leave are the closing's, not the object's). The
             # detector's alarm alone counts (its model has seen grasps close).
             self.hold_n = max(self.hold_n, grip)  # what the hold setting produces, until we act
-            if abs(grip - self._steady_n) > STEADY_SHARE * self._steady_n:
-                self._steady_n, self._steady_since = grip, now
+            # Steadiness on the pressed pillars' whole normal force: a light pillar at the contact threshold flickers
+            # in and out of ``grip_n`` (0.5 N steps on the rig's filling cup, held at 3.3 N), which kept the grasp from
+            # ever counting as settled, so the controller never took over and the cup slid out unanswered.
+            pressed = state.pressed_n if state.pressed_n is not None else grip
+            if abs(pressed - self._steady_n) > STEADY_SHARE * self._steady_n:
+                self._steady_n, self._steady_since = pressed, now
             if not alarm and now - self._steady_since < s.takeover_after_s:
                 return
             # The grasp has settled (or slips): take the grip over at the force it has. The servo then holds it by
@@ -194,6 +202,7 @@ class GripController:
             self._slip_end is None or now - self._slip_end >= s.relax_after_s)
         if new_slip:
             self._slip_grip = grip
+            self._caught = False
         if alarm and state.friction is None and grip <= self._slip_grip * ALARM_SAMPLE_RISE:
             # The alarm says the contact slides: a sliding contact sits on its friction limit.
             self.alarm_friction.update([shear / grip], [grip], [1.0])
@@ -223,8 +232,12 @@ class GripController:
             # (light edge pillars of a curved object, a load off-centre): the alarm and the risk agreeing is a slip.
             plausible = (mu is None or shear / (mu * grip) >= (1.0 + s.margin) / 2
                          or (alarm and state.risk >= s.raise_risk))
-            if new_slip and plausible:
-                self._catch_n = self._slip_grip * s.catch
+            if plausible and not self._caught:
+                # One catch per slip: at its start from the grip it slipped at; a slip that only became plausible
+                # later (a load growing slowly to the limit, as a cup being filled: the requirement alone then creeps
+                # up with the grip at the servo's pace while the whole contact slides) from the grip it has now.
+                self._catch_n = (self._slip_grip if new_slip else grip) * s.catch
+                self._caught = True
             want = max(required, self._catch_n)
         else:
             if self._slipping:
@@ -258,6 +271,7 @@ class GripController:
         if twisting and not self._twist:
             self._twist = True
             self._catch_n = 0.0  # the arm stop holds a twist; a grip jump would make the pillars slip all at once
+            self._caught = True
             self.target = target = max(min(target, grip), state.load_n / (mu * s.margin) if mu else 0.0)
         if not self.arm_stopped and (high or at_limit or twisting):
             self.arm_stopped = True

@@ -71,6 +71,9 @@ class ContactState:
     """Sum of the pillars' tangential force magnitudes: the load with its twist. A torque (an off-centre object)
     loads pillars in opposite directions, which cancels in ``load_n``; the whole contact slides once this
     reaches ``friction * grip_n``. None where it was not computed."""
+    pressed_n: float | None = None
+    """Sum of the normal forces of all pillars pressed at all (above zero), without the contact threshold: unlike
+    ``grip_n`` it does not step when a light pillar flickers across the threshold. None where it was not computed."""
 
     @property
     def friction_use(self) -> float | None:
@@ -84,7 +87,8 @@ class ContactState:
         return {"pillar_slip": [round(p, 4) for p in self.pillar_slip], "friction": self.friction,
                 "friction_sd": self.friction_sd, "contact_risk": round(self.risk, 4), "grip_n": round(self.grip_n, 4),
                 "load_n": round(self.load_n, 4), "pillar_source": self.source,
-                "shear_n": None if self.shear_n is None else round(self.shear_n, 4)}
+                "shear_n": None if self.shear_n is None else round(self.shear_n, 4),
+                "pressed_n": None if self.pressed_n is None else round(self.pressed_n, 4)}
 
 
 def contact_spec(spec: FeatureSpec) -> FeatureSpec:
@@ -165,7 +169,7 @@ class ContactStream:
         state = ContactState(
             pillar_slip=tuple(p), friction=mu, friction_sd=None if est is None else est.sd,
             risk=contact_risk(fz, util, p_top, mu, self.risk_margin), grip_n=grip, load_n=load, source=source,
-            shear_n=shear,
+            shear_n=shear, pressed_n=sum(z for z in fz if z > 0.0),
         )
         self.latest = state
         return state

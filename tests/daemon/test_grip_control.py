@@ -203,3 +203,32 @@ def test_release_resets() -> None:
     assert c.target is not None
     c.update(_state(0.0, 0.0, None, 0.0), 0.1)
     assert c.target is None and c.alarm_friction.estimate() is None
+
+
+def test_a_slip_that_reaches_the_limit_later_is_caught_from_the_grip_it_has_then() -> None:
+    """A load growing slowly (a cup being filled): the slip starts with the friction in use below the catch's
+    plausibility, so only the requirement raises the grip, at the servo's pace; once the whole contact slides at
+    the limit the slip is caught, once, from the grip it has then (the rig's filling cup slid 30 mm off without)."""
+    jaw = Jaw()
+    c, stops, _ = _ctl(jaw, catch=2.0, margin=0.85, max_force_n=30.0)
+    t = _run(c, 0.0, 20, 3.3, 0.1, None, 0.0)
+    t = _run(c, t, 5, 3.3, 0.78, 0.268, 0.61)  # use 0.78 / (0.268 * 3.3) = 0.88: no whole-contact slide yet
+    assert c.target is not None and c.target < 2.0 * 3.3
+    t = _run(c, t, 30, 4.5, 1.13, 0.25, 0.8)  # the same slip, now at the limit: 1.13 / (0.25 * 4.5) = 1.0
+    assert c.target is not None and abs(c.target - 2.0 * 4.5) < 1e-9
+    _run(c, t, 10, 9.0, 1.13, 0.25, 0.6)  # a flicker of the same slip at the raised grip: no second catch
+    assert c.target is not None and c.target <= 2.0 * 4.5 + 1e-9 and stops == []
+
+
+def test_takes_over_while_a_light_pillar_flickers_across_the_contact_threshold() -> None:
+    """The rig's filling cup rests on a 2.2 N pillar and two at 0.5 N, the contact threshold: ``grip_n`` steps
+    between 3.3 and 2.8 N as they flicker, the grasp never counted as settled, and the cup slid out unanswered.
+    Steadiness is judged on the pressed pillars' whole normal force, which does not step."""
+    jaw = Jaw()
+    c, _, _ = _ctl(jaw, takeover_after_s=0.1)
+    t = 0.0
+    for k in range(30):
+        t += DT
+        grip = 2.8 if k % 3 == 0 else 3.3  # a pillar at the threshold in and out of the contact's grip
+        c.update(ContactState((0.0,) * 9, None, None, 0.0, grip, 0.1, shear_n=0.1, pressed_n=3.31), t)
+    assert c.target is not None and jaw.sent
