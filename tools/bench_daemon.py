@@ -245,8 +245,8 @@ def idle_loop(hz: float) -> None:
     """Baseline process: an asyncio event loop (the daemon's) that wakes ``hz`` times a second on an absolute
     schedule and does nothing else. On a machine whose cores go cold while idle (this virtual machine: see
     ``hot_path_cost``) a wake-up alone costs far more than its instructions; this line shows how much of the
-    daemon's share the machine charges for waking at the decision rate at all."""
-    import numpy  # noqa: F401  (the daemon's process holds it too: same memory footprint to wake into)
+    daemon's share the machine charges for waking at the decision rate at all (this module holds numpy, as the
+    daemon's process does)."""
 
     async def main() -> None:
         loop = asyncio.get_running_loop()

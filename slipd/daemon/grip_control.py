@@ -25,11 +25,10 @@ while the contact slides, takes it further if needed. A slip whose friction use 
 out (see below) is caught once the use reaches the limit, from the grip it has then: a load that grows slowly (a
 cup being filled) slides the whole contact off while the requirement creeps up with the grip at the servo's pace.
 A slip that resumes within ``relax_after_s`` of the last one is the same slip (an alarm or a risk flickering as the
-contact settles): no new catch. Once the contact
-holds, the requirement comes from the real load again: after it stayed quiet for ``relax_after_s`` the target
-relaxes at ``relax_n_s`` down to it, never below the grip the hold setting produced (``hold_n``). Every increase
-is bounded by ``rise_n_s`` (a faster jump splays the pillars and makes a loaded contact slip all at once) and the
-target never exceeds ``max_force_n`` (the object's force limit).
+contact settles): no new catch. Once the contact holds, the requirement comes from the real load again: after it
+stayed quiet for ``relax_after_s`` the target relaxes at ``relax_n_s`` down to it, never below the grip the hold
+setting produced (``hold_n``). Every increase is bounded by ``rise_n_s`` (a faster jump splays the pillars and makes
+a loaded contact slip all at once) and the target never exceeds ``max_force_n`` (the object's force limit).
 
 A twist (only where ``twist`` is set): a slip whose shear is ``twist`` x the net load or more is an off-centre object
 turning. The pillars' lever arms are a few millimetres, so grip buys little torque: the arm stops at once (the lift

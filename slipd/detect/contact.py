@@ -147,9 +147,11 @@ class ContactStream:
             p, source = self.pillars.step(w[0].tolist(), last, ends), "features"
         else:
             p, source = np.asarray(pillar_p, np.float64).tolist(), "model"
-        grip = fx = fy = shear = 0.0
+        grip = fx = fy = shear = pressed = 0.0
         top = -1.0
         for (x, y, z), u, c in zip(last, util, contact):
+            if z > 0.0:
+                pressed += z
             if c:
                 grip += z
                 fx += x
@@ -169,7 +171,7 @@ class ContactStream:
         state = ContactState(
             pillar_slip=tuple(p), friction=mu, friction_sd=None if est is None else est.sd,
             risk=contact_risk(fz, util, p_top, mu, self.risk_margin), grip_n=grip, load_n=load, source=source,
-            shear_n=shear, pressed_n=sum(z for z in fz if z > 0.0),
+            shear_n=shear, pressed_n=pressed,
         )
         self.latest = state
         return state
