@@ -74,6 +74,10 @@ class ContactState:
     pressed_n: float | None = None
     """Sum of the normal forces of all pillars pressed at all (above zero), without the contact threshold: unlike
     ``grip_n`` it does not step when a light pillar flickers across the threshold. None where it was not computed."""
+    top_util: float | None = None
+    """The highest utilisation of any pressed pillar (above zero), |Ft| / max(Fz, contact threshold): a light pillar's
+    ratio is understated, never overstated, so the friction coefficient is at least this (with friction alike across
+    the pillars). A contact whose shear / grip is far below it is not sliding as a whole. None where not computed."""
 
     @property
     def friction_use(self) -> float | None:
@@ -88,7 +92,8 @@ class ContactState:
                 "friction_sd": self.friction_sd, "contact_risk": round(self.risk, 4), "grip_n": round(self.grip_n, 4),
                 "load_n": round(self.load_n, 4), "pillar_source": self.source,
                 "shear_n": None if self.shear_n is None else round(self.shear_n, 4),
-                "pressed_n": None if self.pressed_n is None else round(self.pressed_n, 4)}
+                "pressed_n": None if self.pressed_n is None else round(self.pressed_n, 4),
+                "top_util": None if self.top_util is None else round(self.top_util, 4)}
 
 
 def contact_spec(spec: FeatureSpec) -> FeatureSpec:
@@ -147,11 +152,12 @@ class ContactStream:
             p, source = self.pillars.step(w[0].tolist(), last, ends), "features"
         else:
             p, source = np.asarray(pillar_p, np.float64).tolist(), "model"
-        grip = fx = fy = shear = pressed = 0.0
+        grip = fx = fy = shear = pressed = top_pressed = 0.0
         top = -1.0
         for (x, y, z), u, c in zip(last, util, contact):
             if z > 0.0:
                 pressed += z
+                top_pressed = max(top_pressed, u)
             if c:
                 grip += z
                 fx += x
@@ -171,7 +177,7 @@ class ContactStream:
         state = ContactState(
             pillar_slip=tuple(p), friction=mu, friction_sd=None if est is None else est.sd,
             risk=contact_risk(fz, util, p_top, mu, self.risk_margin), grip_n=grip, load_n=load, source=source,
-            shear_n=shear, pressed_n=pressed,
+            shear_n=shear, pressed_n=pressed, top_util=top_pressed,
         )
         self.latest = state
         return state

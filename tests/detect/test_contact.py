@@ -156,3 +156,18 @@ def test_shear_counts_a_twist_that_cancels_in_the_net_load() -> None:
     stream.push_many(f)
     s = stream.latest
     assert s is not None and s.load_n < 1e-6 and s.shear_n is not None and abs(s.shear_n - 1.2) < 1e-6
+
+
+def test_top_util_is_a_lower_bound_of_the_friction_from_every_pressed_pillar() -> None:
+    """The filling cup's contact: one loaded pillar sticking at 0.04 of its cone, two light ones below the contact
+    threshold at 0.3 of theirs. ``top_util`` reads the light pillars too, over the threshold rather than their own
+    force (understated, never overstated), so a friction below it is ruled out."""
+    f = np.zeros((100, 9, 3))
+    f[:, 4, 2], f[:, 4, 0] = 2.2, 0.088  # 0.04
+    f[:, [1, 7], 2], f[:, [1, 7], 0] = 0.3, 0.09  # 0.3 of their own force, 0.18 over the 0.5 N threshold
+    stream = ContactStream(FeatureSpec(window=40, stride=10))
+    stream.push_many(f)
+    s = stream.latest
+    assert s is not None and abs(s.grip_n - 2.2) < 1e-6 and s.top_util is not None
+    assert abs(s.top_util - 0.09 / 0.5) < 1e-6
+    assert s.to_dict()["top_util"] == round(s.top_util, 4)
