@@ -59,6 +59,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--policy", choices=("stop_and_secure", "grip_control"), default=None,
                    help="issue 16: run grip_control beside stop_and_secure (plus the filling cup and the fragile "
                    "object) and write reports/grip_control.md")
+    p.add_argument("--extras", default=",".join(name for name, _, _ in EXTRAS),
+                   help="with --policy: which extra scenes run beside the objects (comma list; '' none); with "
+                        "--objects '' the extras alone, e.g. many filling cups")
+    p.add_argument("--seed", type=int, default=1000, help="the first repetition's seed (the n-th runs seed + n)")
     p.add_argument("--json", type=Path, help="with --policy: one row per run (default reports/grip_control.json)")
     p.add_argument("--from-json", type=Path, help="with --policy: write the report from these runs instead of "
                    "running the rig again")
@@ -77,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
             scene = ROOT / "config" / "scenes" / f"{obj}_{scen}.yaml"
             for rep in range(args.reps):
                 for detector, react in conditions:
-                    res, _ = run_rig(scene, args.config, react=react, seed=1000 + rep, detector=detector,
+                    res, _ = run_rig(scene, args.config, react=react, seed=args.seed + rep, detector=detector,
                                      log=lambda *a: None)
                     row = {"object": obj, "scenario": scen, "rep": rep, "detector": detector, **asdict(res)}
                     runs.append(row)
@@ -202,7 +206,11 @@ def holding_main(args: argparse.Namespace) -> int:
 def grip_main(args: argparse.Namespace) -> int:
     """grip_control beside stop_and_secure on the 6 objects x 2 scenarios x reps, plus the extras."""
     rows = []
-    objects = args.objects.split(",")
+    objects = [o for o in args.objects.split(",") if o]
+    extras = [e for e in args.extras.split(",") if e]
+    unknown = set(extras) - {name for name, _, _ in EXTRAS}
+    if unknown:
+        raise SystemExit(f"--extras: unknown {sorted(unknown)} (known: {', '.join(n for n, _, _ in EXTRAS)})")
     if args.from_json is not None:
         rows = json.loads(args.from_json.read_text())
         md = _report_path(args, "grip_control.md")
@@ -210,12 +218,12 @@ def grip_main(args: argparse.Namespace) -> int:
         print(f"wrote {md} from {args.from_json}")
         return 0
     plan = [(f"{o}_{sc}", o, sc, {}, None) for o in objects for sc in SCENARIOS]
-    plan += [(name, name, "extra", extra, fill) for name, extra, fill in EXTRAS]
+    plan += [(name, name, "extra", extra, fill) for name, extra, fill in EXTRAS if name in extras]
     for scene, obj, scen, extra, fill in plan:
         for rep in range(args.reps):
             for policy in ("stop_and_secure", args.policy) if args.policy != "stop_and_secure" else (args.policy,):
                 over = {**GRIP, **extra} if policy == "grip_control" else {}
-                res, _ = run_rig(ROOT / "config" / "scenes" / f"{scene}.yaml", args.config, seed=1000 + rep,
+                res, _ = run_rig(ROOT / "config" / "scenes" / f"{scene}.yaml", args.config, seed=args.seed + rep,
                                  detector=None, log=lambda *a: None, overrides=over, fill=fill)
                 limit = over.get("reaction.grip_max_force_n")
                 row = {"policy": policy, "object": obj, "scenario": scen, "rep": rep,
@@ -240,11 +248,23 @@ def _mx(values: list[float]) -> str:
     return f"{max(values):.2f}" if values else "-"
 
 
+def _subset(args: argparse.Namespace) -> str:
+    """The command line's --objects / --extras where they are not the full report's."""
+    out = ""
+    if args.objects != ",".join(OBJECTS):
+        out += f" --objects '{args.objects}'"
+    if getattr(args, "extras", None) is not None and args.extras != ",".join(name for name, _, _ in EXTRAS):
+        out += f" --extras '{args.extras}'"
+    if getattr(args, "seed", 1000) != 1000:
+        out += f" --seed {args.seed}"
+    return out
+
+
 def grip_report(rows: list[dict], args: argparse.Namespace, json_path: Path) -> str:
     """The markdown report of the grip_control comparison: every figure is computed here from ``rows``."""
     settings = ", ".join(f"{k.split('.')[1]} {v}" for k, v in GRIP.items() if k != "reaction.policy")
     lines = ["# Grip-force control beside stop-and-secure on the simulated rig", "",
-             f"Regenerate: `python tools/stabilize.py --policy grip_control --reps {args.reps} --json "
+             f"Regenerate: `python tools/stabilize.py --policy grip_control --reps {args.reps}{_subset(args)} --json "
              f"reports/{json_path.name}` (config `{Path(args.config).name}`; grip_control with {settings}, the other "
              "reaction.grip_* at their defaults; the extras' force limits below).", "",
              "Object motion relative to the finger at the end of the run (after the lift and the hold); peak and "
