@@ -42,8 +42,8 @@ limit, so its utilisation shear / grip is a sample of the friction coefficient (
 comes early): the controller feeds it to its own ``FrictionEstimator`` (the estimator the contact stream uses)
 and uses it until the contact's own estimate exists. Not where a pressed pillar already uses clearly more of its
 cone (``ContactState.top_util``): no friction is below a pillar's utilisation, so that contact is not sliding as a
-whole and the alarm's ratio is no sample (the catch still answers the alarm). Without the contact's own estimate the target does not
-relax below the grip that ended the last slip.
+whole and the alarm's ratio is no sample (the catch still answers the alarm). Without the contact's own estimate
+the target does not relax below the grip that ended the last slip.
 
 The arm is stopped (once per grasp) for a twist (where set), when the risk stayed at ``stop_risk`` for
 ``stop_after_s`` (the grip had its chance to catch the slip), or at the force limit: the object needs more than it
