@@ -54,13 +54,8 @@ class PillarSlipParams:
     """Log-odds added per window of evidence."""
     decay: float = 0.15
     """Log-odds moved towards stick per window without evidence."""
-    limit: float = 4.0
-    """Log-odds bound (the state stays finite and recovers within a few windows). From the bound two windows of
-    evidence mark a pillar sliding (three at 6.0): when the light pillars of a curved contact break loose the load
-    moves onto the heaviest within one window, and the slip state came too late for the grip (the rig's filling
-    cup). Chosen on the train splits (`python tools/evaluate.py --contact --sets transfer,robust --split train`:
-    per-pillar F1 0.769 / 0.574 at 4.0, 0.767 / 0.572 at 3.0, 0.725 / 0.566 at 6.0, friction within 15 % unchanged),
-    confirmed on the test splits (0.793 / 0.538 against 0.752 / 0.536)."""
+    limit: float = 6.0
+    """Log-odds bound (the state stays finite and recovers within a few windows)."""
     fall: float = 0.1
     """A pillar whose utilisation fell by this share over the window while its normal force rose sticks: a
     sliding tip carries mu * Fz, so a tighter grip raises its tangential force with it (issue 16: the grip
