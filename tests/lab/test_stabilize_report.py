@@ -1,0 +1,52 @@
+"""tools/stabilize.py's grip-control report on hand-made runs (no rig runs): the extras alone, and the command line
+that regenerates them."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from types import ModuleType
+
+import pytest
+
+from sliplab.paths import ROOT
+
+
+def _stabilize() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("stabilize_tool", ROOT / "tools" / "stabilize.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _row(policy: str, rep: int, dropped: bool, stopped: bool, peak: float) -> dict:
+    return {"policy": policy, "object": "cup_filling", "scenario": "extra", "rep": rep,
+            "translation_mm": 36.0 if dropped else 0.3, "rotation_deg": 0.0, "dropped": dropped, "peak_grip_n": peak,
+            "mean_grip_n": peak * 0.9, "arm_stopped": stopped, "alarm_s": None, "time_to_secure_s": None,
+            "force_limit_n": 30.0 if policy == "grip_control" else None, "sensor_stalls": 0}
+
+
+def test_the_filling_cup_alone_is_reported_with_the_command_that_repeats_it(tmp_path) -> None:
+    mod = _stabilize()
+    rows = [_row("stop_and_secure", 0, True, False, 3.3), _row("grip_control", 0, False, False, 9.5),
+            _row("stop_and_secure", 1, False, True, 40.0), _row("grip_control", 1, False, True, 12.0)]
+    runs = tmp_path / "cup.json"
+    runs.write_text(json.dumps(rows))
+    out = tmp_path / "cup.md"
+    assert mod.main(["--policy", "grip_control", "--objects", "", "--extras", "cup_filling", "--seed", "2000",
+                     "--reps", "2", "--from-json", str(runs), "--out", str(out)]) == 0
+    md = out.read_text()
+    assert "--objects '' --extras 'cup_filling' --seed 2000" in md
+    # One line per policy for the cup: the drop and the arm stops as they were.
+    assert "| cup_filling | extra | stop_and_secure | 18.15 | 0.00 | 1/2 |" in md
+    assert "| cup_filling | extra | grip_control | 0.30 | 0.00 | 0/2 | 10.8 (max 12.0, limit 30) | 9.7 | 1/2 |" in md
+    assert "Against" not in md  # no lifts of the six objects: no done-when table to judge
+
+
+def test_an_unknown_extra_is_refused_before_the_rig_runs() -> None:
+    mod = _stabilize()
+    with pytest.raises(SystemExit, match="unknown"):
+        mod.main(["--policy", "grip_control", "--objects", "", "--extras", "teapot"])
