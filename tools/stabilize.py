@@ -33,6 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 OBJECTS = ("hard_paper_box", "wooden_box", "shampoo_bottle", "coffee_jar", "pringles_can", "thermos_flask")
 SCENARIOS = ("undergrip", "offcentre")
+DEFAULT_SEED = 1000
+"""The first repetition's seed (``--seed``); the n-th runs DEFAULT_SEED + n."""
 PAPER = {  # method.md: translation mm / rotation deg when the grip was corrected
     "hard_paper_box": (4.5, 1.9), "wooden_box": (2.4, 1.5), "shampoo_bottle": (2.8, 2.1),
     "coffee_jar": (2.1, 1.6), "pringles_can": (1.4, 1.1), "thermos_flask": (2.1, 1.2),
@@ -59,10 +61,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--policy", choices=("stop_and_secure", "grip_control"), default=None,
                    help="issue 16: run grip_control beside stop_and_secure (plus the filling cup and the fragile "
                    "object) and write reports/grip_control.md")
-    p.add_argument("--extras", default=",".join(name for name, _, _ in EXTRAS),
+    p.add_argument("--extras", default=",".join(EXTRA_NAMES),
                    help="with --policy: which extra scenes run beside the objects (comma list; '' none); with "
                         "--objects '' the extras alone, e.g. many filling cups")
-    p.add_argument("--seed", type=int, default=1000, help="the first repetition's seed (the n-th runs seed + n)")
+    p.add_argument("--seed", type=int, default=DEFAULT_SEED,
+                   help="the first repetition's seed (the n-th runs seed + n)")
     p.add_argument("--json", type=Path, help="with --policy: one row per run (default reports/grip_control.json)")
     p.add_argument("--from-json", type=Path, help="with --policy: write the report from these runs instead of "
                    "running the rig again")
@@ -141,6 +144,7 @@ EXTRAS = (  # (scene, extra settings, fill (kg/s, s after lift start, final kg))
     ("cup_filling", {"reaction.grip_max_force_n": 30.0}, (0.2, 0.5, 0.4)),
     ("paper_cup_fragile", {"reaction.grip_max_force_n": 8.0}, None),
 )
+EXTRA_NAMES = tuple(name for name, _, _ in EXTRAS)
 TARGETS = "issue 16's done-when"
 
 
@@ -208,9 +212,9 @@ def grip_main(args: argparse.Namespace) -> int:
     rows = []
     objects = [o for o in args.objects.split(",") if o]
     extras = [e for e in args.extras.split(",") if e]
-    unknown = set(extras) - {name for name, _, _ in EXTRAS}
+    unknown = set(extras) - set(EXTRA_NAMES)
     if unknown:
-        raise SystemExit(f"--extras: unknown {sorted(unknown)} (known: {', '.join(n for n, _, _ in EXTRAS)})")
+        raise SystemExit(f"--extras: unknown {sorted(unknown)} (known: {', '.join(EXTRA_NAMES)})")
     if args.from_json is not None:
         rows = json.loads(args.from_json.read_text())
         md = _report_path(args, "grip_control.md")
@@ -253,9 +257,9 @@ def _subset(args: argparse.Namespace) -> str:
     out = ""
     if args.objects != ",".join(OBJECTS):
         out += f" --objects '{args.objects}'"
-    if getattr(args, "extras", None) is not None and args.extras != ",".join(name for name, _, _ in EXTRAS):
+    if args.extras != ",".join(EXTRA_NAMES):
         out += f" --extras '{args.extras}'"
-    if getattr(args, "seed", 1000) != 1000:
+    if args.seed != DEFAULT_SEED:
         out += f" --seed {args.seed}"
     return out
 

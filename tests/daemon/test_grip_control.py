@@ -234,6 +234,21 @@ def test_takes_over_while_a_light_pillar_flickers_across_the_contact_threshold()
     assert c.target is not None and jaw.sent
 
 
+def _cup(grip: float, shear: float, *, top_util: float, pressed_n: float = 2.9) -> ContactState:
+    """The rig's filling cup as its contact state shows it: no friction known, no risk, the shear on the grip."""
+    return ContactState((0.0,) * 9, None, None, 0.0, grip, shear, shear_n=shear, pressed_n=pressed_n,
+                        top_util=top_util)
+
+
+def _held_cup(c: GripController) -> float:
+    """The cup held still for 0.2 s (the controller takes the grip over); returns the time."""
+    t = 0.0
+    for _ in range(20):
+        t += DT
+        c.update(_cup(2.1, 0.02, top_util=0.2), t)
+    return t
+
+
 def test_an_alarm_on_a_contact_that_cannot_be_sliding_is_no_friction_sample() -> None:
     """The rig's filling cup: the lift's alarm comes while the cup sticks at shear / grip 0.04 on its one loaded pillar,
     its two light pillars at 0.2-0.3 of their cone. No friction is below a pillar's utilisation, so 0.04 is no sample:
@@ -241,20 +256,15 @@ def test_an_alarm_on_a_contact_that_cannot_be_sliding_is_no_friction_sample() ->
     stopped (11 of 30 rig runs). The catch still answers the alarm, and the grip holds at it."""
     jaw = Jaw()
     c, stops, _ = _ctl(jaw, catch=2.0, margin=0.85, max_force_n=30.0)
-    t = 0.0
-    for _ in range(20):
-        t += DT
-        c.update(ContactState((0.0,) * 9, None, None, 0.0, 2.1, 0.02, shear_n=0.02, pressed_n=2.9, top_util=0.2), t)
+    t = _held_cup(c)
     for _ in range(4):  # the lift's alarm at 0.1 N of shear on 2.1 N
         t += DT
-        c.update(ContactState((0.0,) * 9, None, None, 0.0, 2.1, 0.1, shear_n=0.1, pressed_n=2.9, top_util=0.2), t,
-                 alarm=True)
+        c.update(_cup(2.1, 0.1, top_util=0.2), t, alarm=True)
     assert c.alarm_friction.estimate() is None
     assert c.target is not None and abs(c.target - 2.0 * 2.1) < 1e-9  # the catch
     for k in range(300):  # the cup is filled: 1.2 N of shear, the grip at the catch, no slip
         t += DT
-        c.update(ContactState((0.0,) * 9, None, None, 0.0, 4.2, 0.1 + 1.1 * k / 300, shear_n=0.1 + 1.1 * k / 300,
-                              pressed_n=4.3, top_util=0.3), t)
+        c.update(_cup(4.2, 0.1 + 1.1 * k / 300, top_util=0.3, pressed_n=4.3), t)
     assert c.target is not None and c.target < 5.0 and max(jaw.sent) < 5.0 and stops == []
 
 
@@ -263,13 +273,9 @@ def test_an_alarm_on_one_pillar_sliding_at_its_cone_is_a_friction_sample() -> No
     slack) is a sample, and the grip follows the load with it."""
     jaw = Jaw()
     c, _, _ = _ctl(jaw, catch=2.0, margin=0.85, max_force_n=30.0)
-    t = 0.0
-    for _ in range(20):
-        t += DT
-        c.update(ContactState((0.0,) * 9, None, None, 0.0, 2.1, 0.02, shear_n=0.02, pressed_n=2.9, top_util=0.2), t)
+    t = _held_cup(c)
     for _ in range(3):
         t += DT
-        c.update(ContactState((0.0,) * 9, None, None, 0.0, 2.1, 0.52, shear_n=0.52, pressed_n=2.9, top_util=0.3), t,
-                 alarm=True)
+        c.update(_cup(2.1, 0.52, top_util=0.3), t, alarm=True)
     est = c.alarm_friction.estimate()
     assert est is not None and abs(est.mu - 0.52 / 2.1) < 1e-9
