@@ -12,8 +12,9 @@ the estimate's errors are low ones (a pillar judged sliding before it reached th
 lags after the grip made it stick below the limit), and the margin is against the *kinetic* coefficient that
 sliding pillars show.
 
-Take-over: once the grasp has settled (the grip steady within 2 % for ``takeover_after_s``) the controller
-commands the grip it has, by force: the servo then holds it with its effort limit and the goal past the object,
+Take-over: once the grasp has settled (the pressed pillars' normal force steady within 2 % for ``takeover_after_s``)
+the controller commands the grip it has (that force: ``grip_n`` leaves out light pillars at the contact threshold),
+by force: the servo then holds it with its effort limit and the goal past the object,
 so a later raise is one effort change instead of a goal the jaw must travel to first. Nothing changes for the
 object.
 
@@ -185,11 +186,13 @@ class GripController:
             # Hands off while the jaw closes: pillars splay and slide as the grip builds up, which says nothing about
             # the load (the slip states and friction samples they leave are the closing's, not the object's). The
             # detector's alarm alone counts (its model has seen grasps close).
-            self.hold_n = max(self.hold_n, grip)  # what the hold setting produces, until we act
-            # Steadiness on the pressed pillars' whole normal force: a light pillar at the contact threshold flickers
-            # in and out of ``grip_n`` (0.5 N steps on the rig's filling cup, held at 3.3 N), which kept the grasp from
-            # ever counting as settled, so the controller never took over and the cup slid out unanswered.
-            pressed = state.pressed_n if state.pressed_n is not None else grip
+            # The grip the hold setting produces, until we act: the pressed pillars' whole normal force. A light pillar
+            # at the contact threshold flickers in and out of ``grip_n`` (0.5 N steps on the rig's filling cup, held at
+            # 3.3 N): steadiness judged on ``grip_n`` kept the grasp from ever counting as settled, so the controller
+            # never took over and the cup slid out unanswered; and a take-over at ``grip_n`` commanded 2.8 N where the
+            # jaw held 3.3, which left the cup on its one loaded pillar, with nothing that could show it slide.
+            pressed = max(grip, state.pressed_n) if state.pressed_n is not None else grip
+            self.hold_n = max(self.hold_n, pressed)
             if abs(pressed - self._steady_n) > STEADY_SHARE * self._steady_n:
                 self._steady_n, self._steady_since = pressed, now
             if not alarm and now - self._steady_since < s.takeover_after_s:
@@ -197,7 +200,7 @@ class GripController:
             # The grasp has settled (or slips): take the grip over at the force it has. The servo then holds it by
             # its effort limit with the goal past the object, so a later catch is one effort change instead of a
             # goal the jaw must travel to first.
-            self.target = grip
+            self.target = pressed
             self._grasp_mu = state.friction
             self._risk_armed = state.risk < s.raise_risk
         # A risk still up from the closing counts once it has been down; a friction estimate that has not moved

@@ -223,7 +223,9 @@ def test_a_slip_that_reaches_the_limit_later_is_caught_from_the_grip_it_has_then
 def test_takes_over_while_a_light_pillar_flickers_across_the_contact_threshold() -> None:
     """The rig's filling cup rests on a 2.2 N pillar and two at 0.5 N, the contact threshold: ``grip_n`` steps
     between 3.3 and 2.8 N as they flicker, the grasp never counted as settled, and the cup slid out unanswered.
-    Steadiness is judged on the pressed pillars' whole normal force, which does not step."""
+    Steadiness is judged on the pressed pillars' whole normal force, which does not step; and the grip taken over is
+    that force, whatever ``grip_n`` read at that moment: a take-over at 2.8 N loosened the jaw from 3.3 N, the light
+    pillars fell below the threshold, and a cup on one pillar slid out without any sign (a rig run dropped it)."""
     jaw = Jaw()
     c, _, _ = _ctl(jaw, takeover_after_s=0.1)
     t = 0.0
@@ -231,7 +233,8 @@ def test_takes_over_while_a_light_pillar_flickers_across_the_contact_threshold()
         t += DT
         grip = 2.8 if k % 3 == 0 else 3.3  # a pillar at the threshold in and out of the contact's grip
         c.update(ContactState((0.0,) * 9, None, None, 0.0, grip, 0.1, shear_n=0.1, pressed_n=3.31), t)
-    assert c.target is not None and jaw.sent
+    assert c.target == 3.31 and jaw.sent == [3.31]
+    assert c.hold_n == 3.31  # nor does it relax below the hold's force later
 
 
 def _cup(grip: float, shear: float, *, top_util: float, pressed_n: float = 2.9) -> ContactState:
