@@ -311,6 +311,17 @@ def hot_path_cost(model: Path, sensors: int, decisions: int = HOT_DECISIONS,
             t0 = time.perf_counter()
             daemon._on_frames(dec.feed_block(chunk))
             got[key].append(time.perf_counter() - t0)
+        # The model step alone (one onnxruntime call on the daemon's batch, a stream of its own): how much of the
+        # cold hot path is the runtime's.
+        ens = daemon.ensemble
+        window = np.zeros((sensors, ens.feature_spec.input_size), np.float32)
+        for k in range(2 * decisions):
+            key = "model_after_sleep_us" if k % 2 else "model_back_to_back_us"
+            if k % 2:
+                time.sleep(sleep_s)
+            t0 = time.perf_counter()
+            ens.step(window, stream=1_000)
+            got.setdefault(key, []).append(time.perf_counter() - t0)
     return {k: float(np.median(v[5:])) * 1e6 for k, v in got.items()}
 
 
@@ -441,7 +452,9 @@ def main(argv: list[str] | None = None) -> int:
             for ms in args.hot_path:
                 h = hot_path_cost(args.model, s, sleep_s=ms / 1e3)
                 print(f"{s} sensor(s): hot path per decision {h['back_to_back_us']:.0f} us back to back, "
-                      f"{h['after_sleep_us']:.0f} us after {ms:g} ms asleep (medians of {HOT_DECISIONS})", flush=True)
+                      f"{h['after_sleep_us']:.0f} us after {ms:g} ms asleep; the model step alone "
+                      f"{h['model_back_to_back_us']:.0f} / {h['model_after_sleep_us']:.0f} us (medians of "
+                      f"{HOT_DECISIONS})", flush=True)
         return 0
     logging.getLogger("slipd").setLevel(logging.ERROR)  # one alarm per window here: keep the log quiet
     load0 = os.getloadavg()[0]
@@ -512,7 +525,8 @@ def main(argv: list[str] | None = None) -> int:
     for s, h in hot.items():
         print(f"{s:>7} hot path per decision (decode 10 frames, detector, decision), stride 10: "
               f"{h['back_to_back_us']:.0f} us back to back, {h['after_sleep_us']:.0f} us after "
-              f"{HOT_SLEEP_S * 1e3:g} ms asleep (medians)")
+              f"{HOT_SLEEP_S * 1e3:g} ms asleep (medians); of it the model step alone (one onnxruntime call) "
+              f"{h['model_back_to_back_us']:.0f} / {h['model_after_sleep_us']:.0f} us")
     print(f"floor: bytes over {bw / 1e9:.1f} GB/s (copy) + FLOPs over {flops_rate / 1e9:.1f} GFLOP/s (float32 "
           "matrix product), one thread")
     if args.json:
