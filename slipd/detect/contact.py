@@ -49,7 +49,8 @@ FRICTION_EDGE_SHARE = 0.2
 normal force. The threshold alone (pillars of a push carry 0.4-0.9 N: transfer split within 15 % 98 % against 91 %
 at 1 N) let the light edge pillars of a curved object (0.7 N beside 5-6 N on the rig's shampoo bottle) set the
 estimate 20 % above the contact's sliding ratio, and grip control then held it too lightly (it slid 26 mm off
-centre); with the share the robust and transfer figures hold (94.1 % of 271 within 15 %, 93.4 % without it)."""
+centre); with the share the robust and transfer figures held (94.1 % of 271 within 15 % when it came, 93.4 % without
+it)."""
 
 
 @dataclass(frozen=True, slots=True)
