@@ -301,28 +301,28 @@ def hot_path_cost(model: Path, sensors: int, decisions: int = HOT_DECISIONS,
         while daemon.detector.samples_to_decision() != 10:
             daemon._on_frames(dec.feed_block(data[i]))
             i += 1
-        got: dict[str, list[float]] = {"back_to_back_us": [], "after_sleep_us": []}
-        for k in range(2 * decisions):
-            key = "after_sleep_us" if k % 2 else "back_to_back_us"
-            chunk = b"".join(data[i : i + 10])
-            i += 10
-            if k % 2:
-                time.sleep(sleep_s)
-            t0 = time.perf_counter()
-            daemon._on_frames(dec.feed_block(chunk))
-            got[key].append(time.perf_counter() - t0)
+        chunks = [b"".join(data[i + 10 * k : i + 10 * k + 10]) for k in range(2 * decisions)]
+        hot = _warm_and_cold(lambda k: daemon._on_frames(dec.feed_block(chunks[k])), decisions, sleep_s)
         # The model step alone (one onnxruntime call on the daemon's batch, a stream of its own): how much of the
         # cold hot path is the runtime's.
         ens = daemon.ensemble
         window = np.zeros((sensors, ens.feature_spec.input_size), np.float32)
-        for k in range(2 * decisions):
-            key = "model_after_sleep_us" if k % 2 else "model_back_to_back_us"
-            if k % 2:
-                time.sleep(sleep_s)
-            t0 = time.perf_counter()
-            ens.step(window, stream=1_000)
-            got.setdefault(key, []).append(time.perf_counter() - t0)
-    return {k: float(np.median(v[5:])) * 1e6 for k, v in got.items()}
+        model = _warm_and_cold(lambda k: ens.step(window, stream=1_000), decisions, sleep_s)
+    return {"back_to_back_us": hot[0], "after_sleep_us": hot[1],
+            "model_back_to_back_us": model[0], "model_after_sleep_us": model[1]}
+
+
+def _warm_and_cold(call: Any, decisions: int, sleep_s: float) -> tuple[float, float]:
+    """Median microseconds of ``call(k)``, k = 0 .. 2 * decisions - 1, alternately straight after the previous call
+    and after ``sleep_s`` asleep: (back to back, after the sleep)."""
+    got: tuple[list[float], list[float]] = ([], [])
+    for k in range(2 * decisions):
+        if k % 2:
+            time.sleep(sleep_s)
+        t0 = time.perf_counter()
+        call(k)
+        got[k % 2].append(time.perf_counter() - t0)
+    return float(np.median(got[0][5:])) * 1e6, float(np.median(got[1][5:])) * 1e6
 
 
 # ---------------------------------------------------------------------------------------------- floor

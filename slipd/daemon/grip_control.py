@@ -191,7 +191,7 @@ class GripController:
             # 3.3 N): steadiness judged on ``grip_n`` kept the grasp from ever counting as settled, so the controller
             # never took over and the cup slid out unanswered; and a take-over at ``grip_n`` commanded 2.8 N where the
             # jaw held 3.3, which left the cup on its one loaded pillar, with nothing that could show it slide.
-            pressed = max(grip, state.pressed_n) if state.pressed_n is not None else grip
+            pressed = state.pressed_n if state.pressed_n is not None else grip
             self.hold_n = max(self.hold_n, pressed)
             if abs(pressed - self._steady_n) > STEADY_SHARE * self._steady_n:
                 self._steady_n, self._steady_since = pressed, now
