@@ -106,8 +106,9 @@ class GripControlSettings:
     """A slip whose shear is this multiple of the net load or more is a twist (an off-centre object turning): the
     pillars' short lever arms need far more grip against a torque than against a load, so the arm stops at once.
     None: no twist rule (a twist is a slip the grip catches; the force limit stops the arm)."""
-    rise_n_s: float = 300.0
-    """Fastest increase of the target (N/s): about the jaw's rate when it closes by position."""
+    rise_n_s: float = 800.0
+    """Fastest increase of the target (N/s): within the jaw's rate when it closes by position
+    (``reaction.grip_rise_n_s`` says what slower and faster did on the rig)."""
     relax_n_s: float = 2.0
     relax_after_s: float = 1.0
     raise_risk: float = 0.5

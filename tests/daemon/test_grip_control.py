@@ -133,7 +133,7 @@ def test_an_alarm_with_the_risk_up_is_caught_whatever_the_friction_in_use() -> N
     t = _run(c, 0.0, 20, 17.7, 0.0, None, 0.0)
     t = _run(c, t, 5, 17.7, 2.1, 0.149, 0.0)
     _run(c, t, 2, 17.7, 2.14, 0.149, 0.56, alarm=True)  # use 2.14 / (0.149 * 17.7) = 0.81
-    assert c.target is not None and abs(c.target - min(2.0 * 17.7, 17.7 + 300.0 * 0.02)) < 1e-6
+    assert c.target is not None and abs(c.target - min(2.0 * 17.7, 17.7 + c.s.rise_n_s * 0.02)) < 1e-6
 
 
 def test_no_catch_where_the_friction_in_use_rules_a_slide_out() -> None:
