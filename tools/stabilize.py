@@ -338,15 +338,18 @@ def grip_report(rows: list[dict], args: argparse.Namespace, json_path: Path) -> 
             (">= 90 % of lifts without an arm stop",
              f"{100 * gc['free']:.0f} % (at most {100 * len(holdable) / max(n_gc, 1):.0f} % can be held within the "
              "limit)", gc["free"] >= 0.9),
-            ("the filling cup held", f"{sum(not r['dropped'] for r in cup)}/{len(cup)} held",
-             bool(cup) and not any(r["dropped"] for r in cup)),
-            ("the fragile object never above its limit",
-             f"peak {max((r['peak_grip_n'] for r in fragile), default=float('nan')):.2f} N, limit "
-             f"{fragile[0]['force_limit_n'] if fragile else '-'} N; dropped {sum(r['dropped'] for r in fragile)}",
-             bool(fragile) and all(r["peak_grip_n"] <= r["force_limit_n"] for r in fragile)),
         ]
+        # An extra left out of the run (--extras) is not judged: "not run", not a miss.
+        checks.append(("the filling cup held", f"{sum(not r['dropped'] for r in cup)}/{len(cup)} held",
+                       not any(r["dropped"] for r in cup)) if cup else ("the filling cup held", "not run", None))
+        checks.append((
+            "the fragile object never above its limit",
+            f"peak {max(r['peak_grip_n'] for r in fragile):.2f} N, limit {fragile[0]['force_limit_n']} N; dropped "
+            f"{sum(r['dropped'] for r in fragile)}", all(r["peak_grip_n"] <= r["force_limit_n"] for r in fragile),
+        ) if fragile else ("the fragile object never above its limit", "not run", None))
         lines += ["", f"Against {TARGETS} (grip_control):", "", "| target | measured | met |", "|---|---|---|"]
-        lines += [f"| {name} | {value} | {'yes' if ok else '**no**'} |" for name, value, ok in checks]
+        lines += [f"| {name} | {value} | {'-' if ok is None else 'yes' if ok else '**no**'} |"
+                  for name, value, ok in checks]
     stalled = sum(r["sensor_stalls"] > 0 for r in rows)
     lines += ["", f"Runs in which the rig fell behind real time (sensor-stall fail-safe): {stalled} of {len(rows)}.",
               f"Raw runs: `{json_path.name}`.", ""]

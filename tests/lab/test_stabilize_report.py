@@ -50,3 +50,22 @@ def test_an_unknown_extra_is_refused_before_the_rig_runs() -> None:
     mod = _stabilize()
     with pytest.raises(SystemExit, match="unknown"):
         mod.main(["--policy", "grip_control", "--objects", "", "--extras", "teapot"])
+
+
+def test_extras_left_out_of_the_run_are_not_judged_as_missed(tmp_path) -> None:
+    """``--extras ''`` (the six objects alone, e.g. other seeds): the done-when table says the cups were not run,
+    rather than that they failed."""
+    mod = _stabilize()
+    rows = [{**_row(policy, 0, False, policy == "stop_and_secure", 40.0 if policy == "stop_and_secure" else 25.0),
+             "object": "wooden_box", "scenario": scenario,
+             "force_limit_n": 40.0 if policy == "grip_control" else None}
+            for policy in ("stop_and_secure", "grip_control") for scenario in ("undergrip", "offcentre")]
+    runs = tmp_path / "lifts.json"
+    runs.write_text(json.dumps(rows))
+    out = tmp_path / "lifts.md"
+    assert mod.main(["--policy", "grip_control", "--objects", "wooden_box", "--extras", "", "--reps", "1",
+                     "--from-json", str(runs), "--out", str(out)]) == 0
+    md = out.read_text()
+    assert "| the filling cup held | not run | - |" in md
+    assert "| the fragile object never above its limit | not run | - |" in md
+    assert "| mean translation <= 0.5 mm | 0.30 mm | yes |" in md
