@@ -340,13 +340,13 @@ def grip_report(rows: list[dict], args: argparse.Namespace, json_path: Path) -> 
              "limit)", gc["free"] >= 0.9),
         ]
         # An extra left out of the run (--extras) is not judged: "not run", not a miss.
-        checks.append(("the filling cup held", f"{sum(not r['dropped'] for r in cup)}/{len(cup)} held",
-                       not any(r["dropped"] for r in cup)) if cup else ("the filling cup held", "not run", None))
-        checks.append((
-            "the fragile object never above its limit",
-            f"peak {max(r['peak_grip_n'] for r in fragile):.2f} N, limit {fragile[0]['force_limit_n']} N; dropped "
-            f"{sum(r['dropped'] for r in fragile)}", all(r["peak_grip_n"] <= r["force_limit_n"] for r in fragile),
-        ) if fragile else ("the fragile object never above its limit", "not run", None))
+        not_run: tuple[str, bool | None] = ("not run", None)
+        cup_check = (f"{sum(not r['dropped'] for r in cup)}/{len(cup)} held",
+                     not any(r["dropped"] for r in cup)) if cup else not_run
+        fragile_check = (f"peak {max(r['peak_grip_n'] for r in fragile):.2f} N, limit {fragile[0]['force_limit_n']} N; "
+                         f"dropped {sum(r['dropped'] for r in fragile)}",
+                         all(r["peak_grip_n"] <= r["force_limit_n"] for r in fragile)) if fragile else not_run
+        checks += [("the filling cup held", *cup_check), ("the fragile object never above its limit", *fragile_check)]
         lines += ["", f"Against {TARGETS} (grip_control):", "", "| target | measured | met |", "|---|---|---|"]
         lines += [f"| {name} | {value} | {'-' if ok is None else 'yes' if ok else '**no**'} |"
                   for name, value, ok in checks]
