@@ -2,8 +2,9 @@
 
 Per decision the detector's ``ContactState`` gives the grip on the finger (sum Fz), the shear it carries (the
 pillars' tangential forces, twist included: ``shear_n``, else the net load ``load_n``), the friction coefficient
-estimated from the pillars seen sliding, and the contact risk. The grip this finger needs so that the friction
-in use stays at ``margin`` of the capacity is
+estimated from the pillars seen sliding, and the contact risk (with a sensor on each finger, the grasp's state:
+``slipd.detect.contact.grasp_state``). The grip this finger needs so that the friction in use stays at ``margin``
+of the capacity is
 
     required = shear / (mu * margin)
 

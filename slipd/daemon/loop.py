@@ -58,6 +58,7 @@ from slipd.daemon.grip_control import GripControlSettings
 from slipd.daemon.reaction import Reaction
 from slipd.daemon.worker import DeviceWorker
 from slipd.detect.build import build_detector
+from slipd.detect.contact import grasp_state
 from slipd.detect.detector import SlipDetector
 from slipd.metrics import Metrics
 
@@ -255,6 +256,7 @@ class Daemon:
         self.stats.frames += k
         valid = np.zeros(self.sensors, bool)
         recorded = 0
+        grasp: list[Detection] = []  # this decision's detections with a contact state, one per sensor
         for (i, det), step_s in zip(dets, det_.step_seconds):
             s = det.sensor
             m_dec, m_alarms, m_err = self._m_sensor[s]
@@ -279,7 +281,16 @@ class Daemon:
                         rec.meta["tare_offset"] = np.asarray(offset).tolist()
                 rec.push_decision(det.t_us, det.p_slip, det.alarm, s)
             if det.contact is not None:
-                self._on_contact(det)  # issue 16: contact metrics and grip_control, apart from the hot path
+                # Issue 16: contact metrics and grip_control, apart from the hot path; the grip controller gets the
+                # grasp once per decision, when every sensor's state for it is in.
+                self._latest_contact[s] = det.contact
+                if grasp and grasp[0].index != det.index:
+                    self._on_grasp(grasp)
+                    grasp = []
+                grasp.append(det)
+                if len(grasp) == self.sensors:
+                    self._on_grasp(grasp)
+                    grasp = []
             if det.rising_edge:
                 t_dec = time.monotonic()
                 self.reaction.on_alarm(det.risk, t_dec)
@@ -289,6 +300,8 @@ class Daemon:
                             det.risk, det.t_us / 1e6)
                 if rec is not None:
                     rec.trigger(det.t_us, "alarm", p_slip=det.p_slip, sensor=s)
+        if grasp:  # a sensor without a valid decision (or contact state) for the last one
+            self._on_grasp(grasp)
         if rec is not None and recorded < k:
             rec.push_frames(stamps[recorded:], force[recorded:], disp[recorded:])
         if valid.all() and not self._nonfinite_burst:
@@ -303,13 +316,14 @@ class Daemon:
                 m.nonfinite.inc(bad - self._nonfinite_seen)
                 self._nonfinite_seen = bad
 
-    def _on_contact(self, det: Detection) -> None:
-        """A valid decision's contact state: kept for its metrics, and handed to the grip controller
-        (``policy: grip_control``)."""
-        c = det.contact
-        assert c is not None
-        self._latest_contact[det.sensor] = c
-        self.reaction.on_detection(c, det.alarm, time.monotonic())
+    def _on_grasp(self, dets: list[Detection]) -> None:
+        """One decision's contact states, one per sensor, to the grip controller (``policy: grip_control``): a gripper
+        has one grip, so the fingers' states become the grasp's (``grasp_state``), and an alarm on either finger is an
+        alarm of the grasp. One sensor: its state as it is."""
+        if self.reaction.grip_control is None:
+            return  # stop_and_secure: the states are for the metrics alone
+        state = dets[0].contact if len(dets) == 1 else grasp_state([d.contact for d in dets])
+        self.reaction.on_detection(state, any(d.alarm for d in dets), time.monotonic())
 
     # Scrape-time readers of the per-decision gauges (called from the metrics server's thread: each reads
     # one reference the loop replaces whole, never a half-written value).

@@ -6,7 +6,8 @@ exactly the samples the detector decides on. Per window: ``PillarSlip`` (per-pil
 ``FrictionEstimator`` (mu from the sliding pillars; reset when the contact is released) and
 ``contact_risk`` (load-weighted share slipping or near the limit). The result is a ``ContactState``
 that the detector attaches to its ``Detection``; the grip-force policy (``slipd.daemon.grip_control``)
-reads it, the recorder and ``slipd replay --json`` write it, metrics export it.
+reads it, the recorder and ``slipd replay --json`` write it, metrics export it. A gripper with a sensor on each
+finger has one grip: ``grasp_state`` makes the fingers' states of one decision the grasp's.
 
 A model with an auxiliary per-pillar head would fill ``pillar_slip`` from its output instead (``source``
 "model"); the shipped ensemble has none, so ``source`` is "features".
@@ -15,7 +16,8 @@ A model with an auxiliary per-pillar head would fill ``pillar_slip`` from its ou
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -184,3 +186,27 @@ class ContactStream:
         )
         self.latest = state
         return state
+
+
+def grasp_state(states: Sequence[ContactState | None]) -> ContactState | None:
+    """The grasp as the fingers of one gripper see it at one decision (one state per sensor), for the grip controller.
+
+    The jaw presses every finger with the same force, so the grasp needs the grip of the finger nearest its friction
+    limit (the highest shear / grip): that finger's state decides, whole, since its grip, shear and utilisation
+    must stay consistent with each other (the controller takes the ratio of a sliding contact as a friction sample).
+    Beside it: the highest risk of any finger (a slip on either finger is a slip of the grasp), the highest friction
+    estimate (both fingers hold one object, and every estimate errs low: ``slipd.daemon.grip_control``), and the
+    fingers' mean pressed force, the jaw's force whichever finger decides (the take-over waits for it to be steady;
+    a pressed force that switched between two fingers' readings would never be). One sensor: its state as it is;
+    a finger out of contact does not count; none in contact: None (released)."""
+    if len(states) == 1:
+        return states[0]
+    touching = [s for s in states if s is not None and s.grip_n > CONTACT_THRESHOLD_N]
+    if len(touching) <= 1:
+        return touching[0] if touching else None
+    decider = max(touching, key=lambda s: max(s.load_n, s.shear_n or 0.0) / s.grip_n)
+    known = [s for s in touching if s.friction is not None]
+    grippiest = max(known, key=lambda s: s.friction or 0.0) if known else decider
+    pressed = [s.pressed_n if s.pressed_n is not None else s.grip_n for s in touching]
+    return replace(decider, risk=max(s.risk for s in touching), friction=grippiest.friction,
+                   friction_sd=grippiest.friction_sd, pressed_n=sum(pressed) / len(pressed))

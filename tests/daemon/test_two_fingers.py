@@ -118,3 +118,46 @@ def test_freshness_is_per_finger_on_every_path(cfg) -> None:
     bad[1, 1, 2, 2] += 0.1
     assert fresh_after(bad).tolist() == [False, True]
     assert daemon._nonfinite_run.tolist() == [7, 0]
+
+
+class _Jaw:
+    """The gripper boundary of a unit test: records the grip commands."""
+
+    def __init__(self) -> None:
+        self.targets: list[float] = []
+
+    def grip_force(self, newtons: float) -> None:
+        self.targets.append(newtons)
+
+    def close(self) -> None:
+        pass
+
+
+def test_grip_control_takes_one_grasp_state_per_decision_from_both_fingers(cfg) -> None:
+    """Both fingers feel the jaw, each through its own sensor's calibration: finger 1 reads 10 % more normal force.
+    The controller gets the grasp once per decision (not each finger's state in turn, which made the pressed force
+    jump by 10 % between calls, so the grasp never counted as steady and grip control never took over)."""
+    two = override(cfg, {"sensor.sensors": 2, "reaction.policy": "grip_control", "reaction.grip_max_force_n": 40.0})
+    jaw = _Jaw()
+    daemon = Daemon(two, Ensemble.load(two.model.manifest), metrics=Metrics(), gripper=jaw)  # type: ignore[arg-type]
+    controller = daemon.reaction.grip_control
+    assert controller is not None
+    updates = []
+    update = controller.update
+    controller.update = lambda state, now, alarm=False: (updates.append(state), update(state, now, alarm=alarm))
+    rng = np.random.default_rng(1)
+    n = TARE + 1500
+    force = rng.normal(0, 0.01, (n, 2, 9, 3)).astype(np.float32)
+    force[TARE:, 0, :, 2] += 1.5  # a still grasp: 13.5 N on finger 0,
+    force[TARE:, 1, :, 2] += 1.65  # 14.85 N on finger 1
+    t_us = np.arange(n, dtype=np.int64) * 1000
+    try:
+        for k in range(0, n, 10):  # ten frames at a time, as the reader hands them over
+            daemon._on_block(t_us[k : k + 10], force[k : k + 10], np.zeros_like(force[k : k + 10]))
+            time.sleep(0.002)  # the controller's clock: its take-over waits for 0.1 s of a steady grasp
+    finally:
+        daemon.close()
+    assert daemon.stats.decisions > 100 and len(updates) == daemon.stats.decisions // 2
+    assert all(s is not None and s.pressed_n is not None and 14.0 < s.pressed_n < 14.4 for s in updates[-10:])
+    assert controller.target is not None and 14.0 < controller.target < 14.4  # took over at the jaw's force
+    assert jaw.targets and 14.0 < jaw.targets[0] < 14.4

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slipd.detect.contact import ContactStream
+from slipd.detect.contact import ContactState, ContactStream, grasp_state
 from slipd.detect.features import FeatureSpec
 from slipd.detect.friction import FrictionEstimator
 from slipd.detect.pillar_slip import PillarSlip
@@ -204,3 +204,33 @@ def test_top_util_is_a_lower_bound_of_the_friction_from_every_pressed_pillar() -
     assert s is not None and abs(s.grip_n - 2.2) < 1e-6 and s.top_util is not None
     assert abs(s.top_util - 0.09 / 0.5) < 1e-6
     assert s.to_dict()["top_util"] == round(s.top_util, 4)
+
+
+def _finger(grip: float, shear: float, *, risk: float = 0.1, friction: float | None = None,
+            pressed: float | None = None) -> ContactState:
+    return ContactState(pillar_slip=(0.0,) * 9, friction=friction, friction_sd=None if friction is None else 0.01,
+                        risk=risk, grip_n=grip, load_n=shear, shear_n=shear,
+                        pressed_n=grip if pressed is None else pressed, top_util=shear / grip)
+
+
+def test_the_grasp_of_two_fingers_is_decided_by_the_finger_nearest_its_limit() -> None:
+    calm = _finger(10.0, 1.0, risk=0.2, friction=0.6, pressed=10.2)
+    loaded = _finger(11.0, 3.0, risk=0.1, friction=0.4, pressed=11.0)
+    g = grasp_state([calm, loaded])
+    assert g is not None
+    # The loaded finger's grip, shear and utilisation, whole (their ratio is the controller's friction sample).
+    assert (g.grip_n, g.load_n, g.shear_n, g.top_util) == (11.0, 3.0, 3.0, loaded.top_util)
+    assert g.risk == 0.2  # a slip on either finger is a slip of the grasp
+    assert (g.friction, g.friction_sd) == (0.6, 0.01)  # the highest estimate: every estimate errs low
+    assert g.pressed_n == (10.2 + 11.0) / 2  # the jaw's force, whichever finger decides
+    assert grasp_state([loaded, calm]) == g  # the order of the sensors does not matter
+
+
+def test_one_sensor_is_its_own_grasp_and_a_finger_out_of_contact_does_not_count() -> None:
+    lone = _finger(0.3, 0.0)  # below the contact threshold
+    held = _finger(8.0, 2.0, friction=None)
+    assert grasp_state([lone]) is lone
+    assert grasp_state([lone, held]) is held and grasp_state([None, held]) is held
+    assert grasp_state([lone, None]) is None  # released on both: the controller resets
+    both = grasp_state([held, _finger(8.0, 1.0, friction=None)])
+    assert both is not None and both.friction is None and both.shear_n == 2.0
