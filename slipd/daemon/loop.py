@@ -279,7 +279,7 @@ class Daemon:
                     offset = getattr(det_, "offset", None)
                     if offset is not None:
                         rec.meta["tare_offset"] = np.asarray(offset).tolist()
-                rec.push_decision(det.t_us, det.p_slip, det.alarm, s)
+                rec.push_decision(det.t_us, det.p_slip, det.alarm, s, det.contact)
             if det.contact is not None:
                 # Issue 16: contact metrics and grip_control, apart from the hot path; the grip controller gets the
                 # grasp once per decision, when every sensor's state for it is in.

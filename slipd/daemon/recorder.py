@@ -8,7 +8,9 @@ The control loop calls ``push_frames`` for every block of sensor frames (``push_
 ``trigger()`` for a fail-safe event) has been followed by ``seconds_after`` of frames, the ring holds
 exactly the stretch [alarm - before, alarm + after). That stretch is copied once and handed to the
 recorder's own worker thread, which writes it as a ``slipd.recording.Recording`` (``.npz`` and/or the
-Contactile SDK CSV) with the decisions of the stretch in ``meta["decisions"]``.
+Contactile SDK CSV) with the decisions of the stretch in ``meta["decisions"]``: time, P(slip), alarm and sensor of
+each, and where the decision carried a contact state (issue 16) its nine pillars' P(slip), contact risk and friction
+estimate (None before the contact showed one, and for a decision without a contact state).
 
 Crash safety: each file is first written under a staging name (``*.part``, itself written through
 ``Recording.save``'s ``*.tmp`` + rename), flushed to disk, given mode 0640, and only then renamed to
@@ -41,13 +43,16 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from slipd.daemon.worker import DeviceWorker
 from slipd.geometry import N_PILLARS
 from slipd.recording import Recording, write_sdk_csv
+
+if TYPE_CHECKING:
+    from slipd.detect.contact import ContactState
 
 log = logging.getLogger("slipd.daemon.recorder")
 
@@ -59,6 +64,11 @@ FORMATS = ("npz", "csv")
 MAX_KEPT_PATHS = 1000
 MAX_EPISODE_S = 30.0
 """Longest recording of one alarm episode (after its onset); a latched alarm records no more than this."""
+
+
+def _rounded(values: list[float]) -> list[float | None]:
+    """JSON-ready: 4 decimals, None for NaN (no contact state, or no friction estimate yet)."""
+    return [None if math.isnan(v) else round(v, 4) for v in values]
 
 
 @dataclass
@@ -121,6 +131,10 @@ class Recorder:
         self._dp = np.zeros(nd, dtype=np.float32)
         self._da = np.zeros(nd, dtype=bool)
         self._ds = np.zeros(nd, dtype=np.int8)
+        # The contact state of each decision (NaN: none; friction NaN also before one was estimated).
+        self._dpill = np.full((nd, N_PILLARS), np.nan, dtype=np.float32)
+        self._drisk = np.full(nd, np.nan, dtype=np.float32)
+        self._dfric = np.full(nd, np.nan, dtype=np.float32)
         self.frames_seen = 0
         self.decisions_seen = 0
         self._pending_end: int | None = None  # frames_seen at which the current dump is complete
@@ -198,13 +212,22 @@ class Recorder:
             if self._pending_end is not None and self.frames_seen >= self._pending_end:
                 self._dump()
 
-    def push_decision(self, t_us: int, p_slip: float, alarm: bool, sensor: int = 0) -> None:
-        """Add one model decision (of ``sensor``); an alarm starts a recording unless one is already running."""
+    def push_decision(self, t_us: int, p_slip: float, alarm: bool, sensor: int = 0,
+                      contact: ContactState | None = None) -> None:
+        """Add one model decision (of ``sensor``, with its contact state where it has one); an alarm starts a
+        recording unless one is already running."""
         i = self.decisions_seen % len(self._dt)
         self._dt[i] = t_us
         self._dp[i] = p_slip
         self._da[i] = alarm
         self._ds[i] = sensor
+        if contact is None:
+            self._dpill[i] = np.nan
+            self._drisk[i] = self._dfric[i] = np.nan
+        else:
+            self._dpill[i] = contact.pillar_slip
+            self._drisk[i] = contact.risk
+            self._dfric[i] = np.nan if contact.friction is None else contact.friction
         self.decisions_seen += 1
         if not alarm:
             self._latched = False
@@ -260,7 +283,8 @@ class Recorder:
         """Copy the episode's frames and decisions still in the rings out before they are overwritten."""
         self._chunks.append(self._ordered(self.frames_seen, self._t, self._force, self._disp, since=self._copied))
         self._dchunks.append(
-            self._ordered(self.decisions_seen, self._dt, self._dp, self._da, self._ds, since=self._dcopied)
+            self._ordered(self.decisions_seen, self._dt, self._dp, self._da, self._ds, self._dpill, self._drisk,
+                          self._dfric, since=self._dcopied)
         )
         self._copied, self._dcopied = self.frames_seen, self.decisions_seen
 
@@ -278,10 +302,10 @@ class Recorder:
             log.warning("recorder: %d writes pending, recording of %s dropped", len(self._futures), trig)
             return
         t, force, disp = (np.concatenate(a) for a in zip(*chunks))
-        dt, dp, da, ds = (np.concatenate(a) for a in zip(*dchunks))
+        dt, dp, da, ds, dpill, drisk, dfric = (np.concatenate(a) for a in zip(*dchunks))
         if len(t):
             keep = (dt >= t[0]) & (dt <= t[-1])
-            dt, dp, da, ds = dt[keep], dp[keep], da[keep], ds[keep]
+            dt, dp, da, ds, dpill, drisk, dfric = (a[keep] for a in (dt, dp, da, ds, dpill, drisk, dfric))
         if self.sensors == 1:
             force, disp = force[:, 0], disp[:, 0]  # the one-sensor layout: [N, 9, 3]
         meta = dict(self.meta)
@@ -292,7 +316,9 @@ class Recorder:
             seconds_after=self.seconds_after,
             trigger=trig,
             decisions={"t_us": dt.tolist(), "p_slip": [round(float(p), 6) for p in dp], "alarm": da.tolist(),
-                       "sensor": ds.tolist()},
+                       "sensor": ds.tolist(),
+                       "pillar_slip": [None if math.isnan(row[0]) else _rounded(row) for row in dpill.tolist()],
+                       "contact_risk": _rounded(drisk.tolist()), "friction": _rounded(dfric.tolist())},
             sensors=self.sensors,
         )
         if len(t):

@@ -276,3 +276,33 @@ def test_slow_disk_drops_recordings_instead_of_queueing_without_bound(tmp_path):
     rec.close()
     worker.close()
     assert len(list_recordings(tmp_path)) == 2 and rec.failures == 0
+
+
+def test_each_decision_keeps_its_contact_state_through_a_long_episode(tmp_path):
+    """Issue 16: the slip map, contact risk and friction of every decision are in the recording, aligned with the
+    decision's time across the ring's spills; None where a decision had no contact state or no friction yet."""
+    from slipd.detect.contact import ContactState
+
+    def state(i: int) -> ContactState:
+        return ContactState(pillar_slip=tuple((i % 100) / 100 + p / 1000 for p in range(9)),
+                            friction=None if i % 3 == 0 else i / 10_000, friction_sd=None, risk=(i % 7) / 7,
+                            grip_n=5.0, load_n=1.0)
+
+    rec = Recorder(tmp_path, RATE, seconds_before=0.05, seconds_after=0.05, max_episode_s=10.0)
+    for i in range(600):
+        rec.push_frame(*frame(i))
+        if i % 10 == 9:
+            alarm = 100 <= i < 400  # 0.3 s of alarm: the episode outlives the 0.1 s ring
+            rec.push_decision(1000 * i, 0.9 if alarm else 0.1, alarm, 0, None if i % 50 == 49 else state(i))
+    rec.close()
+    (f,) = list_recordings(tmp_path)
+    d = Recording.load(f).meta["decisions"]
+    assert len(d["t_us"]) > 30 and len(d["pillar_slip"]) == len(d["contact_risk"]) == len(d["t_us"])
+    for t, pillars, risk, mu in zip(d["t_us"], d["pillar_slip"], d["contact_risk"], d["friction"]):
+        i = t // 1000
+        if i % 50 == 49:
+            assert pillars is None and risk is None and mu is None
+            continue
+        s = state(i)
+        assert pillars == pytest.approx(list(s.pillar_slip), abs=1e-4) and risk == pytest.approx(s.risk, abs=1e-4)
+        assert mu == (None if s.friction is None else pytest.approx(s.friction, abs=1e-4))

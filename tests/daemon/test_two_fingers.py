@@ -88,8 +88,19 @@ def test_only_finger_1_slips_alarm_names_sensor_1_recorder_and_replay_reproduce_
     assert dump.sensors == 2 and dump.force.shape[1:] == (2, 9, 3)
     assert dump.meta["trigger"]["sensor"] == 1 and set(dump.meta["decisions"]["sensor"]) == {0, 1}
     np.testing.assert_array_equal(dump.force, rec.force[: len(dump)])  # both arrays, bit for bit
-    again = [d for d in replay(dump, ens) if d.rising_edge]
+    offline_again = replay(dump, ens)
+    again = [d for d in offline_again if d.rising_edge]
     assert [(d.index, d.sensor) for d in again] == offline
+    # Each decision's contact state is in the recording too (issue 16), as replay computes it from the same frames.
+    by_key = {(d.t_us, d.sensor): d.contact for d in offline_again}
+    dec = dump.meta["decisions"]
+    compared = 0
+    for t, s, pillars, risk in zip(dec["t_us"], dec["sensor"], dec["pillar_slip"], dec["contact_risk"]):
+        c = by_key.get((t, s))
+        if c is not None and pillars is not None:
+            assert pillars == pytest.approx(list(c.pillar_slip), abs=1e-3) and risk == pytest.approx(c.risk, abs=1e-3)
+            compared += 1
+    assert compared > 0.9 * len(dec["t_us"])
 
 
 def test_freshness_is_per_finger_on_every_path(cfg) -> None:
