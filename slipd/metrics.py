@@ -78,6 +78,12 @@ class Metrics:
             "slipd_grip_target_newtons", "Grip force commanded by reaction.policy grip_control (0: not commanding)",
             registry=r,
         )
+        self.grip_stops = Counter(
+            "slipd_grip_arm_stops", "Arm stops by reaction.policy grip_control, by reason (risk, limit, twist)",
+            ["reason"], registry=r,
+        )
+        for reason in ("risk", "limit", "twist"):  # the bounded reasons, served at 0 from the start
+            self.grip_stops.labels(reason=reason)
         self.decisions = Counter("slipd_decisions", "Model decisions made", ["sensor"], registry=r)
         self.failsafe = Counter("slipd_failsafe_stops", "Fail-safe arm stops by reason", ["reason"], registry=r)
         self.device_errors = Counter(

@@ -294,6 +294,8 @@ class GripController:
             self.stops += 1
             why = "risk" if high else "grip at its limit" if at_limit else "twist"
             log.warning("grip control: stopping the arm (%s: risk %.2f, target %.1f N)", why, state.risk, target)
+            if self.metrics is not None:
+                self.metrics.grip_stops.labels(reason="risk" if high else "limit" if at_limit else "twist").inc()
             self.stop_arm(f"grip control: {why}")
         self._send(now)
 

@@ -7,6 +7,7 @@ from typing import Any
 
 from slipd.daemon.grip_control import GripController, GripControlSettings
 from slipd.detect.contact import ContactState
+from slipd.metrics import Metrics
 
 DT = 0.01  # one decision every 10 ms (stride 10 at 1 kHz)
 
@@ -156,9 +157,11 @@ def test_no_catch_where_the_friction_in_use_rules_a_slide_out() -> None:
 def test_never_beyond_the_force_limit_and_the_arm_stops_there() -> None:
     jaw = Jaw()
     c, stops, _ = _ctl(jaw, max_force_n=8.0)
+    c.metrics = Metrics()
     t = _run(c, 0.0, 20, 5.0, 0.0, None, 0.0)
     _run(c, t, 200, 5.0, 5.0, 0.2, 0.5)  # 5 N of load at mu 0.2 needs 36 N
     assert max(jaw.sent) <= 8.0 and stops == ["grip control: grip at its limit"]
+    assert c.metrics.registry.get_sample_value("slipd_grip_arm_stops_total", {"reason": "limit"}) == 1.0
 
 
 def test_one_pillar_contact_friction_from_the_alarm_and_no_relaxing_below_the_catch() -> None:
