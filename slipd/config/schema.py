@@ -265,7 +265,8 @@ class ReactionConfig(_Section):
         "share (the friction is the sliding pillars' estimate, i.e. the kinetic coefficient)"
     )
     grip_max_force_n: float = Field(
-        30.0, gt=0.0, le=200.0, description="grip_control: the object's force limit; the grip never exceeds it (N)"
+        30.0, gt=0.0, le=200.0, description="grip_control: the object's force limit; the grip never exceeds it "
+        "(N; at most gripper.max_force_n, the jaw's full force, and the policy needs gripper.enabled)"
     )
     grip_catch: float = Field(
         2.0, ge=1.0, le=10.0, description="grip_control: at the start of a slip the grip jumps to this multiple of "
@@ -535,6 +536,14 @@ class SlipdConfig(_Section):
             raise _SectionProblem(("reaction", "on_failsafe"), f"{self.reaction.on_failsafe} needs arm.enabled: true")
         if self.reaction.on_failsafe == "stop_arm_and_tighten" and not self.gripper.enabled:
             raise _SectionProblem(("reaction", "on_failsafe"), "stop_arm_and_tighten needs gripper.enabled: true")
+        if self.reaction.policy == "grip_control":
+            if not self.gripper.enabled:
+                raise _SectionProblem(("reaction", "policy"), "grip_control needs gripper.enabled: true")
+            if self.reaction.grip_max_force_n > self.gripper.max_force_n:
+                # The jaw never reaches such a target, so "at the force limit" (which stops the arm) would never hold.
+                raise _SectionProblem(("reaction", "grip_max_force_n"),
+                                      f"{self.reaction.grip_max_force_n:g} N is above the gripper's full force "
+                                      f"(gripper.max_force_n: {self.gripper.max_force_n:g} N)")
         if self.sensor.sensors > 1 and self.model.detector != "onnx":
             raise _SectionProblem(("model", "detector"), f"{self.model.detector} reads one sensor; sensor.sensors "
                                   f"is {self.sensor.sensors} (the onnx detector decides per finger)")

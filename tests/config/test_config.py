@@ -148,6 +148,17 @@ def test_protocol_specific_effort_keys(tmp_path):
     assert "gripper.secure_pwm: must be >= hold_pwm (300)" in line
 
 
+def test_grip_control_needs_a_gripper_that_can_reach_its_force_limit(tmp_path):
+    # A limit above the jaw's full force is never reached, so the arm stop at the limit would never come.
+    (line,) = errors_of(tmp_path, with_(VALID, reaction={"policy": "grip_control", "grip_max_force_n": 60.0}))
+    assert "reaction.grip_max_force_n: 60 N is above the gripper's full force (gripper.max_force_n: 40 N)" in line
+    (line,) = errors_of(tmp_path, with_(VALID, gripper={"enabled": False},
+                                        reaction={"policy": "grip_control", "actions": ["stop_arm"]}))
+    assert "reaction.policy: grip_control needs gripper.enabled: true" in line
+    cfg = load_config(write(tmp_path, with_(VALID, reaction={"policy": "grip_control", "grip_max_force_n": 40.0})))
+    assert cfg.reaction.grip_max_force_n == cfg.gripper.max_force_n == 40.0
+
+
 def test_cross_field_checks(tmp_path):
     (line,) = errors_of(tmp_path, with_(VALID, arm={"enabled": False}))
     assert "reaction.actions: stop_arm needs arm.enabled: true" in line
