@@ -258,7 +258,8 @@ class ReactionConfig(_Section):
     policy: Literal["stop_and_secure", "grip_control"] = Field(
         "stop_and_secure",
         description="stop_and_secure: an alarm runs the actions; grip_control: the grip follows the contact's "
-        "friction use and risk (reaction.grip_*), the arm stops only at grip_stop_risk or at the force limit",
+        "friction use and risk (reaction.grip_*), the arm stops only at grip_stop_risk or at the force limit "
+        "(actions: tighten_gripper lets it command the grip, stop_arm lets it stop the arm)",
     )
     grip_margin: float = Field(
         0.7, gt=0.0, le=1.0, description="grip_control: keep the friction use, shear / (friction x grip), at this "
@@ -539,6 +540,10 @@ class SlipdConfig(_Section):
         if self.reaction.policy == "grip_control":
             if not self.gripper.enabled:
                 raise _SectionProblem(("reaction", "policy"), "grip_control needs gripper.enabled: true")
+            if "tighten_gripper" not in self.reaction.actions:
+                # Otherwise the policy would command the grip while the actions say the gripper is left alone.
+                raise _SectionProblem(("reaction", "actions"), "grip_control commands the grip: list tighten_gripper "
+                                      "(and stop_arm to let it stop the arm)")
             if self.reaction.grip_max_force_n > self.gripper.max_force_n:
                 # The jaw never reaches such a target, so "at the force limit" (which stops the arm) would never hold.
                 raise _SectionProblem(("reaction", "grip_max_force_n"),

@@ -155,6 +155,8 @@ def test_grip_control_needs_a_gripper_that_can_reach_its_force_limit(tmp_path):
     (line,) = errors_of(tmp_path, with_(VALID, gripper={"enabled": False},
                                         reaction={"policy": "grip_control", "actions": ["stop_arm"]}))
     assert "reaction.policy: grip_control needs gripper.enabled: true" in line
+    (line,) = errors_of(tmp_path, with_(VALID, reaction={"policy": "grip_control", "actions": ["stop_arm"]}))
+    assert "reaction.actions: grip_control commands the grip: list tighten_gripper" in line
     cfg = load_config(write(tmp_path, with_(VALID, reaction={"policy": "grip_control", "grip_max_force_n": 40.0})))
     assert cfg.reaction.grip_max_force_n == cfg.gripper.max_force_n == 40.0
 
