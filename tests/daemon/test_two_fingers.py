@@ -172,3 +172,49 @@ def test_grip_control_takes_one_grasp_state_per_decision_from_both_fingers(cfg) 
     assert all(s is not None and s.pressed_n is not None and 14.0 < s.pressed_n < 14.4 for s in updates[-10:])
     assert controller.target is not None and 14.0 < controller.target < 14.4  # took over at the jaw's force
     assert jaw.targets and 14.0 < jaw.targets[0] < 14.4
+
+
+def test_grip_control_on_two_fingers_end_to_end_catches_the_slip_of_finger_1(cfg) -> None:
+    """The live chain with grip control: two arrays in every PTSCOM frame on a pty, the pyserial reader, one model
+    call for both fingers, the grasp's state to the controller, dynamixel-sdk to the emulated MX-28. The controller
+    takes the still grasp over at its force, and finger 1's slip (finger 0 stays put) raises the grip at the servo."""
+    rec = two_fingers()
+    with EmulatedDevices(rec, ur=False) as dev:
+        live = override(cfg, {**dev.overrides(), "reaction.policy": "grip_control",
+                              "reaction.grip_max_force_n": 150.0, "gripper.max_force_n": 150.0,
+                              "recorder.enabled": False})  # the sample presses with 41 N
+        metrics = Metrics()
+        _, gripper = build_devices(live, metrics)
+        daemon = Daemon(live, Ensemble.load(live.model.manifest), metrics=metrics, gripper=gripper)
+        controller = daemon.reaction.grip_control
+        assert controller is not None
+        targets: list[tuple[float, float | None]] = []  # (time, target) after every update
+        update = controller.update
+
+        def watched(state, now, alarm=False):
+            update(state, now, alarm=alarm)
+            targets.append((now, controller.target))
+
+        controller.update = watched  # type: ignore[method-assign]
+
+        async def main():
+            task = asyncio.create_task(daemon.run(duration_s=len(rec) / 1000 + 0.3))
+            await daemon.ready.wait()
+            dev.start_sensor()
+            return await task
+
+        try:
+            stats = asyncio.run(main())
+            time.sleep(0.2)  # the gripper thread sends the last command
+            writes = dev.servo.writes()
+        finally:
+            daemon.close()
+    assert stats.failsafes == 0 and [a[3] for a in stats.alarms] == [1]  # finger 1's slip alone
+    # One update per decision of the two fingers, not one per finger.
+    assert len(targets) == pytest.approx(stats.decisions / 2, abs=2)
+    taken = [t for _, t in targets if t is not None]
+    assert taken, "grip control never took the grasp over"
+    assert max(taken) > 1.5 * taken[0]  # the catch of finger 1's slip
+    # The controller's commands reach the servo as goal PWM (the last ones written), the catch above the take-over.
+    efforts = [int.from_bytes(w.data[:2], "little") for w in writes if w.address == 100][-controller.commands:]
+    assert controller.commands >= 2 and max(efforts) > 1.5 * efforts[0]
