@@ -127,8 +127,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if onset is not None:
         print(f"  labelled onset at sample {onset}  t={(int(rec.t_us[onset]) - t0) / 1e6:.3f} s")
     if args.json:
+        # Each decision with its contact state (issue 16: the slip map, friction estimate, contact risk, grip, load).
         decisions: list[dict[str, Any]] = [
-            {"index": d.index, "t_us": d.t_us, "p_slip": d.p_slip, "alarm": d.alarm} for d in dets
+            {"index": d.index, "t_us": d.t_us, "p_slip": d.p_slip, "alarm": d.alarm, "risk": d.risk,
+             **(d.contact.to_dict() if d.contact is not None else {})} for d in dets
         ]
         out: dict[str, Any] = {
             "recording": str(args.recording),
@@ -141,6 +143,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
             out["alarm_sensors"] = [d.sensor for d in alarms]
             for entry, d in zip(decisions, dets):
                 entry["sensor"] = d.sensor
+        if rec.friction_est is not None:
+            # The PapillArray controller's own estimate at the same sample, beside slipd's ``friction``.
+            est = rec.friction_est if rec.friction_est.ndim == 2 else rec.friction_est[:, None]
+            for entry, d in zip(decisions, dets):
+                v = float(est[min(d.index, len(est) - 1), d.sensor])
+                entry["controller_friction"] = None if v != v else round(v, 4)  # NaN: it reported none
         Path(args.json).write_text(json.dumps(out, indent=1))
     return EXIT_OK
 

@@ -10,6 +10,9 @@ Arrays (N samples, 9 pillars in SDK order):
     slip            [N, 9] bool      optional truth: pillar tip sliding
     label           [N] uint8        optional truth: 1 = incipient slip
     object_motion   [N, 3] f32       optional truth: object motion relative to the finger (mm, mm, deg)
+    friction_est    [N] f32          optional: the PapillArray controller's own friction estimate (its type-6
+                                     block; the SDK log's ``S0_FrictionEst``), NaN where it reported none (the
+                                     SDK's -1); [N, S] with S sensor arrays
     meta            dict             scene, seed, sensor, effects, kind ("slip" / "stop"), events (seconds)
 """
 
@@ -47,6 +50,7 @@ class Recording:
     label: np.ndarray | None = None
     object_motion: np.ndarray | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    friction_est: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Every message names the array at fault; the readers prefix the file.
@@ -76,6 +80,11 @@ class Recording:
             self.object_motion = _array("object_motion", self.object_motion, np.float32)
             if self.object_motion.shape != (n, 3):
                 raise RecordingError(f"object_motion: shape {self.object_motion.shape}, expected [{n}, 3]")
+        if self.friction_est is not None:
+            self.friction_est = _array("friction_est", self.friction_est, np.float32)
+            want = self.force.shape[:-2]
+            if self.friction_est.shape != want:
+                raise RecordingError(f"friction_est: shape {self.friction_est.shape}, expected {list(want)}")
 
     def __len__(self) -> int:
         return len(self.t_us)
@@ -92,7 +101,8 @@ class Recording:
         if self.sensors == 1:
             return self
         return Recording(self.t_us, self.force[:, s], self.disp[:, s], self.slip, self.label, self.object_motion,
-                         {**self.meta, "sensor": s})
+                         {**self.meta, "sensor": s},
+                         None if self.friction_est is None else self.friction_est[:, s])
 
     @property
     def rate_hz(self) -> float:
@@ -118,7 +128,7 @@ class Recording:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays: dict[str, Any] = {"t_us": self.t_us, "force": self.force, "disp": self.disp}
-        for name in ("slip", "label", "object_motion"):
+        for name in ("slip", "label", "object_motion", "friction_est"):
             value = getattr(self, name)
             if value is not None:
                 arrays[name] = value
@@ -143,7 +153,7 @@ class Recording:
 
 
 # ---------------------------------------------------------------------- checks shared by the readers
-_ARRAYS = ("t_us", "force", "disp", "slip", "label", "object_motion")
+_ARRAYS = ("t_us", "force", "disp", "slip", "label", "object_motion", "friction_est")
 # Local file header, or the end-of-directory record that an archive with no members starts with.
 _ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
 
@@ -298,7 +308,7 @@ def write_sdk_csv(rec: Recording, path: str | Path, contact_threshold_n: float =
         states = np.zeros((n, N_PILLARS, 2))
         states[:, :, 0] = one.force[:, :, 2] > contact_threshold_n
         b[:, 62 : 62 + 18] = states.reshape(n, 18)
-        b[:, 80] = -1
+        b[:, 80] = -1 if one.friction_est is None else np.nan_to_num(one.friction_est, nan=-1.0)
     extra_cols: list[str] = []
     extra: list[np.ndarray] = []
     if rec.slip is not None:
@@ -408,9 +418,17 @@ def read_sdk_csv(path: str | Path) -> Recording:
     motion = None
     if all(c in index for c in _TRUTH_REST[1:]):
         motion = np.stack([col(c) for c in _TRUTH_REST[1:]], 1)
+    friction_est = None
+    if all(f"S{s}_FrictionEst" in index for s in range(ns)):
+        # The controller writes -1 where it has no estimate.
+        est = np.stack([col(f"S{s}_FrictionEst") for s in range(ns)], 1)
+        est[~(est >= 0)] = np.nan
+        if np.isfinite(est).any():
+            friction_est = est[:, 0] if ns == 1 else est
     try:
         rec = Recording(
-            t_us=t.astype(np.int64), force=force, disp=disp, slip=slip, label=label, object_motion=motion, meta=meta
+            t_us=t.astype(np.int64), force=force, disp=disp, slip=slip, label=label, object_motion=motion, meta=meta,
+            friction_est=friction_est,
         )
         check_times(rec.t_us, "T_us")
     except RecordingError as exc:

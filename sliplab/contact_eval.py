@@ -18,7 +18,8 @@ unloaded start. Two figures:
   Stribeck family's mu(v) lies between mu_k and mu_s: it is scored against mu_k all the same). A trial
   counts as within when |estimate - truth| <= 15 % of the truth; a trial with no estimate by then counts
   as outside. Where a recording carries the PapillArray controller's own
-  type-6 friction estimate (meta ``friction_est``), it is compared too; the simulated sets carry none.
+  type-6 friction estimate (``Recording.friction_est``: an SDK log's ``S0_FrictionEst``), it is scored the same way
+  at the same sample; the simulated sets carry none.
 """
 
 from __future__ import annotations
@@ -127,13 +128,27 @@ def score_recording(path: str, model: str | None = None) -> dict[str, Any]:
             "kind": meta.get("kind"), "counts": counts.tolist(), "friction": est,
             "phases": {k: v.tolist() for k, v in phases.items()},
             "mu_s": None if truth is None else truth[0], "mu_k": None if truth is None else truth[1],
-            "controller_friction": meta.get("friction_est")}
+            "controller_friction": _controller_friction(rec, at_i)}
+
+
+def _controller_friction(rec: Recording, at: int | None) -> float | None:
+    """The PapillArray controller's own estimate (its type-6 block, the SDK log's ``S0_FrictionEst``) of sensor 0 at
+    sample ``at``, where the recording has one."""
+    if rec.friction_est is None or at is None:
+        return None
+    v = float(np.ravel(rec.friction_est[at])[0])
+    return v if np.isfinite(v) else None
 
 
 def _fz(stream: ContactStream) -> np.ndarray:
     # The last filtered sample's normal forces: the stream keeps them in its feature history.
     f = stream.features
     return f._buf[f._end - 1].reshape(9, 3)[:, 2]
+
+
+def _within(pairs: list[tuple[float, float]]) -> float | None:
+    """Share of (estimate, truth) pairs within ``TOLERANCE`` of the truth (None without pairs)."""
+    return float(np.mean([abs(e - t) <= TOLERANCE * t for e, t in pairs])) if pairs else None
 
 
 def prf(tp: int, fp: int, fn: int) -> tuple[float, float, float]:
@@ -172,6 +187,8 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
                                         "median_rel_error": float(np.median(errs[f])) if errs[f] else None}
                                     for f, v in sorted(fam.items())}},
         "controller_friction_recordings": sum(r["controller_friction"] is not None for r in rows),
+        "controller_friction_within_15pct": _within([(r["controller_friction"], r["mu_k"]) for r in rows
+                                                     if r["controller_friction"] is not None and r["mu_k"]]),
     }
 
 
@@ -218,4 +235,6 @@ def _print(title: str, s: dict[str, Any]) -> None:
         f"{f} {v['within_15pct']:.0%} of {v['trials']} (median error {v['median_rel_error']:+.1%})"
         if v["median_rel_error"] is not None else f"{f} {v['within_15pct']:.0%} of {v['trials']}"
         for f, v in fr["per_family"].items()))
-    print(f"  recordings with the controller's type-6 friction estimate: {s['controller_friction_recordings']}")
+    ctl = s["controller_friction_within_15pct"]
+    print(f"  recordings with the controller's type-6 friction estimate: {s['controller_friction_recordings']}"
+          + ("" if ctl is None else f"; its estimate within 15 % of mu_k on {ctl:.1%} of them"))

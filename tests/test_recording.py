@@ -208,3 +208,36 @@ def test_replay_cli_on_broken_files_prints_one_line_and_exits_1(tmp_path) -> Non
         assert r.returncode == 1, r.stderr
         assert r.stdout == "" and r.stderr.count("\n") == 1, r.stderr
         assert r.stderr.startswith(f"slipd replay: {path}: {part}"), r.stderr
+
+
+def test_the_controllers_friction_estimate_round_trips_and_replay_puts_it_beside_slipds(tmp_path) -> None:
+    """Issue 16: an SDK log's S<s>_FrictionEst (the PapillArray controller's type-6 estimate; -1 where it has none)
+    is kept as ``friction_est`` (NaN there), through npz and CSV, one and two sensors, and `slipd replay --json`
+    reports it beside slipd's own estimate at each decision."""
+    import json
+
+    from slipd.cli import main
+
+    rec = _rec(600)
+    est = np.full(600, np.nan, np.float32)
+    est[300:] = np.linspace(0.4, 0.6, 300)
+    rec = Recording(rec.t_us, rec.force, rec.disp, rec.slip, rec.label, rec.object_motion, rec.meta, est)
+    for path in (rec.save(tmp_path / "a.npz"), write_sdk_csv(rec, tmp_path / "a.csv")):
+        back = Recording.load(path)
+        np.testing.assert_array_equal(back.friction_est, est)  # NaN where none, bit for bit elsewhere (float32)
+    text = (tmp_path / "a.csv").read_text().splitlines()
+    col = text[1].split(",").index("S0_FrictionEst")
+    assert float(text[2].split(",")[col]) == -1.0  # the SDK's "no estimate"
+    two = Recording(rec.t_us, np.stack([rec.force] * 2, 1), np.stack([rec.disp] * 2, 1), meta={},
+                    friction_est=np.stack([est, est * 2], 1))
+    back = Recording.load(write_sdk_csv(two, tmp_path / "b.csv"))
+    np.testing.assert_array_equal(back.friction_est, two.friction_est)
+    assert back.sensor(1).friction_est is not None and np.nanmax(back.sensor(1).friction_est) == np.float32(1.2)
+    with pytest.raises(RecordingError, match=r"friction_est: shape \(5,\), expected \[600\]"):
+        Recording(rec.t_us, rec.force, rec.disp, friction_est=np.zeros(5))
+    assert main(["replay", str(tmp_path / "a.npz"), "--json", str(tmp_path / "o.json")]) == 0
+    decisions = json.loads((tmp_path / "o.json").read_text())["decisions"]
+    assert decisions and all("friction" in d for d in decisions)
+    for d in decisions:
+        want = None if d["index"] < 300 else round(float(est[d["index"]]), 4)
+        assert d["controller_friction"] == want

@@ -1,5 +1,7 @@
 """The Detector (the daemon's decision path) against the batch pipeline, and `slipd replay`."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -77,7 +79,12 @@ def test_replay_cli_prints_alarms(tiny_model_json, tmp_path, capsys) -> None:
     assert main(["replay", str(path), "--model", str(tiny_model_json), "--json", str(tmp_path / "o.json")]) == 0
     out = capsys.readouterr().out
     assert "2000 samples, 49 decisions" in out
-    assert (tmp_path / "o.json").exists()
+    decisions = json.loads((tmp_path / "o.json").read_text())["decisions"]
+    assert len(decisions) == 49
+    # Issue 16: every decision carries its contact state (slip map, friction estimate, contact risk, grip, load).
+    for d in decisions:
+        assert len(d["pillar_slip"]) == 9 and 0.0 <= d["contact_risk"] <= 1.0 and "friction" in d
+        assert "grip_n" in d and "load_n" in d and 0.0 <= d["risk"] <= 1.0  # (tared on this stretch: no grip)
     assert main(["replay", str(tmp_path / "missing.npz"), "--model", str(tiny_model_json)]) == 1
 
 
