@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import asyncio
+import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -135,3 +138,18 @@ def make_scene(
         t_us=np.arange(n, dtype=np.int64) * 1000, force=force, disp=disp, slip=slip, label=label,
         object_motion=obj, meta={"kind": kind, "motion": motion, "events": events, "tare_samples": [0, 100]},
     )
+
+
+def run_streamed(daemon: Any, dev: Any, seconds: float, settle_s: float) -> tuple[Any, list[Any]]:
+    """Run ``daemon`` for ``seconds``, the emulated devices ``dev`` streaming from the moment it is ready; then give
+    its device threads ``settle_s`` to finish what the run sent. Returns (the loop's stats, the servo's writes)."""
+
+    async def main() -> Any:
+        task = asyncio.create_task(daemon.run(duration_s=seconds))
+        await daemon.ready.wait()
+        dev.start_sensor()
+        return await task
+
+    stats = asyncio.run(main())
+    time.sleep(settle_s)
+    return stats, dev.servo.writes()

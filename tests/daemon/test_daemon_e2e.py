@@ -4,13 +4,11 @@ to the emulated MX-28 (pty); metrics scraped over HTTP. The live alarms must equ
 
 from __future__ import annotations
 
-import asyncio
-import time
 import urllib.request
 
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import ROOT, run_streamed
 
 from slipd.config import load_config, override
 from slipd.daemon.devices import build_devices
@@ -60,18 +58,10 @@ def _run_live(rec, cfg):
         ens = Ensemble.load(cfg.model.manifest)
         arm, gripper = build_devices(cfg, metrics)
         daemon = Daemon(cfg, ens, metrics=metrics, arm=arm, gripper=gripper)
-
-        async def main():
-            task = asyncio.create_task(daemon.run(duration_s=len(rec) / 1000 + 0.5))
-            await daemon.ready.wait()
-            dev.start_sensor()
-            return await task
-
         try:
-            stats = asyncio.run(main())
-            time.sleep(0.3)  # let the device threads finish the reaction
+            # Then let the device threads finish the reaction.
+            stats, writes = run_streamed(daemon, dev, len(rec) / 1000 + 0.5, settle_s=0.3)
             ur_state = dev.ur.state()
-            writes = dev.servo.writes()
             body = urllib.request.urlopen(f"http://127.0.0.1:{server.server_address[1]}/metrics").read().decode()
         finally:
             daemon.close()

@@ -5,12 +5,11 @@ gripper; the recorder's recording holds both arrays and `slipd replay` reproduce
 
 from __future__ import annotations
 
-import asyncio
 import time
 
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import ROOT, run_streamed
 
 from slipd.config import load_config, override
 from slipd.daemon.devices import build_devices
@@ -62,17 +61,9 @@ def test_only_finger_1_slips_alarm_names_sensor_1_recorder_and_replay_reproduce_
         daemon = Daemon(live_cfg, ens, metrics=metrics, gripper=gripper)
         # The ring holds the whole stream, so the recording starts at the daemon's first frame.
         daemon.recorder = Recorder(tmp_path, 1000, seconds_before=3.0, seconds_after=0.2, sensors=2)
-
-        async def main():
-            task = asyncio.create_task(daemon.run(duration_s=len(rec) / 1000 + 0.5))
-            await daemon.ready.wait()
-            dev.start_sensor()
-            return await task
-
         try:
-            stats = asyncio.run(main())
-            time.sleep(0.3)  # the gripper thread finishes the tighten
-            writes = dev.servo.writes()
+            # Then the gripper thread finishes the tighten.
+            stats, writes = run_streamed(daemon, dev, len(rec) / 1000 + 0.5, settle_s=0.3)
         finally:
             daemon.close()  # also waits for the recording to be written
     assert stats.frames == len(rec) and stats.failsafes == 0  # both arrays decoded, nothing lost, never blind
@@ -196,17 +187,9 @@ def test_grip_control_on_two_fingers_end_to_end_catches_the_slip_of_finger_1(cfg
             targets.append((now, controller.target))
 
         controller.update = watched  # type: ignore[method-assign]
-
-        async def main():
-            task = asyncio.create_task(daemon.run(duration_s=len(rec) / 1000 + 0.3))
-            await daemon.ready.wait()
-            dev.start_sensor()
-            return await task
-
         try:
-            stats = asyncio.run(main())
-            time.sleep(0.2)  # the gripper thread sends the last command
-            writes = dev.servo.writes()
+            # Then the gripper thread sends the last command.
+            stats, writes = run_streamed(daemon, dev, len(rec) / 1000 + 0.3, settle_s=0.2)
         finally:
             daemon.close()
     assert stats.failsafes == 0 and [a[3] for a in stats.alarms] == [1]  # finger 1's slip alone
