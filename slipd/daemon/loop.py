@@ -252,7 +252,9 @@ class Daemon:
         self._check_samples(force, disp)
         one = self.sensors == 1
         stamps = t_us.astype(np.int64)
-        dets = det_.push_many(force[:, 0] if one else force, stamps)
+        # The heuristics read the tip displacements too (as tuned); the ensemble reads forces only.
+        moved = (disp[:, 0] if one else disp) if self._reads_disp else None
+        dets = det_.push_many(force[:, 0] if one else force, stamps, moved)
         self.stats.frames += k
         valid = np.zeros(self.sensors, bool)
         recorded = 0

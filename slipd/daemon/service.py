@@ -19,7 +19,7 @@ import sys
 import threading
 from dataclasses import dataclass
 
-from slipd.config import SlipdConfig, load_config
+from slipd.config import ConfigError, SlipdConfig, check_against_manifest, load_config
 from slipd.daemon.devices import DeviceError, build_devices, check_devices
 from slipd.daemon.loop import Daemon
 from slipd.daemon.sdnotify import Notifier
@@ -141,6 +141,9 @@ def prepare(config_path: str | os.PathLike[str]) -> Service:
         cfg = load_config(config_path)
         logging.basicConfig(level=cfg.control.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
         ensemble = Ensemble.load(cfg.model.manifest, threads=cfg.model.threads)
+        problems = check_against_manifest(cfg, ensemble.manifest, str(config_path))
+        if problems:  # as check-config says, before any device is opened
+            raise ConfigError(problems)
         check_devices(cfg)
         metrics = Metrics()
         arm, gripper = build_devices(cfg, metrics)

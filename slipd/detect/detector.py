@@ -76,7 +76,7 @@ class SlipDetector(Protocol):
         ...
 
     def push_many(
-        self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: Sequence[np.ndarray] | None = None
+        self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: np.ndarray | Sequence[np.ndarray] | None = None
     ) -> list[tuple[int, Detection]]:
         """Feed a block [k, 9, 3]; ``(i, detection)`` for each sample that decided."""
         ...
@@ -280,7 +280,7 @@ class Detector:
         return self._process(force, t_us, self.index)
 
     def push_many(
-        self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: Sequence[np.ndarray] | None = None
+        self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: np.ndarray | Sequence[np.ndarray] | None = None
     ) -> list[tuple[int, Detection]]:
         """Feed a block of raw samples ([k, 9, 3], their ``t_us`` [k]); ``push`` for each, in one pass.
 
@@ -466,7 +466,7 @@ class HeuristicDetector:
         return d
 
     def push_many(
-        self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: Sequence[np.ndarray] | None = None
+        self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: np.ndarray | Sequence[np.ndarray] | None = None
     ) -> list[tuple[int, Detection]]:
         """``push`` for each sample of a block; ``(i, detection)`` for each that decided (see Detector)."""
         out = []
@@ -488,8 +488,10 @@ class HeuristicDetector:
         self.resets += 1
 
 
-def run_recording(detector: SlipDetector, force: np.ndarray, t_us: np.ndarray | None = None) -> list[Detection]:
-    """Push a whole recording through ``detector`` (replay and evaluation); returns every Detection.
+def run_recording(detector: SlipDetector, force: np.ndarray, t_us: np.ndarray | None = None,
+                  disp: np.ndarray | None = None) -> list[Detection]:
+    """Push a whole recording through ``detector`` (replay and evaluation); returns every Detection. ``disp``: the
+    recorded tip displacements, which the heuristic detectors read (the ensemble reads forces only).
 
     A recording of several sensors (force [N, S, 9, 3]) goes through ``push_many`` in one block: every
     sensor's detections, in sample then sensor order.
@@ -497,9 +499,9 @@ def run_recording(detector: SlipDetector, force: np.ndarray, t_us: np.ndarray | 
     out = []
     ts = np.arange(len(force), dtype=np.int64) * 1000 if t_us is None else t_us
     if np.ndim(force) == 4:
-        return [det for _, det in detector.push_many(force, ts)]
+        return [det for _, det in detector.push_many(force, ts, disp)]
     for i in range(len(force)):
-        det = detector.push(force[i], int(ts[i]))
+        det = detector.push(force[i], int(ts[i]), None if disp is None else disp[i])
         if det is not None:
             out.append(det)
     return out

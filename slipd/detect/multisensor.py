@@ -75,7 +75,7 @@ class MultiDetector:
         return max(dets, key=lambda d: (d.rising_edge, d.alarm, d.valid, d.p_slip if d.valid else -1.0))
 
     def push_many(
-        self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: Sequence[np.ndarray] | None = None
+        self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: np.ndarray | Sequence[np.ndarray] | None = None
     ) -> list[tuple[int, Detection]]:
         """Feed a block [k, S, 9, 3]; ``(i, detection)`` for each sensor's decision on sample ``i``, in sample
         then sensor order (``disp`` unused, as in ``Detector``)."""

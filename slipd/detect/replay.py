@@ -46,4 +46,4 @@ def detector_for(rec: Recording, ensemble: Ensemble, cfg: SlipdConfig | None = N
 def replay(rec: Recording, ensemble: Ensemble, cfg: SlipdConfig | None = None) -> list[Detection]:
     """Every decision the daemon makes on ``rec``."""
     ensemble.reset()
-    return run_recording(detector_for(rec, ensemble, cfg), rec.force, rec.t_us)
+    return run_recording(detector_for(rec, ensemble, cfg), rec.force, rec.t_us, rec.disp)

@@ -53,6 +53,8 @@ from slipd.config import ArmConfig
 from slipd.metrics import Metrics
 
 STOP_METHODS = ("stopl", "speed_stop", "dashboard_pause", "dashboard_stop")
+DASHBOARD_METHODS = ("dashboard_pause", "dashboard_stop")
+"""Stop methods that pause or stop the user's own program through the dashboard server (no control script)."""
 _NAN6 = (math.nan,) * 6
 
 # RTDE robot_status_bits / safety_status_bits (UR RTDE guide).
@@ -165,8 +167,10 @@ class URSettings:
         """The settings of the config's ``arm`` section (the other fields keep their defaults)."""
         if cfg.host is None:
             raise ValueError("arm.host: required when the arm is enabled")
+        # The dashboard modes leave the user's program running: no control interface, so nothing is uploaded.
         return cls(host=cfg.host, frequency=cfg.rtde_frequency, stop_method=cfg.stop_method,
-                   stop_deceleration=cfg.stop_deceleration, watchdog_s=cfg.watchdog_s)
+                   stop_deceleration=cfg.stop_deceleration, watchdog_s=cfg.watchdog_s,
+                   use_control=cfg.stop_method not in DASHBOARD_METHODS)
 
     def __post_init__(self) -> None:
         if not self.host:

@@ -58,6 +58,28 @@ def test_bad_model_is_refused_before_any_device_is_opened(tiny_model_json: Path,
         assert servo.packets_received == 0  # the servo never saw a byte
 
 
+def test_a_config_that_does_not_fit_the_model_exits_3_before_any_device_is_opened(tiny_model_json: Path,
+                                                                                 tmp_path: Path) -> None:
+    """What check-config refuses against the model (a stride that does not divide its window, another sample
+    rate), `slipd run` refuses the same way before it opens a device (it once opened them, sent the hold
+    setting, then failed with a traceback and exit 1)."""
+    with EmulatedMX28() as servo, EmulatedPapillArray(_quiet_recording()) as sensor:
+        cfg = yaml.safe_load(_config(tmp_path, tiny_model_json, sensor.port, servo.port).read_text())
+        cfg["model"]["stride"] = 7
+        cfg["sensor"]["rate_hz"] = 500.0
+        path = tmp_path / "misfit.yaml"
+        path.write_text(yaml.safe_dump(cfg))
+        r = subprocess.run([sys.executable, "-m", "slipd", "run", "--config", str(path)],
+                           capture_output=True, text=True, timeout=120)
+        check = subprocess.run([sys.executable, "-m", "slipd", "check-config", str(path)],
+                               capture_output=True, text=True, timeout=120)
+        assert r.returncode == 3 == check.returncode, r.stderr
+        assert "Traceback" not in r.stderr
+        for key in ("model.stride: must divide the model's window", "sensor.rate_hz: 500 Hz, but the model was"):
+            assert key in r.stderr and key in check.stderr
+        assert servo.packets_received == 0  # the servo never saw a byte
+
+
 def test_missing_sensor_port_exits_5_in_one_line_before_any_device_is_opened(tiny_model_json: Path,
                                                                              tmp_path: Path) -> None:
     from slipd.sim.devices.ur_controller import URControllerProcess

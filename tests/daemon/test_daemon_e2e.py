@@ -96,3 +96,29 @@ def test_stop_scene_raises_no_alarm(base_cfg) -> None:
     assert not [w for w in writes if w.address == 116 and
                 int.from_bytes(w.data[:4], "little") == base_cfg.gripper.secure_position]
     assert np.isfinite(ens.hidden_state(0)).all()
+
+
+def test_the_loop_feeds_a_heuristic_detector_the_tip_displacements(base_cfg) -> None:
+    """``model.detector: reference_pillar`` in the daemon decides on the frames' displacements as replay and the
+    evaluation do (the loop once passed forces alone, and the heuristic fell back to force over stiffness)."""
+    from slipd.models import SAMPLE_RECORDING
+    from slipd.recording import Recording
+
+    rec = Recording.load(SAMPLE_RECORDING)
+    cfg = override(base_cfg, {"model.detector": "reference_pillar", "sensor.tare": "startup"})
+    ens = Ensemble.load(cfg.model.manifest)
+    daemon = Daemon(cfg, ens, metrics=Metrics())
+    decided: list[tuple[int, float]] = []
+    push_many = daemon.detector.push_many
+
+    def watched(*args):  # every decision the loop gets from the detector
+        out = push_many(*args)
+        decided.extend((d.index, d.p_slip) for _, d in out)
+        return out
+
+    daemon.detector.push_many = watched  # type: ignore[method-assign]
+    for k in range(0, len(rec), 10):
+        daemon._on_block(rec.t_us[k : k + 10], rec.force[k : k + 10, None], rec.disp[k : k + 10, None])
+    offline = replay(rec, ens, cfg)
+    assert decided == [(d.index, d.p_slip) for d in offline]
+    assert [a[0] for a in daemon.stats.alarms] == [d.index for d in offline if d.rising_edge]

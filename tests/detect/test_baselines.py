@@ -155,3 +155,26 @@ def test_tuner_uses_the_train_split_and_writes_json(tmp_path: Path) -> None:
     summary = json.loads(report.read_text())["summary"]
     assert summary["offline"]["balanced_success"] == pytest.approx(entry["train_figures"]["balanced_success"])
     assert summary["latency_s"]["median"] == pytest.approx(entry["train_figures"]["median_abs_latency_s"])
+
+
+@pytest.mark.parametrize("name", ["reference_pillar", "deceleration"])
+def test_replay_feeds_the_heuristics_the_recorded_displacements(name: str) -> None:
+    """The heuristics were tuned on the recorded tip displacements (sliplab.evaluate); `slipd replay` and the daemon
+    must feed them the same, not forces over the pillar stiffness (they once dropped the displacements)."""
+    from conftest import ROOT
+
+    from slipd.config import load_config, override
+    from slipd.detect.ensemble import Ensemble
+    from slipd.detect.replay import detector_for, replay
+    from slipd.models import SAMPLE_RECORDING, packaged
+
+    rec = Recording.load(SAMPLE_RECORDING)
+    cfg = override(load_config(ROOT / "config" / "sim.yaml"), {"model.detector": name})
+    ens = Ensemble.load(packaged("slip_ensemble_int8"))
+
+    def direct(disp: np.ndarray | None) -> list[tuple[int, float]]:
+        return [(i, d.p_slip) for i, d in detector_for(rec, ens, cfg).push_many(rec.force, rec.t_us, disp)]
+
+    replayed = [(d.index, d.p_slip) for d in replay(rec, ens, cfg)]
+    assert replayed == direct(rec.disp)
+    assert replayed != direct(None)  # the displacements make a difference the test can see

@@ -13,6 +13,7 @@ import time
 
 import pytest
 
+from slipd.config.schema import ArmConfig
 from slipd.io.arm import ArmError, ArmState, URArm, URSettings
 from slipd.metrics import Metrics
 from slipd.sim.devices import rtde_protocol as rp
@@ -270,9 +271,16 @@ def test_refused_stop_falls_back_to_dashboard_and_reconnect_reuploads(controller
     _back_to_start(controller)
 
 
-def test_dashboard_pause_stops_the_user_program_without_the_control_script() -> None:
+@pytest.mark.parametrize("from_config", [False, True])
+def test_dashboard_pause_stops_the_user_program_without_the_control_script(from_config: bool) -> None:
+    """Also as the daemon builds it from its config (``arm.stop_method: dashboard_pause``): it once created the
+    control interface anyway, which uploads ur_rtde's script over the user's program."""
     with _start_controller() as ctl:
-        arm = URArm(URSettings(host=ctl.host, stop_method="dashboard_pause", use_control=False))
+        if from_config:
+            cfg = ArmConfig(host=ctl.host, stop_method="dashboard_pause")
+            arm = URArm(URSettings.from_config(cfg))
+        else:
+            arm = URArm(URSettings(host=ctl.host, stop_method="dashboard_pause", use_control=False))
         arm.connect()
         try:
             assert arm._control is None and not ctl.state().control_script_running
