@@ -201,6 +201,7 @@ class Daemon:
         self._decision_due = now  # a valid decision is overdue after this (re-based on every restart)
         self._wake: asyncio.Future[None] | None = None  # the supervision task's nap, while it naps
         self._nonfinite_seen = 0
+        self._last_t_us: int | None = None  # sensor time of the latest frame handled (a fail-safe recording's end)
         streams = getattr(self.detector, "feature_streams", None)
         feats = getattr(self.detector, "features", None)  # the ensemble's pipeline; the heuristics have none
         self._feature_streams = list(streams) if streams is not None else [feats] if feats is not None else []
@@ -252,6 +253,7 @@ class Daemon:
         self._check_samples(force, disp)
         one = self.sensors == 1
         stamps = t_us.astype(np.int64)
+        self._last_t_us = int(stamps[-1])
         # The heuristics read the tip displacements too (as tuned); the ensemble reads forces only.
         moved = (disp[:, 0] if one else disp) if self._reads_disp else None
         dets = det_.push_many(force[:, 0] if one else force, stamps, moved)
@@ -442,6 +444,9 @@ class Daemon:
         self.blind = cause
         log.error("blind: %s; fail-safe", detail)
         self._fail_safe(cause)
+        if self.recorder is not None and self._last_t_us is not None:
+            # What led to the fault, written now: the frames after it may never come (a stalled or lost sensor).
+            self.recorder.trigger(self._last_t_us, "failsafe", wait_after=False, cause=cause, detail=detail)
 
     def _blind_cause(self, now: float) -> tuple[str, str] | None:
         """Liveness, defined once: (cause, detail) when the daemon cannot see, else None. Live means no

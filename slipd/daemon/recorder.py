@@ -236,20 +236,21 @@ class Recorder:
         elif not self._latched:
             self.trigger(t_us, "alarm", p_slip=float(p_slip), sensor=int(sensor))
 
-    def trigger(self, t_us: int, reason: str, **details: Any) -> bool:
+    def trigger(self, t_us: int, reason: str, *, wait_after: bool = True, **details: Any) -> bool:
         """Start a recording around now (an alarm, a fail-safe event); False if one is already running.
 
-        The stretch ends ``seconds_after`` of frames from now; alarms meanwhile are part of it.
+        The stretch ends ``seconds_after`` of frames from now; alarms meanwhile are part of it. ``wait_after``
+        False: write the stretch up to now at once (a fail-safe on a stalled sensor: no frame may follow).
         """
         if self._pending_end is not None or (reason == "alarm" and self._latched):
             return False
         self._trigger = {"t_us": int(t_us), "reason": reason, "wall_time": time.time(), **details}
-        self._pending_end = self.frames_seen + self.after
+        self._pending_end = self.frames_seen + (self.after if wait_after else 0)
         self._limit = self.frames_seen + self.max_episode
         self._copied = max(0, self.frames_seen - self.before)
         self._dcopied = max(0, self.decisions_seen - len(self._dt))
         self._chunks, self._dchunks = [], []
-        if self.after == 0:
+        if self.after == 0 or not wait_after:
             self._dump()
         return True
 

@@ -306,3 +306,35 @@ def test_each_decision_keeps_its_contact_state_through_a_long_episode(tmp_path):
         s = state(i)
         assert pillars == pytest.approx(list(s.pillar_slip), abs=1e-4) and risk == pytest.approx(s.risk, abs=1e-4)
         assert mu == (None if s.friction is None else pytest.approx(s.friction, abs=1e-4))
+
+
+def test_a_fail_safe_writes_what_led_to_it_at_once(tmp_path):
+    """Going blind (a stalled or lost sensor, a non-finite burst, an overdue decision) records the seconds before
+    the fault straight away: no frame may follow it to complete a stretch after it."""
+    from conftest import ROOT
+
+    from slipd.config import load_config, override
+    from slipd.daemon.loop import Daemon
+    from slipd.detect.ensemble import Ensemble
+    from slipd.metrics import Metrics
+    from slipd.models import packaged
+
+    cfg = override(load_config(ROOT / "config" / "sim.yaml"), {
+        "model.manifest": str(packaged("slip_ensemble_int8")), "model.detector": "onnx", "sensor.tare": "startup",
+        "arm.enabled": False, "reaction.actions": ["tighten_gripper"], "reaction.on_failsafe": "log_only"})
+    daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics())
+    daemon.recorder = Recorder(tmp_path, RATE, seconds_before=0.5, seconds_after=1.0)
+    n = 800
+    rng = np.random.default_rng(0)
+    force = rng.normal(0, 0.01, (n, 1, 9, 3)).astype(np.float32)
+    t_us = np.arange(n, dtype=np.int64) * 1000
+    for k in range(0, n, 10):
+        daemon._on_block(t_us[k : k + 10], force[k : k + 10], np.zeros_like(force[k : k + 10]))
+    daemon._go_blind("sensor_stalled", "no frame for 250 ms")
+    daemon._go_blind("sensor_stalled", "still none")  # the same episode: no second recording
+    daemon.recorder.close()
+    (f,) = list_recordings(tmp_path)
+    r = Recording.load(f)
+    assert r.meta["trigger"]["reason"] == "failsafe" and r.meta["trigger"]["cause"] == "sensor_stalled"
+    np.testing.assert_array_equal(r.t_us, t_us[n - 500 :])  # the last 0.5 s, up to the last frame handled
+    np.testing.assert_array_equal(r.force, force[n - 500 :, 0])
