@@ -92,7 +92,7 @@ class ContactState:
         return self.load_n / (self.friction * self.grip_n)
 
     def to_dict(self) -> dict[str, object]:
-        """JSON-ready (replay --json, the recorder's decisions)."""
+        """JSON-ready (``slipd replay --json``; the recorder keeps the slip map, risk and friction of each decision)."""
         return {"pillar_slip": [round(p, 4) for p in self.pillar_slip], "friction": self.friction,
                 "friction_sd": self.friction_sd, "contact_risk": round(self.risk, 4), "grip_n": round(self.grip_n, 4),
                 "load_n": round(self.load_n, 4), "pillar_source": self.source,

@@ -6,13 +6,14 @@ wandering around the threshold does not make the alarm chatter (and re-trigger t
 ``hysteresis = 0`` the decision is exactly the method's per-window rule.
 
 Risk (0..1), a continuous warning level beside the alarm, chosen as ``min(1, p_slip / threshold)``:
-  * it is the same signal the alarm uses, so risk and alarm never contradict each other: risk reaches
-    1 exactly when the alarm rises (without hysteresis);
+  * it is the same signal the alarm uses: risk reaches 1 exactly when p_slip crosses the threshold; the alarm
+    rises then too where one window decides (``min_consecutive`` 1, no hysteresis, no press hold), and
+    otherwise follows once its confirmation rules are met (risk 1 with the alarm still down is "about to");
   * scaling by the threshold makes graded reaction levels (e.g. "pre-tighten at risk 0.6") keep their
     meaning when the threshold is re-tuned;
   * the alternative, the fraction of members alarming, takes only Z + 1 values (0, 0.2, ... for Z = 5)
-    and discards how close each member is; it is reported as ``members_alarming`` instead, a measure
-    of how much the members agree.
+    and discards how close each member is; ``DecisionResult.members_alarming`` keeps it, a measure of how
+    much the members agree (evaluation; the daemon's ``Detection`` does not carry it).
 """
 
 from __future__ import annotations
