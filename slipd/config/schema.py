@@ -549,6 +549,10 @@ class SlipdConfig(_Section):
                 raise _SectionProblem(("reaction", "grip_max_force_n"),
                                       f"{self.reaction.grip_max_force_n:g} N is above the gripper's full force "
                                       f"(gripper.max_force_n: {self.gripper.max_force_n:g} N)")
+        if self.model.detector != "onnx" and self.sensor.tare == "startup":
+            # The heuristics have no start-up tare of their own: they would read the sensor's raw offsets.
+            raise _SectionProblem(("sensor", "tare"), f"startup: model.detector {self.model.detector} has no "
+                                  "start-up tare; use bias_command (or none for a sensor that is zeroed)")
         if self.sensor.sensors > 1 and self.model.detector != "onnx":
             raise _SectionProblem(("model", "detector"), f"{self.model.detector} reads one sensor; sensor.sensors "
                                   f"is {self.sensor.sensors} (the onnx detector decides per finger)")

@@ -288,7 +288,8 @@ class GripController:
             self._twist = True
             self._catch_n = 0.0  # the arm stop holds a twist; a grip jump would make the pillars slip all at once
             self._caught = True
-            self.target = target = max(min(target, grip), state.load_n / (mu * s.margin) if mu else 0.0)
+            self.target = target = min(max(min(target, grip), state.load_n / (mu * s.margin) if mu else 0.0),
+                                       s.max_force_n)  # never beyond the object's force limit
         if not self.arm_stopped and (high or at_limit or twisting):
             self.arm_stopped = True
             self.stops += 1

@@ -161,6 +161,15 @@ def test_grip_control_needs_a_gripper_that_can_reach_its_force_limit(tmp_path):
     assert cfg.reaction.grip_max_force_n == cfg.gripper.max_force_n == 40.0
 
 
+def test_a_heuristic_detector_needs_a_zeroed_sensor(tmp_path):
+    # The heuristics have no start-up tare of their own: with tare startup they read the raw offsets.
+    (line,) = errors_of(tmp_path, with_(VALID, model={"detector": "reference_pillar"}, sensor={"tare": "startup"}))
+    assert "sensor.tare: startup: model.detector reference_pillar has no start-up tare" in line
+    zeroed = with_(VALID, model={"detector": "deceleration"}, sensor={"tare": "bias_command"})
+    cfg = load_config(write(tmp_path, zeroed))
+    assert cfg.model.detector == "deceleration"
+
+
 def test_cross_field_checks(tmp_path):
     (line,) = errors_of(tmp_path, with_(VALID, arm={"enabled": False}))
     assert "reaction.actions: stop_arm needs arm.enabled: true" in line

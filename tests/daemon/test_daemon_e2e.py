@@ -105,7 +105,7 @@ def test_the_loop_feeds_a_heuristic_detector_the_tip_displacements(base_cfg) -> 
     from slipd.recording import Recording
 
     rec = Recording.load(SAMPLE_RECORDING)
-    cfg = override(base_cfg, {"model.detector": "reference_pillar", "sensor.tare": "startup"})
+    cfg = override(base_cfg, {"model.detector": "reference_pillar", "sensor.tare": "bias_command"})
     ens = Ensemble.load(cfg.model.manifest)
     daemon = Daemon(cfg, ens, metrics=Metrics())
     decided: list[tuple[int, float]] = []

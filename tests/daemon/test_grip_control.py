@@ -285,3 +285,14 @@ def test_an_alarm_on_one_pillar_sliding_at_its_cone_is_a_friction_sample() -> No
         c.update(_cup(2.1, 0.52, top_util=0.3), t, alarm=True)
     est = c.alarm_friction.estimate()
     assert est is not None and abs(est.mu - 0.52 / 2.1) < 1e-9
+
+
+def test_a_twist_never_sets_a_grip_beyond_the_force_limit() -> None:
+    """At a twist the target becomes the net load's requirement: with little friction known that is far above the
+    object's limit, and the limit still holds."""
+    jaw = Jaw()
+    c, stops, _ = _ctl(jaw, twist=1.15, max_force_n=10.0, margin=0.8)
+    t = _run(c, 0.0, 20, 9.0, 0.0, None, 0.0)
+    _run(c, t, 5, 9.0, 2.0, 0.05, 0.9, alarm=True, shear=4.0)  # turns; 2 N / (0.05 * 0.8) = 50 N
+    assert len(stops) == 1 and c._twist  # the arm stopped (the limit's rule speaks first), the twist is known
+    assert c.target is not None and c.target <= 10.0 and max(jaw.sent) <= 10.0
