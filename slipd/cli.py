@@ -87,7 +87,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
     """Print the alarms (rising edges) with their times; optional JSON of every decision."""
     from slipd import models
-    from slipd.config import ConfigError, load_config
+    from slipd.config import ConfigError, check_against_manifest, load_config
     from slipd.detect.ensemble import Ensemble
     from slipd.detect.manifest import ModelError
     from slipd.detect.replay import replay
@@ -109,6 +109,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
     except (ModelError, FileNotFoundError) as exc:
         _err(f"slipd replay: {exc}")
         return EXIT_MODEL
+    if cfg is not None:
+        problems = check_against_manifest(cfg, ensemble.manifest, str(args.config))
+        if problems:  # as check-config and run refuse it
+            _err("\n".join(problems))
+            return EXIT_CONFIG
     try:
         rec = Recording.load(args.recording)
     except RecordingError as exc:

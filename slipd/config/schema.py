@@ -129,7 +129,8 @@ class SensorConfig(_Section):
         500, ge=1, le=60_000, description="frames averaged for tare=startup (the finger must be unloaded meanwhile)"
     )
     bias_timeout_s: float = Field(
-        3.0, ge=0.5, le=30.0, description="how long the bias command may take (sensor needs >= 1 s unloaded, <= 2 s)"
+        3.0, ge=0.5, le=30.0, description="how long the daemon waits after the bias command, before it decides "
+        "(the sensor needs >= 1 s unloaded, <= 2 s; the wait is not shortened or checked)"
     )
     reconnect_initial_s: float = Field(0.1, ge=0.01, le=60.0, description="first reconnection delay after a loss")
     reconnect_max_s: float = Field(5.0, ge=0.01, le=600.0, description="reconnection delay cap (doubling backoff)")
@@ -244,9 +245,11 @@ class ReactionConfig(_Section):
 
     actions: list[Action] = Field(
         default_factory=lambda: list[Action](["stop_arm", "tighten_gripper"]),
-        description="in this order of submission; [] detects and records only",
+        description="in this order of submission; []: no reaction to an alarm (detects and records; a fail-safe "
+        "still acts as reaction.on_failsafe says)",
     )
-    graded: bool = Field(False, description="tighten in proportion to the risk (hold..secure) rather than to secure")
+    graded: bool = Field(False, description="tighten in proportion to the risk (hold..secure) rather than to secure "
+                         "(the ensemble's alarm rises at risk 1, so only the heuristics' alarms tighten partly)")
     on_failsafe: Literal["stop_arm", "stop_arm_and_tighten", "log_only"] = Field(
         "stop_arm",
         description="on sensor stall or model failure: stop_arm (keep the grip as it is), stop_arm_and_tighten, "
@@ -295,7 +298,7 @@ class ReactionConfig(_Section):
     )
     grip_relax_after_s: float = Field(
         1.0, ge=0.0, le=3600.0, description="grip_control: relax only after the contact stayed quiet (no alarm, "
-        "risk below grip_raise_risk) this long"
+        "risk below grip_raise_risk) this long; a slip that resumes sooner is the same slip (no new catch)"
     )
     grip_raise_risk: float = Field(
         0.5, ge=0.0, le=1.0, description="grip_control: contact risk from which the contact counts as slipping "

@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+import yaml
 
 from slipd.cli import main
 from slipd.detect.decision import Decision
@@ -86,6 +87,15 @@ def test_replay_cli_prints_alarms(tiny_model_json, tmp_path, capsys) -> None:
         assert len(d["pillar_slip"]) == 9 and 0.0 <= d["contact_risk"] <= 1.0 and "friction" in d
         assert "grip_n" in d and "load_n" in d and 0.0 <= d["risk"] <= 1.0  # (tared on this stretch: no grip)
     assert main(["replay", str(tmp_path / "missing.npz"), "--model", str(tiny_model_json)]) == 1
+    # A config that does not fit the model is refused as check-config and run refuse it (exit 3, no traceback).
+    from conftest import ROOT
+
+    cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
+    cfg["model"].update(manifest=str(tiny_model_json), stride=7)
+    (tmp_path / "misfit.yaml").write_text(yaml.safe_dump(cfg))
+    capsys.readouterr()
+    assert main(["replay", str(path), "--config", str(tmp_path / "misfit.yaml")]) == 3
+    assert "model.stride: must divide the model's window" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("stride, tare", [(0, 0), (10, 0), (0, 100), (20, 57)])
