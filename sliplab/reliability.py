@@ -86,6 +86,12 @@ FAULTS: tuple[Fault, ...] = (
           '`slipd_failsafe_stops_total{reason="sensor_lost"}`, `slipd_reconnects_total{device="sensor"}`',
           (F + "test_sensor_unplug_fails_safe_then_reconnects_and_restarts_the_detector",
            "tests/io/test_sensor.py::test_unplug_disconnects_and_replug_reconnects")),
+    Fault("Sensor controller power-cycled (its rate and bias back at their defaults)",
+          "On the reconnect the daemon sends the rate again and, with `tare: bias_command`, the bias; frames "
+          "until `sensor.bias_timeout_s` are not decided on; live again after a valid decision, one fail-safe "
+          "for the whole episode",
+          '`slipd_reconnects_total{device="sensor"}`, `slipd_live`',
+          (F + "test_a_power_cycled_sensor_is_zeroed_again_after_the_reconnect",)),
     Fault("Garbage bytes between frames",
           "Skipped while resynchronising on the start marker; next frames decoded",
           "`slipd_garbage_bytes_total`",

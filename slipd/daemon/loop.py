@@ -202,6 +202,7 @@ class Daemon:
         self._wake: asyncio.Future[None] | None = None  # the supervision task's nap, while it naps
         self._nonfinite_seen = 0
         self._last_t_us: int | None = None  # sensor time of the latest frame handled (a fail-safe recording's end)
+        self._bias_until: float | None = None  # after a reconnect: frames until then are the sensor zeroing itself
         streams = getattr(self.detector, "feature_streams", None)
         feats = getattr(self.detector, "features", None)  # the ensemble's pipeline; the heuristics have none
         self._feature_streams = list(streams) if streams is not None else [feats] if feats is not None else []
@@ -226,6 +227,11 @@ class Daemon:
     # ----------------------------------------------------------------- hot path
     def _on_frames(self, block: FrameBlock) -> None:
         t0 = time.perf_counter()
+        if self._bias_until is not None:
+            if time.monotonic() < self._bias_until:
+                return  # the sensor zeroes itself after a reconnect: these frames are not decided on
+            self._bias_until = None
+            self._restart()  # the history starts after the bias
         n = len(block)
         breaks = np.flatnonzero(block.discontinuity) if block.discontinuity.any() else ()
         start = 0
@@ -420,6 +426,22 @@ class Daemon:
     def _on_disconnect(self, reason: str) -> None:
         self._restart()
         self._go_blind("sensor_lost", f"sensor lost: {reason}")
+
+    def _on_reconnect(self) -> None:
+        """The sensor is back, perhaps power-cycled: set its rate again and, with ``tare: bias_command``, zero it
+        again; its frames until the bias is done are not decided on (they are neither zeroed nor the sensor's
+        steady output), so the daemon stays blind until a valid decision after it."""
+        from slipd.io.pts import CMD_BIAS, rate_command
+        from slipd.io.sensor import SensorError
+
+        cfg = self.cfg.sensor
+        try:
+            self.sensor.send_command(rate_command(cfg.rate_hz))
+            if cfg.tare == "bias_command":
+                self.sensor.send_command(CMD_BIAS)
+                self._bias_until = time.monotonic() + cfg.bias_timeout_s
+        except SensorError as exc:
+            log.error("sensor: cannot set it up again after the reconnect: %s", exc)
 
     def _restart(self) -> None:
         """The history is broken (discontinuity, reconnect): restart the detector; the next valid decision
@@ -696,6 +718,7 @@ class Daemon:
             rate_hz=cfg.rate_hz,
             baudrate=cfg.baudrate,
             on_disconnect=self._on_disconnect,
+            on_reconnect=self._on_reconnect,
             reconnect_initial_s=cfg.reconnect_initial_s,
             reconnect_max_s=cfg.reconnect_max_s,
             metrics=self.metrics,

@@ -154,6 +154,7 @@ class SerialSensor:
         rate_hz: float = 1000.0,
         baudrate: int = 115200,
         on_disconnect: Callable[[str], None] | None = None,
+        on_reconnect: Callable[[], None] | None = None,
         reconnect_initial_s: float = 0.05,
         reconnect_max_s: float = 2.0,
         metrics: Metrics | None = None,
@@ -174,6 +175,9 @@ class SerialSensor:
         self.on_block = on_block
         self.period_s = 1.0 / rate_hz
         self.on_disconnect = on_disconnect
+        self.on_reconnect = on_reconnect
+        """Called once the port is open again after a loss (the controller may have been power-cycled: its rate and
+        bias are its defaults again)."""
         self.reconnect_initial_s = reconnect_initial_s
         self.reconnect_max_s = reconnect_max_s
         self.max_gap = max_gap
@@ -446,6 +450,11 @@ class SerialSensor:
             if self._metrics is not None:
                 self._m_reconnects.inc()
             log.info("%s: sensor reconnected (reconnect #%d)", self.port, self.reconnects)
+            if self.on_reconnect is not None:
+                try:
+                    self.on_reconnect()
+                except Exception:
+                    log.exception("on_reconnect callback failed")
             return
 
     # ------------------------------------------------------------ reading

@@ -13,6 +13,7 @@ import asyncio
 import logging
 import time
 from collections.abc import Awaitable, Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -142,6 +143,34 @@ def test_sensor_stall_fails_safe_stops_the_arm_and_the_stream_resumes(controller
     assert seen["stall"] >= 1
     assert not d.stats.alarms  # the stop came from the fail-safe, not a detection
     assert d.stats.failsafes >= 1
+
+
+def test_a_power_cycled_sensor_is_zeroed_again_after_the_reconnect(controller, base_cfg) -> None:
+    """``tare: bias_command``: the controller forgets its bias when power-cycled, so the daemon sends its rate and
+    the bias again on the reconnect, and decides again only on frames after the bias."""
+    seen: dict[str, Any] = {}
+
+    async def scenario(d: Daemon, dev: EmulatedDevices, ur: URControllerProcess) -> None:
+        await until(lambda: d.stats.decisions > 0, what="first decisions")
+        seen["bias_before"] = [k for k, _ in dev.sensor.commands].count("bias")
+        dev.sensor.unplug()
+        await until(lambda: not d.live, what="blind after the loss")
+        await asyncio.sleep(0.2)
+        dev.sensor.replug()  # a power cycle: the emulated controller's bias is gone
+        await until(lambda: metric(d.metrics, "slipd_reconnects_total", device="sensor") >= 1, what="reconnect")
+        await until(lambda: [k for k, _ in dev.sensor.commands].count("bias") == 2, what="the bias again")
+        t_bias = time.monotonic()
+        decisions = d.stats.decisions
+        await until(lambda: d.live, timeout=5.0, what="live again")
+        seen["live_after_s"] = time.monotonic() - t_bias
+        seen["decisions_after"] = d.stats.decisions - decisions
+        seen["rates"] = [k for k, _ in dev.sensor.commands].count("rate")
+
+    d, dev = run_live(controller, base_cfg, scenario, **{"sensor.tare": "bias_command", "sensor.bias_timeout_s": 0.5})
+    assert seen["bias_before"] == 1 and seen["rates"] == 2
+    assert seen["live_after_s"] >= 0.4  # nothing decided while the sensor zeroed itself
+    assert seen["decisions_after"] > 0 and d.stats.failsafes == 1  # one episode, one fail-safe
+    assert np.abs(dev.sensor._bias_force).max() > 1.0  # zeroed again (the quiet hold presses 1.5 N per pillar)
 
 
 def test_sensor_unplug_fails_safe_then_reconnects_and_restarts_the_detector(controller, base_cfg) -> None:

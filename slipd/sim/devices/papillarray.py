@@ -159,12 +159,15 @@ class EmulatedPapillArray:
             self._pending.clear()
 
     def replug(self) -> None:
-        """Plug the cable back: a new pty behind the same ``.port`` path; the counter restarts (power cycle)."""
+        """Plug the cable back: a new pty behind the same ``.port`` path; the counter restarts and the bias is
+        gone (a power cycle)."""
         with self._lock:
             if self._master >= 0:
                 raise RuntimeError("replug() without unplug()")
             if self.reset_counter_on_replug:
                 self._counter = 0
+                self._bias_force[:] = 0.0
+                self._bias_disp[:] = 0.0
             self._plug()
 
     # ------------------------------------------------------------ lifecycle
