@@ -197,6 +197,10 @@ def parse_config(
         try:
             node = loader.get_single_node()
             data = loader.construct_document(node) if node is not None else None
+        except ValueError as exc:
+            # PyYAML raises chr()'s ValueError for an escape beyond U+10FFFF ("\U00110000"), not a YAMLError.
+            at = loader.get_mark()
+            raise ConfigError([f"{source}:{at.line + 1}:{at.column + 1}: YAML syntax error: {exc}"]) from None
         finally:
             loader.dispose()
     except _Refused as exc:

@@ -86,6 +86,9 @@ def test_broken_yaml_names_line_and_column(tmp_path):
     (line,) = errors_of(tmp_path, "sensor:\n  port: /dev/ttyACM0\n  rate_hz: [1000\nmodel: {}\n")
     assert "YAML syntax error" in line
     assert "slipd.yaml:4:6: YAML syntax error: while parsing a flow sequence" in line
+    # An escape beyond U+10FFFF: PyYAML raises chr()'s ValueError, not a YAML error (found by the config fuzzer).
+    (line,) = errors_of(tmp_path, VALID + 'metrics:\n  host: "\\U00110000"\n')
+    assert "slipd.yaml:" in line and "YAML syntax error" in line and "chr()" in line
 
 
 def test_tab_indentation_and_duplicate_keys(tmp_path):
