@@ -252,8 +252,9 @@ class ReactionConfig(_Section):
                          "(the ensemble's alarm rises at risk 1, so only the heuristics' alarms tighten partly)")
     on_failsafe: Literal["stop_arm", "stop_arm_and_tighten", "log_only"] = Field(
         "stop_arm",
-        description="on sensor stall or model failure: stop_arm (keep the grip as it is), stop_arm_and_tighten, "
-        "or log_only (not for production)",
+        description="on sensor stall or model failure: stop_arm (keep the grip as it is), stop_arm_and_tighten "
+        "(to the secure setting; under grip_control to grip_max_force_n, the object's limit), or log_only (not for "
+        "production)",
     )
     rearm_after_s: float = Field(
         1.0, ge=0.0, le=3600.0, description="after a reaction, further alarms this soon do not re-issue it"

@@ -157,7 +157,13 @@ class Reaction:
         rec = ReactionRecord(t_decision=self.clock(), risk=1.0)
         self.records.append(rec)
         if self.on_failsafe == "stop_arm_and_tighten" and self.gripper is not None and "tighten" not in reason:
-            self._submit(rec, "tighten_gripper", self.gripper_worker, self.gripper.tighten, None)
+            if self.grip_control is not None:
+                # grip_control: secure at the object's force limit, not the secure setting (a fragile object's
+                # limit is far below the jaw's full force).
+                self._submit(rec, "tighten_gripper", self.gripper_worker, self.gripper.grip_force,
+                             self.grip_control.s.max_force_n)
+            else:
+                self._submit(rec, "tighten_gripper", self.gripper_worker, self.gripper.tighten, None)
         if self.arm is None:
             return None
         return self._submit(rec, "stop_arm", self.arm_worker, self.arm.stop, f"fail-safe: {reason}")

@@ -131,3 +131,22 @@ def test_failsafe_policies() -> None:
     assert arm.calls[0][1] == "fail-safe: sensor_stall" and grip.calls == [("tighten", None)]
     r, arm, grip, _ = _reaction(on_failsafe="log_only")
     assert r.failsafe("sensor_stall") is None and arm.calls == grip.calls == []
+
+
+def test_a_failsafe_under_grip_control_secures_at_the_objects_force_limit() -> None:
+    """``stop_arm_and_tighten`` with ``policy: grip_control``: the grip goes to the object's force limit (8 N for a
+    paper cup), not to the secure setting (the jaw's full force, which would crush it)."""
+    from slipd.daemon.grip_control import GripControlSettings
+
+    class _Jaw(_Dev):
+        def grip_force(self, newtons: float) -> None:
+            self.calls.append(("grip_force", newtons))
+            self.event.set()
+
+    arm, jaw = _Dev(), _Jaw()
+    r = Reaction(arm=arm, gripper=jaw, arm_worker=DeviceWorker("arm"), gripper_worker=DeviceWorker("grip"),
+                 metrics=Metrics(), on_failsafe="stop_arm_and_tighten", policy="grip_control",
+                 grip=GripControlSettings(max_force_n=8.0))
+    r.failsafe("sensor_stall").exception(timeout=5)
+    assert jaw.event.wait(5)
+    assert arm.calls[0][1] == "fail-safe: sensor_stall" and jaw.calls == [("grip_force", 8.0)]
