@@ -146,9 +146,14 @@ def _fz(stream: ContactStream) -> np.ndarray:
     return f._buf[f._end - 1].reshape(9, 3)[:, 2]
 
 
+def _close(estimate: float, truth: float) -> bool:
+    """An estimate within ``TOLERANCE`` of the truth."""
+    return abs(estimate - truth) <= TOLERANCE * truth
+
+
 def _within(pairs: list[tuple[float, float]]) -> float | None:
     """Share of (estimate, truth) pairs within ``TOLERANCE`` of the truth (None without pairs)."""
-    return float(np.mean([abs(e - t) <= TOLERANCE * t for e, t in pairs])) if pairs else None
+    return float(np.mean([_close(e, t) for e, t in pairs])) if pairs else None
 
 
 def prf(tp: int, fp: int, fn: int) -> tuple[float, float, float]:
@@ -168,7 +173,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     for r in rows:
         if r["kind"] != "slip" or r["mu_k"] is None:
             continue
-        ok = r["friction"] is not None and abs(r["friction"] - r["mu_k"]) <= TOLERANCE * r["mu_k"]
+        ok = r["friction"] is not None and _close(r["friction"], r["mu_k"])
         fam[r["family"]].append(bool(ok))
         if r["friction"] is not None:
             errs[r["family"]].append((r["friction"] - r["mu_k"]) / r["mu_k"])

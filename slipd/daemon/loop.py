@@ -266,7 +266,8 @@ class Daemon:
         self.stats.frames += k
         valid = np.zeros(self.sensors, bool)
         recorded = 0
-        grasp: list[Detection] = []  # this decision's detections with a contact state, one per sensor
+        grip = self.reaction.grip_control is not None
+        grasp: list[Detection] = []  # grip control: this decision's detections with a contact state, one per sensor
         for (i, det), step_s in zip(dets, det_.step_seconds):
             s = det.sensor
             m_dec, m_alarms, m_err = self._m_sensor[s]
@@ -294,13 +295,14 @@ class Daemon:
                 # Issue 16: contact metrics and grip_control, apart from the hot path; the grip controller gets the
                 # grasp once per decision, when every sensor's state for it is in.
                 self._latest_contact[s] = det.contact
-                if grasp and grasp[0].index != det.index:
-                    self._on_grasp(grasp)
-                    grasp = []
-                grasp.append(det)
-                if len(grasp) == self.sensors:
-                    self._on_grasp(grasp)
-                    grasp = []
+                if grip:  # (under stop_and_secure the state is for the metrics alone)
+                    if grasp and grasp[0].index != det.index:
+                        self._on_grasp(grasp)
+                        grasp = []
+                    grasp.append(det)
+                    if len(grasp) == self.sensors:
+                        self._on_grasp(grasp)
+                        grasp = []
             if det.rising_edge:
                 t_dec = time.monotonic()
                 self.reaction.on_alarm(det.risk, t_dec)
@@ -330,10 +332,7 @@ class Daemon:
         """One decision's contact states, one per sensor, to the grip controller (``policy: grip_control``): a gripper
         has one grip, so the fingers' states become the grasp's (``grasp_state``), and an alarm on either finger is an
         alarm of the grasp. One sensor: its state as it is."""
-        if self.reaction.grip_control is None:
-            return  # stop_and_secure: the states are for the metrics alone
-        state = dets[0].contact if len(dets) == 1 else grasp_state([d.contact for d in dets])
-        self.reaction.on_detection(state, any(d.alarm for d in dets), time.monotonic())
+        self.reaction.on_detection(grasp_state([d.contact for d in dets]), any(d.alarm for d in dets), time.monotonic())
 
     # Scrape-time readers of the per-decision gauges (called from the metrics server's thread: each reads
     # one reference the loop replaces whole, never a half-written value).
@@ -431,17 +430,25 @@ class Daemon:
         """The sensor is back, perhaps power-cycled: set its rate again and, with ``tare: bias_command``, zero it
         again; its frames until the bias is done are not decided on (they are neither zeroed nor the sensor's
         steady output), so the daemon stays blind until a valid decision after it."""
-        from slipd.io.pts import CMD_BIAS, rate_command
         from slipd.io.sensor import SensorError
 
-        cfg = self.cfg.sensor
         try:
-            self.sensor.send_command(rate_command(cfg.rate_hz))
-            if cfg.tare == "bias_command":
-                self.sensor.send_command(CMD_BIAS)
-                self._bias_until = time.monotonic() + cfg.bias_timeout_s
+            if self._set_up_sensor():
+                self._bias_until = time.monotonic() + self.cfg.sensor.bias_timeout_s
         except SensorError as exc:
             log.error("sensor: cannot set it up again after the reconnect: %s", exc)
+
+    def _set_up_sensor(self) -> bool:
+        """Send the configured rate and, with ``tare: bias_command``, the bias (at start-up and after a reconnect);
+        True when a bias was sent (the sensor zeroes itself for ``sensor.bias_timeout_s``)."""
+        from slipd.io.pts import CMD_BIAS, rate_command
+
+        cfg = self.cfg.sensor
+        self.sensor.send_command(rate_command(cfg.rate_hz))
+        if cfg.tare != "bias_command":
+            return False
+        self.sensor.send_command(CMD_BIAS)
+        return True
 
     def _restart(self) -> None:
         """The history is broken (discontinuity, reconnect): restart the detector; the next valid decision
@@ -707,7 +714,6 @@ class Daemon:
     # ---------------------------------------------------------------- lifecycle
     async def run(self, sensor_port: str | None = None, duration_s: float | None = None) -> LoopStats:
         """Open the sensor, run until ``stop()`` (or ``duration_s``), then close everything."""
-        from slipd.io.pts import CMD_BIAS, rate_command
         from slipd.io.sensor import SerialSensor
 
         cfg = self.cfg.sensor
@@ -725,9 +731,7 @@ class Daemon:
             low_latency=cfg.low_latency,
         )
         await self.sensor.start()
-        self.sensor.send_command(rate_command(cfg.rate_hz))
-        if cfg.tare == "bias_command":
-            self.sensor.send_command(CMD_BIAS)
+        if self._set_up_sensor():
             await asyncio.sleep(cfg.bias_timeout_s)
             self.detector.restart()
         # Everything built so far (modules, the model, the devices) lives as long as the daemon: out of the
