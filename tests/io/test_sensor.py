@@ -458,6 +458,37 @@ def test_pause_is_refused_while_bytes_wait(emulator_factory) -> None:
     assert pending > 0 and refused is False
 
 
+def test_a_frame_that_lands_after_a_read_that_emptied_the_port_does_not_refuse_the_pause(emulator_factory) -> None:
+    # The daemon pauses the reader right after it decided on a block; a frame that landed while it decided does not
+    # mean the loop is behind (no FIONREAD per decision): the pause goes ahead, its cap counts from the read (the
+    # frame is in the buffer already), and that frame comes in the resume's read with the rest, in order.
+    emu = emulator_factory(synthetic_recording(80))
+    got: list[int] = []
+
+    async def main() -> tuple[bool, float, float, bool]:
+        s = SerialSensor(emu.port, lambda frames: got.extend(f.counter for f in frames))
+        await s.start()
+        emu.start()
+        await until(lambda: len(got) >= 5)
+        assert s._loop is not None
+        s._loop.remove_reader(s._fd)  # the consumer is busy deciding: nothing is read meanwhile
+        s._watching = False
+        read_t, drained = s._read_t, s._read_drained
+        await until(lambda: s.pending_bytes() >= 2 * s.frame_bytes)
+        paused = s.pause(0.05, 1000)  # longer than the cap
+        assert s._resume_handle is not None
+        resume_at = s._resume_handle.when()
+        cap = (TTY_BUFFER_BYTES + PAUSE_SPILL_BYTES) / (s.frame_bytes * 1000)
+        await until(lambda: emu.finished.is_set() and len(got) >= emu.frames_written)
+        await s.stop()
+        return paused, resume_at - read_t, cap, drained
+
+    paused, resumed_after_read, cap, drained = asyncio.run(main())
+    assert drained and paused
+    assert resumed_after_read <= cap + 1e-3  # counted from the read, not from the pause
+    assert got == list(range(80))
+
+
 def test_held_frames_come_in_one_block_per_hold_and_none_is_lost_when_the_stream_stops(emulator_factory) -> None:
     # The daemon holds frames back between decisions (hold_for): the reader stashes the bytes and hands them
     # over once `n` frames have gathered, as one block; when the stream stops in the middle of a hold, what is
