@@ -23,7 +23,8 @@ one log line and ``slipd_failsafe_stops_total{reason=...}``: ``sensor_lost`` (po
 ``sensor_silent`` (no frame since start-up), ``sensor_stall`` (frames stopped), ``sensor_counter_stuck``,
 ``sensor_frozen`` (frames arrive, none fresh), ``sensor_nonfinite`` (non-finite samples for longer than
 ``NONFINITE_BRIDGE_S``, what the feature stage may bridge by holding the last value) and
-``no_decisions`` (fresh frames, but no valid decision when one was due). With two sensors every rule holds
+``no_decisions`` (fresh frames, but no valid decision when one was due; when the frames that decision needed
+never all came, the stream stopped short of it: ``sensor_stall``). With two sensors every rule holds
 per finger: fresh samples and valid decisions are needed on both, and a blind finger is a blind daemon
 (the detail names the sensor). An episode ends with the first
 valid decision on fresh data; a loss followed by a stall is one episode, one stop. Only while live is
@@ -199,6 +200,8 @@ class Daemon:
         self._fresh_t = now  # the oldest of them (re-based when the loop starts)
         self._decided_t: float | None = None  # latest valid decision on fresh data (None: none this episode)
         self._decision_due = now  # a valid decision is overdue after this (re-based on every restart)
+        self._decision_frames = 0  # the reader's frame count when that decision became the next one
+        self._frames_to_decide = 0  # frames it needs from then (``_expect_decision``)
         self._wake: asyncio.Future[None] | None = None  # the supervision task's nap, while it naps
         self._nonfinite_seen = 0
         self._last_t_us: int | None = None  # sensor time of the latest frame handled (a fail-safe recording's end)
@@ -321,7 +324,7 @@ class Daemon:
             # the bridge is no sign of life.
             now = time.monotonic()
             self._decided_t = now
-            self._decision_due = now + self._stall_s + det_.samples_to_decision() / self.cfg.sensor.rate_hz
+            self._expect_decision(now)
         if self._feature_streams:
             bad = sum(f.nonfinite_count + f.clipped_count for f in self._feature_streams)
             if bad != self._nonfinite_seen:  # counted once per block, not per sample
@@ -456,8 +459,15 @@ class Daemon:
         self.detector.restart()
         self.stats.restarts += 1
         self._prev_sample = None
-        self._decision_due = (time.monotonic() + self._stall_s
-                              + self.detector.samples_to_decision() / self.cfg.sensor.rate_hz)
+        self._expect_decision(time.monotonic())
+
+    def _expect_decision(self, now: float) -> None:
+        """The next valid decision: due once the detector has its samples, plus the stall timeout; the reader's frame
+        count now and the frames it needs tell ``_blind_cause`` whether an overdue one is the stream's fault."""
+        need = self.detector.samples_to_decision()
+        self._decision_due = now + self._stall_s + need / self.cfg.sensor.rate_hz
+        self._frames_to_decide = need
+        self._decision_frames = self.sensor.frames if self.sensor is not None else 0
 
     def _fail_safe(self, reason: str) -> None:
         self.stats.failsafes += 1
@@ -501,6 +511,13 @@ class Daemon:
             return "sensor_frozen", f"bit-identical frames for {ms:.0f} ms" + self._which(
                 int(np.argmin(self._fresh_ts)))
         if now > self._decision_due:
+            if sensor is not None and sensor.frames - self._decision_frames < self._frames_to_decide:
+                # The stream stopped short of the frame that decision needed. Its last frames were stamped fresh when
+                # they were read, which on a busy machine can be well after they arrived, so the decision's
+                # deadline may pass first: it is still a stall (once seen as no_decisions in a CI run).
+                last = sensor.last_frame_time
+                since = "" if last is None else f" (none for {(now - last) * 1e3:.0f} ms)"
+                return "sensor_stall", f"the frames of the decision due never came{since}"
             return "no_decisions", "frames arrive but no valid decision came when due"
         return None
 
@@ -517,7 +534,7 @@ class Daemon:
         # The first frame, and the first decision, are due from now on (the tare wait is over).
         self._fresh_t = start
         self._fresh_ts[:] = start
-        self._decision_due = start + stall_s + self.detector.samples_to_decision() / self.cfg.sensor.rate_hz
+        self._expect_decision(start)
         k = 0
         last_ping = 0.0
         ping_every = None

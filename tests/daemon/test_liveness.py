@@ -259,3 +259,29 @@ def test_blind_stream_fails_safe_once_stops_the_pings_and_the_arm_watchdog_then_
     assert len(blind) == 1, blind
     assert any(r.getMessage() == f"live again after {reason}" for r in caplog.records)
     assert not d.stats.alarms
+
+
+def test_a_stream_that_stops_short_of_a_decision_is_a_stall_even_when_its_last_frames_were_read_late(base_cfg) -> None:
+    # On a busy machine the frames after a decision can be read, and stamped fresh, well after they arrived. When the
+    # stream then stops before the frame that completes the next window, the decision's deadline passes before the
+    # fresh-data one: the cause is still the stream (sensor_stall), not the detector (no_decisions). A clean-clone CI
+    # run once counted test_deploy's stall as no_decisions.
+    from types import SimpleNamespace
+
+    daemon = Daemon(base_cfg, Ensemble.load(base_cfg.model.manifest), metrics=Metrics())
+    sensor = SimpleNamespace(connected=True, frames=5000, last_frame_time=None, last_repeat_time=None)
+    daemon.sensor = sensor
+    daemon._restart()  # the next valid decision is due once the detector has its samples again
+    t = time.monotonic()
+    need = daemon.detector.samples_to_decision()
+    sensor.frames += need - 3  # all but the last three came, read 50 ms late
+    read = t + need / base_cfg.sensor.rate_hz + 0.05
+    sensor.last_frame_time = daemon._fresh_t = read
+    daemon._fresh_ts[:] = read
+    now = daemon._decision_due + 0.001
+    assert now - daemon._fresh_t < daemon._stall_s  # by its stamp the data is not stale yet
+    cause = daemon._blind_cause(now)
+    assert cause is not None and cause[0] == "sensor_stall", cause
+    sensor.frames += 3  # every frame it needed came, and still no decision: the detector's fault
+    cause = daemon._blind_cause(now)
+    assert cause is not None and cause[0] == "no_decisions", cause
