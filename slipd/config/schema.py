@@ -173,7 +173,9 @@ class ModelConfig(_Section):
     threads: int = Field(1, ge=1, le=64, description="onnxruntime intra-op threads (1: lowest jitter)")
     detector: Literal["onnx", "deceleration", "reference_pillar"] = Field(
         "onnx", description="onnx: the ensemble of the manifest; deceleration / reference_pillar: a published "
-        "heuristic (slipd.detect.baselines) with the tuned parameters of baseline_params, for comparison on the rig"
+        "heuristic (slipd.detect.baselines) with the tuned parameters of baseline_params, for comparison on the rig; a "
+        "heuristic decides on every sample by its own rule, so model.stride and the decision section keep their "
+        "defaults"
     )
     baseline_params: Path | None = Field(
         None, description="tuned heuristic parameters (JSON); null: baselines.json beside the manifest"
@@ -560,6 +562,17 @@ class SlipdConfig(_Section):
         if self.sensor.sensors > 1 and self.model.detector != "onnx":
             raise _SectionProblem(("model", "detector"), f"{self.model.detector} reads one sensor; sensor.sensors "
                                   f"is {self.sensor.sensors} (the onnx detector decides per finger)")
+        if self.model.detector != "onnx":
+            # A heuristic decides on every sample with its own tuned rule: these keys would be read by nothing, and an
+            # engineer who sets them expects an effect (unread options are refused, as unknown keys are).
+            for section, key in (("model", "stride"), ("decision", "threshold"), ("decision", "hysteresis"),
+                                 ("decision", "min_consecutive"), ("decision", "press_rise")):
+                part = getattr(self, section)
+                value, default = getattr(part, key), type(part).model_fields[key].default
+                if value != default:
+                    raise _SectionProblem((section, key), f"{value} has no effect with model.detector "
+                                          f"{self.model.detector}, which decides on every sample with its tuned "
+                                          f"parameters (model.baseline_params); leave it at its default ({default})")
         return self
 
 

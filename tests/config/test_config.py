@@ -173,6 +173,24 @@ def test_a_heuristic_detector_needs_a_zeroed_sensor(tmp_path):
     assert cfg.model.detector == "deceleration"
 
 
+def test_a_heuristic_detector_refuses_the_ensembles_decision_keys(tmp_path):
+    # The heuristics decide on every sample with their own tuned rule: the ensemble's threshold, hysteresis, run
+    # length, press hold and stride would be read by nothing, so a value other than the default is refused.
+    zeroed = with_(VALID, model={"detector": "reference_pillar"}, sensor={"tare": "bias_command"})
+    (line,) = errors_of(tmp_path, with_(zeroed, decision={"threshold": 0.7}))
+    assert "decision.threshold: 0.7 has no effect with model.detector reference_pillar" in line
+    (line,) = errors_of(tmp_path, with_(zeroed, decision={"min_consecutive": 3}))
+    assert "decision.min_consecutive: 3 has no effect" in line and "default (2)" in line
+    (line,) = errors_of(tmp_path, with_(zeroed, decision={"press_rise": 0.2}))
+    assert "decision.press_rise: 0.2 has no effect" in line
+    (line,) = errors_of(tmp_path, with_(zeroed, model={"detector": "reference_pillar", "stride": 20}))
+    assert "model.stride: 20 has no effect" in line
+    # The defaults, written out as config/slipd.yaml does, are fine; the ensemble takes every value.
+    cfg = load_config(write(tmp_path, with_(zeroed, decision={"min_consecutive": 2, "press_rise": 0.1})))
+    assert cfg.model.detector == "reference_pillar"
+    assert load_config(write(tmp_path, with_(VALID, decision={"threshold": 0.7}))).decision.threshold == 0.7
+
+
 def test_cross_field_checks(tmp_path):
     (line,) = errors_of(tmp_path, with_(VALID, arm={"enabled": False}))
     assert "reaction.actions: stop_arm needs arm.enabled: true" in line
