@@ -58,7 +58,9 @@ class Metrics:
             buckets=FAST_BUCKETS,
             registry=r,
         )
-        self.overruns = Counter("slipd_loop_overruns", "Loop iterations that missed their deadline", registry=r)
+        self.overruns = Counter(
+            "slipd_loop_overruns", "Supervision ticks later than control.max_overrun_ms past their deadline", registry=r
+        )
         self.p_slip = Gauge("slipd_slip_probability", "Latest ensemble slip probability", ["sensor"], registry=r)
         self.risk = Gauge("slipd_slip_risk", "Continuous slip risk level (0..1)", ["sensor"], registry=r)
         self.alarms = Counter("slipd_alarms", "Incipient-slip alarms raised", ["sensor"], registry=r)

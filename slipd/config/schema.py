@@ -510,7 +510,9 @@ class ControlConfig(_Section):
     watchdog: bool = Field(True, description="ping the systemd watchdog (WatchdogSec= in the unit) from the loop")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="logging threshold")
     max_overrun_ms: float = Field(
-        5.0, gt=0.0, le=1000.0, description="a loop iteration later than this past its deadline counts as an overrun"
+        5.0, gt=0.0, le=1000.0, description="a supervision tick (the liveness check, on absolute deadlines) that "
+        "runs later than this past its deadline counts as an overrun (slipd_loop_overruns_total): the event loop was "
+        "blocked or starved; decisions are timed by slipd_loop_duration_seconds"
     )
 
     @field_validator("log_level", mode="before")
