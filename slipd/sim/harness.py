@@ -29,12 +29,13 @@ class EmulatedDevices:
         *,
         host: str = "127.0.0.2",
         protocol: float = 2.0,
+        dxl_id: int = 1,
         jaw: JawParams | None = None,
         ur: bool = True,
         ur_kwargs: dict | None = None,
     ) -> None:
         self.ur = URControllerProcess(host, **(ur_kwargs or {})) if ur else None
-        self.servo = EmulatedMX28(protocol=protocol, jaw=jaw)
+        self.servo = EmulatedMX28(protocol=protocol, dxl_id=dxl_id, jaw=jaw)
         self.sensor = EmulatedPapillArray(source)
         self.host = host
 

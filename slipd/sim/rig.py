@@ -309,9 +309,11 @@ def run_rig(
     with tmp_ctx as tmp:
         out = Path(tmp)
         out.mkdir(parents=True, exist_ok=True)
-        from slipd.config import load_config
+        from slipd.config import load_config, override
 
-        base_cfg = load_config(config_path)
+        # The emulated servo and jaw follow the config the daemon runs (its overrides too): the servo answers at its
+        # bus ID and the jaw meets the object where that config's hold setting puts it.
+        base_cfg = override(load_config(config_path), overrides) if overrides else load_config(config_path)
         g = base_cfg.gripper
         stiffness = JawParams().stiffness_n_per_tick
         # The jaw meets the object where the hold setting produces the scene's grip force.
@@ -321,7 +323,7 @@ def run_rig(
         physics = RigPhysics(scene, seed, duration_s)
         if fill is not None:  # (kg/s, seconds after the lift starts, final kg): a cup being filled
             physics.fill_kg_s, physics.fill_after_s, physics.fill_to_kg = fill
-        with EmulatedDevices(physics.source, host=host, protocol=float(g.protocol), jaw=jaw) as dev:
+        with EmulatedDevices(physics.source, host=host, protocol=float(g.protocol), dxl_id=g.id, jaw=jaw) as dev:
             physics.devices = dev
             physics.grasp = lambda: dev.servo.set_contact(contact)  # type: ignore[method-assign]
             v, a = scene.motion.speed_accel()

@@ -20,7 +20,9 @@ pytestmark = pytest.mark.skipif(not (ROOT / "slipd" / "models" / "slip_ensemble.
 
 @pytest.fixture(scope="module")
 def runs():
-    on, _ = run_rig(SCENE, CONFIG, duration_s=3.0, react=True, host="127.0.0.4", log=lambda *a: None)
+    # The reacting run with a servo at another bus ID: the emulated servo answers where the daemon's config says.
+    on, _ = run_rig(SCENE, CONFIG, duration_s=3.0, react=True, host="127.0.0.4", log=lambda *a: None,
+                    overrides={"gripper.id": 7})
     off, _ = run_rig(SCENE, CONFIG, duration_s=3.0, react=False, host="127.0.0.4", log=lambda *a: None)
     return on, off
 
