@@ -66,7 +66,8 @@ def main(argv: list[str] | None = None) -> int:
                         "--objects '' the extras alone, e.g. many filling cups")
     p.add_argument("--seed", type=int, default=DEFAULT_SEED,
                    help="the first repetition's seed (the n-th runs seed + n)")
-    p.add_argument("--json", type=Path, help="with --policy: one row per run (default reports/grip_control.json)")
+    p.add_argument("--json", type=Path, help="with --policy: one row per run (default: beside the report, "
+                   "reports/grip_control.json without --out)")
     p.add_argument("--from-json", type=Path, help="with --policy: write the report from these runs instead of "
                    "running the rig again")
     p.add_argument("--holding", action="store_true",
@@ -239,10 +240,10 @@ def grip_main(args: argparse.Namespace) -> int:
                        "force_limit_n": limit, "sensor_stalls": res.sensor_stalls}
                 rows.append(row)
                 print(json.dumps(row), flush=True)
-    out = args.json or ROOT / "reports" / "grip_control.json"
+    md = _report_path(args, "grip_control.md")
+    out = args.json or md.with_suffix(".json")  # beside the report: a subset run never overwrites the committed runs
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(rows, indent=1))
-    md = _report_path(args, "grip_control.md")
     md.write_text(grip_report(rows, args, out))
     print(f"wrote {out} and {md}")
     return 0

@@ -69,3 +69,26 @@ def test_extras_left_out_of_the_run_are_not_judged_as_missed(tmp_path) -> None:
     assert "| the filling cup held | not run | - |" in md
     assert "| the fragile object never above its limit | not run | - |" in md
     assert "| mean translation <= 0.5 mm | 0.30 mm | yes |" in md
+
+
+def test_a_run_reported_elsewhere_keeps_its_runs_beside_its_report(tmp_path, monkeypatch) -> None:
+    """``--out`` elsewhere (a subset, other seeds): the per-run JSON goes beside that report, and the committed
+    ``reports/grip_control.json`` is left alone (it was overwritten by any run without ``--json``)."""
+    from types import SimpleNamespace
+
+    mod = _stabilize()
+    committed = ROOT / "reports" / "grip_control.json"
+    before = committed.read_bytes() if committed.exists() else None
+
+    def fake_rig(scene, config, **kw):  # the rig's result for one lift (the report is judged above, not this)
+        return SimpleNamespace(final_translation_mm=0.3, final_rotation_deg=0.0, dropped=False, max_grip_n=20.0,
+                               mean_grip_n=19.0,
+                               arm_stopped=False, alarm_s=1.4, secure_s=1.5, lift_start_s=1.3, sensor_stalls=0), None
+
+    monkeypatch.setattr(mod, "run_rig", fake_rig)
+    out = tmp_path / "subset.md"
+    assert mod.main(["--policy", "grip_control", "--objects", "", "--extras", "paper_cup_fragile", "--reps", "1",
+                     "--out", str(out)]) == 0
+    runs = json.loads((tmp_path / "subset.json").read_text())
+    assert [r["policy"] for r in runs] == ["stop_and_secure", "grip_control"]
+    assert (committed.read_bytes() if committed.exists() else None) == before
