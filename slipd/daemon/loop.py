@@ -200,8 +200,7 @@ class Daemon:
         self._fresh_t = now  # the oldest of them (re-based when the loop starts)
         self._decided_t: float | None = None  # latest valid decision on fresh data (None: none this episode)
         self._decision_due = now  # a valid decision is overdue after this (re-based on every restart)
-        self._decision_frames = 0  # the reader's frame count when that decision became the next one
-        self._frames_to_decide = 0  # frames it needs from then (``_expect_decision``)
+        self._decision_frames = 0  # the reader's frame count by which that decision's frames are all in
         self._wake: asyncio.Future[None] | None = None  # the supervision task's nap, while it naps
         self._nonfinite_seen = 0
         self._last_t_us: int | None = None  # sensor time of the latest frame handled (a fail-safe recording's end)
@@ -463,11 +462,10 @@ class Daemon:
 
     def _expect_decision(self, now: float) -> None:
         """The next valid decision: due once the detector has its samples, plus the stall timeout; the reader's frame
-        count now and the frames it needs tell ``_blind_cause`` whether an overdue one is the stream's fault."""
+        count by which its frames are all in tells ``_blind_cause`` whether an overdue one is the stream's fault."""
         need = self.detector.samples_to_decision()
         self._decision_due = now + self._stall_s + need / self.cfg.sensor.rate_hz
-        self._frames_to_decide = need
-        self._decision_frames = self.sensor.frames if self.sensor is not None else 0
+        self._decision_frames = need + (self.sensor.frames if self.sensor is not None else 0)
 
     def _fail_safe(self, reason: str) -> None:
         self.stats.failsafes += 1
@@ -511,7 +509,7 @@ class Daemon:
             return "sensor_frozen", f"bit-identical frames for {ms:.0f} ms" + self._which(
                 int(np.argmin(self._fresh_ts)))
         if now > self._decision_due:
-            if sensor is not None and sensor.frames - self._decision_frames < self._frames_to_decide:
+            if sensor is not None and sensor.frames < self._decision_frames:
                 # The stream stopped short of the frame that decision needed. Its last frames were stamped fresh when
                 # they were read, which on a busy machine can be well after they arrived, so the decision's
                 # deadline may pass first: it is still a stall (once seen as no_decisions in a CI run).

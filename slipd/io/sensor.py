@@ -322,27 +322,25 @@ class SerialSensor:
         self._connected.set()
         log.info("%s: sensor port open", self.port)
 
-    def pause(self, seconds: float, rate_hz: float, drained: bool | None = None) -> bool:
+    def pause(self, seconds: float, rate_hz: float) -> bool:
         """Stop watching the port for up to ``seconds``; the frames that arrive meanwhile are read in one go.
 
         The control loop calls this when it knows no decision is due before then: frames wait in the
         kernel's tty buffer, nothing is lost, and the loop wakes a few times per window instead of once per
-        1 ms frame. The pause is refused while the loop is behind (bytes were waiting beyond the latest read:
-        read first) and capped so that the bytes due from that read until the resume fill the kernel's 4 KiB
-        line-discipline buffer and spill at most ``PAUSE_SPILL_BYTES`` beyond it, which waits in the tty's flip
-        buffer and is read in the same wake-up (a device held back further would queue frames, or lose them, on
-        its side). ``drained``: whether the latest read emptied the port (it returned less than it asked for);
-        None (the default) takes the reader's own record of it. A frame that came after that read, while the
-        consumer handled what it brought, does not mean the loop is behind: the cap counts from the read, so it
+        1 ms frame. The pause is refused while the loop is behind (the latest read did not empty the port, or there
+        was none: the kernel is asked, and bytes waiting mean read first) and capped so that the bytes due from that
+        read until the resume fill the kernel's 4 KiB line-discipline buffer and spill at most ``PAUSE_SPILL_BYTES``
+        beyond it, which waits in the tty's flip buffer and is read in the same wake-up (a device held back further
+        would queue frames, or lose them, on its side). A frame that came after a read that emptied the port, while
+        the consumer handled what it brought, does not mean the loop is behind: the cap counts from the read, so it
         waits with the rest. Asking the kernel (FIONREAD) once per decision instead refused the pause whenever a
-        frame had landed during the decision, and the extra ioctl and wake-ups cost 9 % of the daemon's CPU
-        (paired A/B, one sensor, stride 10: 8.76 against 9.56 % of a core). False: ask the kernel.
+        frame had landed during the decision; dropping that saved 0.35 points of a core per pair at one sensor and
+        stride 10 (docs/results.md, ``tools/bench_daemon.py --baseline-tree ... --paired``).
         Returns True when the reader was paused.
         """
         if self._fd < 0 or self._loop is None or self._resume_handle is not None or seconds <= 0:
             return False
-        if drained is None:
-            drained = self._read_drained
+        drained = self._read_drained
         if self.frame_bytes > 0 and rate_hz > 0:
             cap = (TTY_BUFFER_BYTES + PAUSE_SPILL_BYTES) / (self.frame_bytes * rate_hz)
             if drained:
