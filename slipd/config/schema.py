@@ -272,7 +272,8 @@ class ReactionConfig(_Section):
         "share (the friction is the sliding pillars' estimate, i.e. the kinetic coefficient)"
     )
     grip_max_force_n: float = Field(
-        30.0, gt=0.0, le=200.0, description="grip_control: the object's force limit; the grip never exceeds it "
+        30.0, gt=0.0, le=200.0, description="grip_control: the object's force limit; the grip never exceeds it: "
+        "every gripper command's effort is capped at the one that gives it, the start-up hold's included "
         "(N; at most gripper.max_force_n, the jaw's full force, and the policy needs gripper.enabled)"
     )
     grip_catch: float = Field(

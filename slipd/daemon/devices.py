@@ -13,7 +13,7 @@ import socket
 
 from slipd.config import SlipdConfig
 from slipd.io.arm import URArm
-from slipd.io.gripper import DynamixelGripper
+from slipd.io.gripper import DynamixelGripper, DynamixelSettings
 from slipd.metrics import Metrics
 
 RTDE_PORT = 30004
@@ -54,7 +54,9 @@ def build_devices(cfg: SlipdConfig, metrics: Metrics) -> tuple[URArm | None, Dyn
     gripper = None
     try:
         if cfg.gripper.enabled:
-            gripper = DynamixelGripper(cfg.gripper, metrics=metrics)
+            # grip_control: the object's force limit caps every command, the hold setting's included.
+            limit = cfg.reaction.grip_max_force_n if cfg.reaction.policy == "grip_control" else None
+            gripper = DynamixelGripper(DynamixelSettings.from_config(cfg.gripper, force_limit_n=limit), metrics=metrics)
             gripper.connect()
             # slipd owns the grip: it holds at the hold setting from the start and tightens on an alarm.
             gripper.hold()

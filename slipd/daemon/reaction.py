@@ -92,8 +92,12 @@ class Reaction:
         self.clock = clock
         self.records: deque[ReactionRecord] = deque(maxlen=MAX_RECORDS)
         self.tighten_owed: float | None = None
-        """Level (None: secure) of a tighten that failed and was not yet sent again (``retry_tighten``)."""
+        """The argument of a gripper command that failed and was not yet sent again (``retry_tighten``): a tighten's
+        level (None: secure), or the force in N of grip_control's fail-safe grip at the object's limit."""
         self._owed = False
+        self._owed_call: Callable[..., Any] | None = None
+        """The gripper call owed: the one that failed (a retry of grip_control's limit grip as a tighten would go to
+        the secure setting, past the object's limit, and a force is no tighten level)."""
         self._last_t: float | None = None
         self._last_level = 0.0
         self.failsafe_count = 0
@@ -172,11 +176,13 @@ class Reaction:
         """Send a tighten that failed again (the servo answers again); None when none is owed."""
         if not self._owed or self.gripper is None or not self.enabled:
             return None
-        level, self._owed = self.tighten_owed, False
+        arg, self._owed = self.tighten_owed, False
+        call = self._owed_call or self.gripper.tighten
         log.warning("gripper answers again: retrying the tighten that failed")
+        level = None if call != self.gripper.tighten else arg
         rec = ReactionRecord(t_decision=self.clock(), risk=1.0 if level is None else level)
         self.records.append(rec)
-        return self._submit(rec, "tighten_gripper", self.gripper_worker, self.gripper.tighten, level)
+        return self._submit(rec, "tighten_gripper", self.gripper_worker, call, arg)
 
     def reset(self) -> None:
         """Forget the last reaction (a new grasp); a failed tighten is no longer owed."""
@@ -184,7 +190,7 @@ class Reaction:
             self.grip_control.reset()
         self._last_t = None
         self._last_level = 0.0
-        self._owed, self.tighten_owed = False, None
+        self._owed, self.tighten_owed, self._owed_call = False, None, None
 
     def _submit(self, rec: ReactionRecord, action: str, worker: DeviceWorker | None, fn: Callable[..., Any],
                 arg: Any) -> Future[Any]:
@@ -205,7 +211,7 @@ class Reaction:
                 if action != "stop_arm":
                     # A gripper that cannot tighten leaves the object at risk: halt the arm whatever the policy,
                     # and owe the tighten until the servo answers again (retry_tighten).
-                    self._owed, self.tighten_owed = True, arg
+                    self._owed, self.tighten_owed, self._owed_call = True, arg, fn
                     self.failsafe(f"{action} failed")
             else:
                 if action == "tighten_gripper":

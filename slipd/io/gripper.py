@@ -206,6 +206,11 @@ class DynamixelSettings:
     reboot_wait_s: float = 0.5  # how long a rebooted servo needs before it answers
     torque_off_on_close: bool = False  # False keeps the grip when the daemon exits
     max_force_n: float = 40.0  # grip force at full effort (grip_force's calibration)
+    force_limit_n: float | None = None
+    """The object's force limit (``reaction.grip_max_force_n`` under grip_control): every command's effort is capped
+    at the effort that gives this force, the start-up hold, a tighten and a recovery's hold included. The hold
+    setting's force follows from its position until the effort binds, so a hold effort above the limit squeezes an
+    object that is smaller or sits farther in than expected with more than it may take. None: no cap."""
 
     def __post_init__(self) -> None:
         def bad(key: str, why: str) -> ValueError:
@@ -235,16 +240,29 @@ class DynamixelSettings:
             raise bad("retries", "must be >= 0")
         if not self.packet_timeout_ms > 0:
             raise bad("packet_timeout_ms", "must be > 0")
+        if self.force_limit_n is not None and not 0 < self.force_limit_n <= self.max_force_n:
+            raise bad("force_limit_n", f"must be in (0, max_force_n = {self.max_force_n:g}] N")
+
+    @property
+    def effort_cap(self) -> int:
+        """The largest effort any command may carry: the one that gives ``force_limit_n`` (rounded down, so the
+        force stays at or below the limit), else the protocol's full effort."""
+        top = PWM_MAX if self.protocol == 2.0 else TORQUE_LIMIT_MAX
+        if self.force_limit_n is None:
+            return top
+        return min(top, math.floor(self.force_limit_n / self.max_force_n * top + 1e-9))
 
     @classmethod
-    def from_config(cls, cfg: GripperConfig) -> DynamixelSettings:
-        """The settings of the config's ``gripper`` section (the other fields keep their defaults)."""
+    def from_config(cls, cfg: GripperConfig, force_limit_n: float | None = None) -> DynamixelSettings:
+        """The settings of the config's ``gripper`` section (the other fields keep their defaults); ``force_limit_n``
+        as the field says."""
         if cfg.port is None or cfg.hold_position is None or cfg.secure_position is None:
             raise ValueError("gripper.port, hold_position and secure_position: required when the gripper is enabled")
         return cls(port=cfg.port, baudrate=cfg.baudrate, dxl_id=cfg.id, protocol=float(cfg.protocol),
                    hold_position=cfg.hold_position, secure_position=cfg.secure_position,
                    hold_pwm=cfg.hold_effort, secure_pwm=cfg.secure_effort,
-                   retries=cfg.retries, packet_timeout_ms=cfg.packet_timeout_ms, max_force_n=cfg.max_force_n)
+                   retries=cfg.retries, packet_timeout_ms=cfg.packet_timeout_ms, max_force_n=cfg.max_force_n,
+                   force_limit_n=force_limit_n)
 
     @property
     def closing_sign(self) -> int:
@@ -372,7 +390,7 @@ class DynamixelGripper(Gripper):
         if not math.isfinite(newtons):
             raise ValueError(f"grip_force: newtons must be finite, got {newtons!r}")
         top = PWM_MAX if self._v2 else TORQUE_LIMIT_MAX
-        effort = min(top, max(0, round(float(newtons) / s.max_force_n * top)))
+        effort = min(s.effort_cap, max(0, round(float(newtons) / s.max_force_n * top)))
         with self._lock:
             port = self._require_port()
             if not self._v2:
@@ -527,6 +545,7 @@ class DynamixelGripper(Gripper):
         """Write effort and goal position; returns the monotonic time the first packet was written."""
         port = self._require_port()
         self._goal_sent = None
+        effort = min(effort, self.settings.effort_cap)  # the one place every position command passes
         if self._v2:
             t_first: float | None = None
             if effort != self._effort_sent:

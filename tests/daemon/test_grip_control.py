@@ -296,3 +296,33 @@ def test_a_twist_never_sets_a_grip_beyond_the_force_limit() -> None:
     _run(c, t, 5, 9.0, 2.0, 0.05, 0.9, alarm=True, shear=4.0)  # turns; 2 N / (0.05 * 0.8) = 50 N
     assert len(stops) == 1 and c._twist  # the arm stopped (the limit's rule speaks first), the twist is known
     assert c.target is not None and c.target <= 10.0 and max(jaw.sent) <= 10.0
+
+
+def test_the_daemons_gripper_holds_within_the_objects_limit_from_start_up() -> None:
+    """Built from the config (the real driver against the emulated MX-28 over a pty): under grip_control the start-up
+    hold's effort is capped at the object's limit. The rig's hold setting is full effort (885: its force comes from
+    the position), which would give a fragile 8 N cup up to 40 N wherever the cup sits farther in than expected."""
+    from conftest import ROOT
+
+    from slipd.config import load_config, override
+    from slipd.daemon.devices import build_devices
+    from slipd.sim.devices.mx28 import PWM_MAX, EmulatedMX28
+
+    with EmulatedMX28() as servo:
+        cfg = override(load_config(ROOT / "config" / "sim.yaml"), {
+            "gripper.port": servo.port, "arm.enabled": False, "reaction.actions": ["tighten_gripper"],
+            "reaction.on_failsafe": "log_only", "reaction.policy": "grip_control", "reaction.grip_max_force_n": 8.0})
+        assert cfg.gripper.hold_pwm == PWM_MAX
+        _, gripper = build_devices(cfg, Metrics())
+        assert gripper is not None
+        try:
+            assert servo.register("goal_pwm") == int(8.0 / cfg.gripper.max_force_n * PWM_MAX)  # 177: 8.0 N
+            assert gripper.settings.force_limit_n == 8.0
+        finally:
+            gripper.close()
+        _, gripper = build_devices(override(cfg, {"reaction.policy": "stop_and_secure"}), Metrics())
+        assert gripper is not None
+        try:
+            assert servo.register("goal_pwm") == PWM_MAX  # stop_and_secure: the settings as they are
+        finally:
+            gripper.close()

@@ -150,3 +150,30 @@ def test_a_failsafe_under_grip_control_secures_at_the_objects_force_limit() -> N
     r.failsafe("sensor_stall").exception(timeout=5)
     assert jaw.event.wait(5)
     assert arm.calls[0][1] == "fail-safe: sensor_stall" and jaw.calls == [("grip_force", 8.0)]
+
+
+class _Jaw(_Dev):
+    """A gripper with force control (grip_control's)."""
+
+    def grip_force(self, newtons: float) -> None:
+        if self.fail:
+            raise RuntimeError("no status packet")
+        self.calls.append(("grip_force", newtons))
+        self.event.set()
+
+
+def test_grip_controls_failsafe_grip_is_owed_as_itself_not_as_a_tighten() -> None:
+    """Under grip_control a fail-safe that tightens grips at the object's limit; when that command fails, what is
+    owed is that grip: a tighten to the secure setting would squeeze past the limit (and a force is no level)."""
+    from slipd.daemon.grip_control import GripControlSettings
+
+    arm, grip = _Dev(), _Jaw(fail=True)
+    r = Reaction(arm=arm, gripper=grip, arm_worker=DeviceWorker("arm"), gripper_worker=DeviceWorker("grip"),
+                 metrics=Metrics(), clock=_Clock(), on_failsafe="stop_arm_and_tighten", policy="grip_control",
+                 grip=GripControlSettings(max_force_n=8.0))
+    r.failsafe("sensor_stall")
+    assert _until(lambda: r._owed and r.tighten_owed == 8.0)
+    grip.fail = False  # the servo answers again
+    _wait([r.retry_tighten()])
+    assert grip.calls == [("grip_force", 8.0)]
+    assert r.retry_tighten() is None

@@ -482,3 +482,32 @@ def test_jaw_model_with_nothing_in_the_jaw_never_grips():
     m.command(0.0, torque_on=True, goal=3000.0, effort=1.0)
     m.advance(2.0)
     assert m.force == 0.0 and m.position == pytest.approx(3000.0, abs=0.5)
+
+
+def test_an_object_force_limit_caps_every_command_the_hold_included(emu, metrics, clock, protocol):
+    """grip_control's object limit (``force_limit_n``) binds the start-up hold, a tighten and a force command: the
+    hold setting alone (position past the object, effort 300 = 13.6 N here) would squeeze a 5 N object with 10 N."""
+    top = top_effort(protocol)
+    cap = int(5.0 / FMAX * top)  # rounded down: never above the limit
+    g = DynamixelGripper(make_settings(emu, force_limit_n=5.0), metrics)
+    g.connect()
+    effort_reg = "goal_pwm" if protocol == 2.0 else "torque_limit"
+    try:
+        g.hold()
+        clock.advance(1.0)
+        assert emu.register(effort_reg) == cap
+        assert K * (HOLD_POS - CONTACT) > 5.0  # the position alone would ask for more
+        assert emu.grip_force_n <= 5.0 and emu.grip_force_n == pytest.approx(FMAX * cap / top, rel=1e-3)
+        g.tighten()
+        clock.advance(1.0)
+        assert emu.register(effort_reg) == cap and emu.grip_force_n <= 5.0
+        g.grip_force(30.0)
+        clock.advance(1.0)
+        assert emu.register(effort_reg) == cap and emu.grip_force_n <= 5.0
+        g.grip_force(2.0)  # below the limit: as asked
+        clock.advance(1.0)
+        assert emu.grip_force_n == pytest.approx(2.0, abs=FMAX / top)
+    finally:
+        g.close()
+    with pytest.raises(ValueError, match="force_limit_n"):
+        make_settings(emu, force_limit_n=50.0)  # above the jaw's full force: a limit that never binds
