@@ -184,9 +184,14 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
             by_phase[ph] += c
     phase = {ph: dict(zip(("precision", "recall", "f1"), prf(*map(int, c)), strict=True))
              | {"tp": int(c[0]), "fp": int(c[1]), "fn": int(c[2])} for ph, c in sorted(by_phase.items())}
+    by_family: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(3, np.int64))
+    for r in rows:
+        by_family[str(r["family"])] += np.asarray(r["counts"]).sum(0)
+    family = {f: dict(zip(("precision", "recall", "f1"), prf(*map(int, c)), strict=True))
+              for f, c in sorted(by_family.items())}
     return {
         "pillar": {"precision": pooled[0], "recall": pooled[1], "f1": pooled[2], "f1_per_pillar": per_pillar,
-                   "per_phase": phase},
+                   "per_phase": phase, "per_family": family},
         "friction": {"trials": len(within), "within_15pct": float(np.mean(within)) if within else 0.0,
                      "per_family": {f: {"trials": len(v), "within_15pct": float(np.mean(v)),
                                         "median_rel_error": float(np.median(errs[f])) if errs[f] else None}
@@ -234,6 +239,8 @@ def _print(title: str, s: dict[str, Any]) -> None:
     pl, fr = s["pillar"], s["friction"]
     print(f"{title}: per-pillar slip P {pl['precision']:.3f} R {pl['recall']:.3f} F1 {pl['f1']:.3f} "
           f"(per pillar {' '.join(f'{f:.2f}' for f in pl['f1_per_pillar'])})")
+    print("  per family: " + ", ".join(f"{f} P {v['precision']:.2f} R {v['recall']:.2f} F1 {v['f1']:.2f}"
+                                      for f, v in pl["per_family"].items()))
     print("  per phase: " + ", ".join(f"{ph} P {v['precision']:.2f} R {v['recall']:.2f} (fp {v['fp']}, fn {v['fn']})"
                                      for ph, v in pl["per_phase"].items()))
     print(f"  friction within 15 % of mu_k on {fr['within_15pct']:.1%} of {fr['trials']} slip trials; " + ", ".join(

@@ -131,10 +131,12 @@ FAULTS: tuple[Fault, ...] = (
            "tests/io/test_gripper.py::test_a_short_silence_is_bridged_by_retries")),
     Fault("Servo answers again after a tighten failed",
           "The failed tighten is owed until the grasp is reset and sent again when the health poll hears the "
-          "servo (was: never retried)",
+          "servo (was: never retried); under grip_control the fail-safe's grip at the object's limit is owed as "
+          "itself (was: re-sent as a tighten, refused, and a tighten goes past the limit)",
           "(reaction log; `slipd_device_errors_total{device=\"gripper\",kind=\"reaction\"}` for the failure)",
           (F + "test_tighten_lost_while_the_servo_was_silent_is_retried_when_it_answers",
-           "tests/daemon/test_reaction.py::test_failed_tighten_is_owed_and_retried_once_the_servo_answers")),
+           "tests/daemon/test_reaction.py::test_failed_tighten_is_owed_and_retried_once_the_servo_answers",
+           "tests/daemon/test_reaction.py::test_grip_controls_failsafe_grip_is_owed_as_itself_not_as_a_tighten")),
     Fault("Gripper hardware error (overload) or torque off, seen by the health poll (every 0.5 s)",
           "Fail-safe stop once per occurrence (not per poll); no automatic reboot (it would drop the object)",
           '`slipd_failsafe_stops_total{reason="gripper_fault"}`, '
