@@ -144,6 +144,7 @@ class GripController:
         self.reset()
         self.commands = 0
         self.stops = 0
+        self._failing = False  # the latest grip command failed (one fail-safe per run of failures)
 
     def reset(self) -> None:
         """A new grasp (or none): the controller has not acted."""
@@ -326,11 +327,17 @@ class GripController:
 
         def done(f: Future[Any]) -> None:
             exc = f.exception()
-            if exc is not None:
+            if exc is None:
+                self._failing = False
+                return
+            if self.metrics is not None:
+                self.metrics.device_errors.labels(device="gripper", kind="grip_control").inc()
+            self._sent = None  # send again once it answers
+            if not self._failing:
+                # One fail-safe per run of failures: a silent servo fails every command at the servo rate, and a
+                # fail-safe each time would log and queue an arm stop 60 times a second.
+                self._failing = True
                 log.error("grip command failed: %s", exc)
-                if self.metrics is not None:
-                    self.metrics.device_errors.labels(device="gripper", kind="grip_control").inc()
-                self._sent = None  # send again once it answers
                 self.failsafe("grip_control failed")
 
         fut.add_done_callback(done)

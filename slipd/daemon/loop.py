@@ -692,6 +692,10 @@ class Daemon:
             return
         state, before = fut.result(), self.health.get("arm")
         self.health["arm"] = state
+        if state == "protective_stop":
+            self.reaction.arm_halted()  # the controller halted it: a stop it refused is no longer owed
+        elif state != "disconnected":
+            self.reaction.retry_stop()  # a stop the controller refused or that failed, until one is taken
         if state == before:
             return
         if state == "disconnected":
@@ -722,9 +726,12 @@ class Daemon:
             self.metrics.device_errors.labels(device="gripper", kind="unhealthy").inc()
             log.error("gripper: %s", problem)
             self._fail_safe("gripper_fault")
-        elif not problem and before not in (None, "ok"):
-            log.warning("gripper: healthy again (was: %s)", before)
-            self.reaction.retry_tighten()  # a tighten lost while it was silent is still owed
+        elif not problem:
+            if before not in (None, "ok"):
+                log.warning("gripper: healthy again (was: %s)", before)
+            # A tighten that failed is still owed, whether or not a poll saw the servo silent: a silence shorter
+            # than the poll period fails a tighten (its retries) unseen.
+            self.reaction.retry_tighten()
 
     # ---------------------------------------------------------------- lifecycle
     async def run(self, sensor_port: str | None = None, duration_s: float | None = None) -> LoopStats:

@@ -18,8 +18,15 @@ Policies:
 Fail-safe (sensor stall, model failure, a device error while reacting): stop the arm, keep the grip.
 
 A tighten that failed (the servo did not answer) stays owed until the grasp is reset: ``retry_tighten``
-sends it again, and the daemon calls it when the gripper's health poll hears the servo again, so a servo
+sends it again, and the daemon calls it whenever the gripper's health poll hears the servo, so a servo
 that was silent during the alarm still secures the grasp once it is back.
+
+An arm stop the controller refused (``StopResult.ok`` False: the configured method and its fallback both
+failed) or that raised is a failure like a device error: recorded, logged, counted, and owed; the daemon
+sends it again on every arm health poll that reaches the controller (``retry_stop``) until one is taken or
+the controller reports the arm halted by a protective stop. One stop is in flight at a time: a request while
+one is queued or running joins it, so a storm of fail-safes cannot queue stops without bound behind a call
+that hangs.
 """
 
 from __future__ import annotations
@@ -95,6 +102,9 @@ class Reaction:
         """The argument of a gripper command that failed and was not yet sent again (``retry_tighten``): a tighten's
         level (None: secure), or the force in N of grip_control's fail-safe grip at the object's limit."""
         self._owed = False
+        self.stop_owed: str | None = None
+        """The reason of an arm stop that failed or was refused and was not yet taken (``retry_stop``)."""
+        self._stop_pending: Future[Any] | None = None
         self._owed_call: Callable[..., Any] | None = None
         """The gripper call owed: the one that failed (a retry of grip_control's limit grip as a tighten would go to
         the secure setting, past the object's limit, and a force is no tighten level)."""
@@ -184,6 +194,22 @@ class Reaction:
         self.records.append(rec)
         return self._submit(rec, "tighten_gripper", self.gripper_worker, call, arg)
 
+    def retry_stop(self) -> Future[Any] | None:
+        """Send an arm stop that failed or was refused again (the controller answers); None when none is owed
+        or one is in flight."""
+        if self.stop_owed is None or self.arm is None or not self.enabled:
+            return None
+        if self._stop_pending is not None and not self._stop_pending.done():
+            return None
+        log.warning("arm: retrying the stop that failed (%s)", self.stop_owed)
+        rec = ReactionRecord(t_decision=self.clock(), risk=1.0)
+        self.records.append(rec)
+        return self._submit(rec, "stop_arm", self.arm_worker, self.arm.stop, f"retry: {self.stop_owed}")
+
+    def arm_halted(self) -> None:
+        """The controller reports the arm halted (a protective stop): an owed stop is no longer needed."""
+        self.stop_owed = None
+
     def reset(self) -> None:
         """Forget the last reaction (a new grasp); a failed tighten is no longer owed."""
         if self.grip_control is not None:
@@ -194,12 +220,20 @@ class Reaction:
 
     def _submit(self, rec: ReactionRecord, action: str, worker: DeviceWorker | None, fn: Callable[..., Any],
                 arg: Any) -> Future[Any]:
+        if action == "stop_arm" and self._stop_pending is not None and not self._stop_pending.done():
+            return self._stop_pending  # the stop in flight halts the arm: no second one queued behind it
+
         def call() -> None:
             rec.issued[action] = self.clock()
-            fn(arg) if arg is not None else fn()
+            result = fn(arg) if arg is not None else fn()
+            if action == "stop_arm" and getattr(result, "ok", True) is False:
+                # ``Arm.stop`` never raises for a refused stop: it says so in its result.
+                raise RuntimeError(f"stop refused by the controller: {getattr(result, 'error', '') or 'no reason'}")
             rec.done[action] = self.clock()
 
         fut: Future[Any] = worker.submit(call) if worker is not None else _run_inline(call)
+        if action == "stop_arm":
+            self._stop_pending = fut
 
         def finished(f: Future[Any]) -> None:
             exc = f.exception()
@@ -208,14 +242,21 @@ class Reaction:
                 log.error("%s failed: %s", action, exc)
                 if self.metrics is not None:
                     self.metrics.device_errors.labels(device=action.split("_")[1], kind="reaction").inc()
-                if action != "stop_arm":
+                if action == "stop_arm":
+                    # Owed until a stop is taken (``retry_stop``, from the arm's health poll).
+                    self.stop_owed = self.stop_owed or str(arg)
+                else:
                     # A gripper that cannot tighten leaves the object at risk: halt the arm whatever the policy,
-                    # and owe the tighten until the servo answers again (retry_tighten).
-                    self._owed, self.tighten_owed, self._owed_call = True, arg, fn
+                    # and owe the tighten until the servo answers again (retry_tighten). ``_owed`` last: the loop
+                    # thread reads it first.
+                    self.tighten_owed, self._owed_call = arg, fn
+                    self._owed = True
                     self.failsafe(f"{action} failed")
             else:
                 if action == "tighten_gripper":
                     self._owed = False  # the grasp is secured: nothing owed any more
+                else:
+                    self.stop_owed = None  # the arm took a stop
                 if self.metrics is not None and action in rec.done:
                     self.metrics.reaction_seconds.observe(rec.done[action] - rec.t_decision)
 

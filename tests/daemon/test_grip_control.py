@@ -326,3 +326,23 @@ def test_the_daemons_gripper_holds_within_the_objects_limit_from_start_up() -> N
             assert servo.register("goal_pwm") == PWM_MAX  # stop_and_secure: the settings as they are
         finally:
             gripper.close()
+
+
+def test_a_run_of_failed_grip_commands_fails_safe_once() -> None:
+    """A silent servo fails every command at the servo rate: one fail-safe for the run, another once a command got
+    through and a later one failed again."""
+    jaw = Jaw(fail=True)
+    c, _, fails = _ctl(jaw, max_force_n=200.0)  # far from the limit: every growing load is a new target
+    t = 0.0
+    for _ in range(100):  # one second of decisions, about 60 commands sent and failed
+        t += DT
+        c.update(_state(5.0, 3.0 + t, 0.2, 0.9), t, alarm=True)
+    assert fails == ["grip_control failed"]
+    jaw.fail = False
+    t = _run(c, t, 20, 5.0, 3.0, 0.25, 0.9, alarm=True)  # the contact's own friction: a requirement to follow
+    assert jaw.sent  # commands get through again
+    jaw.fail, sent = True, len(jaw.sent)
+    for k in range(20):  # the load grows: new targets to send, and they fail
+        t += DT
+        c.update(_state(5.0, 3.0 + 0.2 * k, 0.25, 0.9), t, alarm=True)
+    assert len(jaw.sent) == sent and fails == ["grip_control failed"] * 2

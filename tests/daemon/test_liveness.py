@@ -14,6 +14,7 @@ import logging
 import socket
 import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -266,7 +267,6 @@ def test_a_stream_that_stops_short_of_a_decision_is_a_stall_even_when_its_last_f
     # stream then stops before the frame that completes the next window, the decision's deadline passes before the
     # fresh-data one: the cause is still the stream (sensor_stall), not the detector (no_decisions). A clean-clone CI
     # run once counted test_deploy's stall as no_decisions.
-    from types import SimpleNamespace
 
     daemon = Daemon(base_cfg, Ensemble.load(base_cfg.model.manifest), metrics=Metrics())
     sensor = SimpleNamespace(connected=True, frames=5000, last_frame_time=None, last_repeat_time=None)
@@ -285,3 +285,62 @@ def test_a_stream_that_stops_short_of_a_decision_is_a_stall_even_when_its_last_f
     sensor.frames += 3  # every frame it needed came, and still no decision: the detector's fault
     cause = daemon._blind_cause(now)
     assert cause is not None and cause[0] == "no_decisions", cause
+
+
+def test_the_health_polls_retry_an_owed_tighten_and_an_owed_arm_stop(base_cfg) -> None:
+    """A tighten that failed in a silence shorter than the gripper's poll period is sent again on the next healthy
+    poll (no 'healthy again' transition is ever seen); a stop the controller refused is sent again on every arm poll
+    that reaches it, and a protective stop (the arm halted) clears it."""
+    from concurrent.futures import Future
+
+    from slipd.io.arm import StopResult
+
+    class Grip:
+        def __init__(self) -> None:
+            self.fail, self.calls = True, 0
+
+        def tighten(self, level: float | None = None) -> None:
+            self.calls += 1
+            if self.fail:
+                raise RuntimeError("no status packet")
+
+    class Arm:
+        def __init__(self) -> None:
+            self.refuse, self.calls = True, 0
+
+        def stop(self, reason: str) -> StopResult:
+            self.calls += 1
+            return StopResult(not self.refuse, "stopl", reason, 0.0, 0.0, error="refused" if self.refuse else "")
+
+    def done(value: object) -> Future[object]:
+        f: Future[object] = Future()
+        f.set_result(value)
+        return f
+
+    healthy = SimpleNamespace(healthy=True, hardware_error=0, hardware_errors=())
+    grip, arm = Grip(), Arm()
+    cfg = override(base_cfg, {"arm.enabled": False, "reaction.on_failsafe": "log_only",
+                              "reaction.actions": ["tighten_gripper"]})
+    daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics())
+    daemon.reaction.gripper, daemon.reaction.gripper_worker = grip, None  # calls run inline
+    daemon.reaction.arm, daemon.reaction.arm_worker = arm, None
+    daemon.reaction.actions, daemon.reaction.on_failsafe = ("stop_arm", "tighten_gripper"), "stop_arm"
+    daemon.health["gripper"] = "ok"
+    daemon.reaction.on_alarm(1.0)
+    # The alarm's stop, and the fail-safe's for the failed tighten: both refused.
+    assert daemon.reaction._owed and grip.calls == 1 and arm.calls == 2 and daemon.reaction.stop_owed
+    grip.fail = False
+    daemon._on_gripper_health(done(healthy))  # healthy before and after: no transition
+    assert grip.calls == 2 and not daemon.reaction._owed
+    daemon._on_arm_health(done("ok"))
+    assert arm.calls == 3 and daemon.reaction.stop_owed  # refused again
+    daemon._on_arm_health(done("disconnected"))
+    assert arm.calls == 3  # nothing to send it to
+    arm.refuse = False
+    daemon._on_arm_health(done("ok"))
+    assert arm.calls == 4 and daemon.reaction.stop_owed is None
+    arm.refuse = True
+    daemon.reaction.failsafe("sensor_stall")
+    assert daemon.reaction.stop_owed
+    daemon._on_arm_health(done("protective_stop"))
+    assert daemon.reaction.stop_owed is None

@@ -177,3 +177,61 @@ def test_grip_controls_failsafe_grip_is_owed_as_itself_not_as_a_tighten() -> Non
     _wait([r.retry_tighten()])
     assert grip.calls == [("grip_force", 8.0)]
     assert r.retry_tighten() is None
+
+
+class _RefusingArm(_Dev):
+    """An arm whose controller refuses stops (``URArm.stop`` reports it in its result; it never raises)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.refuse = True
+
+    def stop(self, reason: str = ""):
+        from slipd.io.arm import StopResult
+
+        self.calls.append(("stop", reason))
+        self.event.set()
+        return StopResult(not self.refuse, "stopl", reason, 0.0, 0.0, error="" if not self.refuse else "refused")
+
+
+def test_a_refused_arm_stop_is_a_failure_owed_until_the_controller_takes_one() -> None:
+    arm, grip = _RefusingArm(), _Dev()
+    r = Reaction(arm=arm, gripper=grip, arm_worker=DeviceWorker("arm"), gripper_worker=DeviceWorker("grip"),
+                 metrics=Metrics(), clock=_Clock())
+    _wait(r.on_alarm(1.0))
+    assert _until(lambda: r.stop_owed == "slip alarm")
+    assert "refused" in r.records[0].errors["stop_arm"] and "stop_arm" not in r.records[0].done
+    _wait([r.retry_stop()])  # refused again: still owed
+    assert r.stop_owed == "slip alarm" and len(arm.calls) == 2
+    arm.refuse = False
+    _wait([r.retry_stop()])
+    assert _until(lambda: r.stop_owed is None) and arm.calls[-1] == ("stop", "retry: slip alarm")
+    assert r.retry_stop() is None  # taken: nothing owed
+    arm.refuse = True
+    _wait(r.on_alarm(1.0) if False else [r.failsafe("sensor_stall")])
+    assert _until(lambda: r.stop_owed == "fail-safe: sensor_stall")
+    r.arm_halted()  # a protective stop halted it
+    assert r.retry_stop() is None
+
+
+def test_one_arm_stop_in_flight_however_many_fail_safes() -> None:
+    """Fail-safes while a stop hangs (a dashboard fallback waiting on a controller that does not answer) join the
+    stop in flight instead of queueing one each behind it."""
+    gate = threading.Event()
+
+    class _SlowArm(_Dev):
+        def stop(self, reason: str = "") -> None:
+            self.calls.append(("stop", reason))
+            gate.wait(5)
+
+    arm = _SlowArm()
+    r, grip = None, _Dev()
+    r = Reaction(arm=arm, gripper=grip, arm_worker=DeviceWorker("arm"), gripper_worker=DeviceWorker("grip"),
+                 metrics=Metrics(), clock=_Clock())
+    first = r.failsafe("sensor_stall")
+    assert all(r.failsafe("grip_control failed") is first for _ in range(50))
+    gate.set()
+    _wait([first])
+    assert len(arm.calls) == 1 and r.failsafe_count == 51
+    _wait([r.failsafe("sensor_stall")])  # the first is done: a new stop goes out
+    assert len(arm.calls) == 2
