@@ -610,7 +610,9 @@ class Daemon:
         if self.blind is not None:
             log.warning("live again after %s", self.blind)
             self.blind = None
-        elif not self.started_live:
+        if not self.started_live:
+            # Also after a blind episode before it (a sensor that starts streaming late): under Type=notify systemd
+            # kills a daemon that never says READY=1.
             self.started_live = True
             if self.notifier is not None:
                 self.notifier.ready(f"running: model {self.cfg.model.manifest.name}")

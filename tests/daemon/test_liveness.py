@@ -213,6 +213,23 @@ def test_silent_sensor_from_start_up_fails_safe_and_never_reports_ready(controll
     assert len(blind) == 1 and "since start-up" in blind[0], blind
 
 
+def test_a_sensor_that_starts_late_still_gets_ready_reported_once_live(controller, base_cfg, tmp_path,
+                                                                        monkeypatch) -> None:
+    """A blind episode before the first live decision (the sensor starts streaming after the stall timeout) must not
+    cost READY=1: under Type=notify systemd would kill a daemon that works, after TimeoutStartSec."""
+
+    async def scenario(d: Daemon, w: Writer, sd: Systemd) -> None:
+        await until(lambda: failsafes(d.metrics).get("sensor_silent", 0) == 1, timeout=3.0,
+                    what="sensor_silent fail-safe")
+        w.start()
+        await until(lambda: d.live, what="live on the first frames")
+        await until(lambda: sd.count("READY=1") == 1, what="READY=1 after the first live decision")
+        await until(lambda: sd.count("WATCHDOG=1") >= 1, what="watchdog pings once ready")
+
+    d, sd = run_daemon(base_cfg, controller, tmp_path, monkeypatch, scenario)
+    assert d.started_live and sd.count("READY=1") == 1
+
+
 @pytest.mark.parametrize("mode, reason", [("stuck", "sensor_counter_stuck"), ("nan", "sensor_nonfinite"),
                                           ("frozen", "sensor_frozen")])
 def test_blind_stream_fails_safe_once_stops_the_pings_and_the_arm_watchdog_then_recovers(
