@@ -54,6 +54,9 @@ from slipd.metrics import Metrics
 
 STOP_METHODS = ("stopl", "speed_stop", "dashboard_pause", "dashboard_stop")
 DASHBOARD_METHODS = ("dashboard_pause", "dashboard_stop")
+WATCHDOG_REARM_KICKS = 20
+"""Kicks between two ``setWatchdog`` on a script already watched (2.5 s at the daemon's 0.5 s watchdog, four kicks a
+period): ur_rtde reconnects by itself on a dropped link and uploads a script without a watchdog, unseen here."""
 """Stop methods that pause or stop the user's own program through the dashboard server (no control script)."""
 _NAN6 = (math.nan,) * 6
 
@@ -211,6 +214,7 @@ class URArm(Arm):
         self.settings = settings if isinstance(settings, URSettings) else URSettings.from_config(settings)
         self.metrics = metrics
         self._watchdog_armed = False  # setWatchdog sent to the control script now running
+        self._kicks = 0  # kicks since the last setWatchdog
         self._receive_factory = receive_factory or _default_factory("rtde_receive", "RTDEReceiveInterface")
         self._control_factory = control_factory or _default_factory("rtde_control", "RTDEControlInterface")
         self._dashboard_factory = dashboard_factory or _default_factory("dashboard_client", "DashboardClient")
@@ -362,21 +366,29 @@ class URArm(Arm):
         return True
 
     def kick_watchdog(self) -> None:
-        """Arm the controller-side watchdog on the running control script (first call after each upload),
-        then kick it. Never raises: a failed kick is counted (``kind="watchdog"``); the controller halting
-        the arm is then the intended outcome."""
+        """Arm the controller-side watchdog on the running control script (first call after each upload, and
+        every ``WATCHDOG_REARM_KICKS`` kicks: ur_rtde may reconnect and upload a script of its own, without one,
+        unseen by this class), then kick it. Never raises: a failed kick is counted (``kind="watchdog"``); the
+        controller halting the arm is then the intended outcome."""
         c = self._control
         if c is None:
             return
         try:
-            if not self._watchdog_armed:
-                if not c.isProgramRunning() or not c.setWatchdog(1.0 / self.settings.watchdog_s):
-                    self._count("watchdog")
-                    return
-                self._watchdog_armed = True
+            self._kicks += 1
+            if (not self._watchdog_armed or self._kicks >= WATCHDOG_REARM_KICKS) and not self._arm_watchdog():
+                self._count("watchdog")
+                return
             c.kickWatchdog()
         except RuntimeError:
             self._count("watchdog")
+
+    def _arm_watchdog(self) -> bool:
+        """Set the watchdog on the running control script; False when there is none or it refused."""
+        c = self._control
+        self._watchdog_armed = c is not None and c.isProgramRunning() and bool(
+            c.setWatchdog(1.0 / self.settings.watchdog_s))
+        self._kicks = 0
+        return self._watchdog_armed
 
     def control_script_running(self) -> bool:
         """True when there is no control interface, or its script runs (the watchdog ends it when unkicked)."""
@@ -394,17 +406,24 @@ class URArm(Arm):
             elif not self._receive.isConnected():
                 self._receive.reconnect()
             if s.use_control:
+                uploaded = False
                 if self._control is None:
                     self._control = self._control_factory(s.host, s.frequency)
-                    self._watchdog_armed = False
+                    uploaded = True
                 elif not self._control.isConnected():
-                    self._control.reconnect()
+                    self._control.reconnect()  # uploads a fresh script of ur_rtde's
+                    uploaded = True
                 if not self._control.isProgramRunning() and not self._protective_now():
                     self._control.reuploadScript()
-                    self._watchdog_armed = False  # a new script starts without one
+                    uploaded = True
                     deadline = time.monotonic() + s.script_start_timeout
                     while not self._control.isProgramRunning() and time.monotonic() < deadline:
                         time.sleep(0.01)
+                if uploaded:
+                    # A new script starts without a watchdog: arm it now rather than at the next kick. A blind
+                    # daemon does not kick, so the controller then halts the arm by itself (the script slipd left
+                    # running is always a watched one); a live one kicks within the period.
+                    self._arm_watchdog()
             if self._uses_dashboard:
                 self._dashboard_connected()
         except RuntimeError:

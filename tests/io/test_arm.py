@@ -143,8 +143,9 @@ def metrics() -> Metrics:
 
 @pytest.fixture(scope="module")
 def arm(controller: URControllerProcess, metrics: Metrics):
+    # A reconnect arms the watchdog on the script it uploads; these tests do not kick: a period longer than the module.
     settings = URSettings(host=controller.host, stop_method="stopl", stop_deceleration=3.0,
-                          fallback_to_dashboard=False)
+                          fallback_to_dashboard=False, watchdog_s=600.0)
     a = URArm(settings, metrics)
     a.connect()
     yield a
@@ -329,3 +330,26 @@ def test_upper_range_registers_and_watchdog() -> None:
             assert s.last_stop_kind == "watchdog"
         finally:
             c.disconnect()
+
+
+def test_a_script_uploaded_by_a_reconnect_is_watched_at_once(metrics: Metrics) -> None:
+    """ur_rtde's reconnect uploads a fresh control script without a watchdog. The daemon reconnects while blind too
+    (it does not kick then): the script it leaves running must end by itself, or the cell could move the arm unwatched
+    (the watchdog was armed lazily at the next kick, which a blind daemon never sends)."""
+    with _start_controller() as ctl:
+        a = URArm(URSettings(host=ctl.host, stop_method="stopl", fallback_to_dashboard=False, watchdog_s=0.3),
+                  metrics)
+        a.connect()
+        try:
+            a.kick_watchdog()
+            assert ctl.state().watchdog_hz > 0
+            ctl.drop_connections(down_s=1.0)
+            _wait(lambda: not a.is_connected(), timeout=3.0, what="disconnect noticed")
+            time.sleep(1.1)
+            assert a.reconnect()
+            s = ctl.wait_for(lambda s: s.control_script_running, timeout=3.0, what="the script back")
+            # No kick follows (a blind daemon): the controller ends the script within its period.
+            s = ctl.wait_for(lambda s: not s.control_script_running, timeout=3.0, what="the watchdog expiring")
+            assert s.last_stop_kind == "watchdog"
+        finally:
+            a.close()
