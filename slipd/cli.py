@@ -59,7 +59,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------------------------- check-config
 def cmd_check_config(args: argparse.Namespace) -> int:
     """``slipd check-config FILE``: 0 valid, 3 invalid config, 4 invalid model. Touches no hardware."""
-    from slipd.config import ConfigError, check_against_manifest, load_config, permission_warnings, summary
+    from slipd.config import ConfigError, load_config, permission_warnings, summary
+    from slipd.detect.build import config_problems
     from slipd.detect.manifest import ModelError, load_manifest
 
     path = Path(args.config)
@@ -75,7 +76,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     except ModelError as exc:
         _err(f"{path}: model.manifest: {exc}")
         return EXIT_MODEL
-    problems = check_against_manifest(cfg, manifest, str(path))
+    problems = config_problems(cfg, manifest, str(path))
     if problems:
         _err("\n".join(problems))
         return EXIT_CONFIG
@@ -87,7 +88,8 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
     """Print the alarms (rising edges) with their times; optional JSON of every decision."""
     from slipd import models
-    from slipd.config import ConfigError, check_against_manifest, load_config
+    from slipd.config import ConfigError, load_config
+    from slipd.detect.build import config_problems
     from slipd.detect.ensemble import Ensemble
     from slipd.detect.manifest import ModelError
     from slipd.detect.replay import replay
@@ -110,7 +112,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         _err(f"slipd replay: {exc}")
         return EXIT_MODEL
     if cfg is not None:
-        problems = check_against_manifest(cfg, ensemble.manifest, str(args.config))
+        problems = config_problems(cfg, ensemble.manifest, str(args.config))
         if problems:  # as check-config and run refuse it
             _err("\n".join(problems))
             return EXIT_CONFIG

@@ -19,10 +19,11 @@ import sys
 import threading
 from dataclasses import dataclass
 
-from slipd.config import ConfigError, SlipdConfig, check_against_manifest, load_config
+from slipd.config import ConfigError, SlipdConfig, load_config
 from slipd.daemon.devices import DeviceError, build_devices, check_devices
 from slipd.daemon.loop import Daemon
 from slipd.daemon.sdnotify import Notifier
+from slipd.detect.build import config_problems
 from slipd.detect.ensemble import Ensemble
 from slipd.metrics import Metrics
 
@@ -46,7 +47,7 @@ class Service:
             if exposure:
                 log.warning("metrics.host %s: /metrics (model hash, alarm and fail-safe counts) is served %s; "
                             "keep it on 127.0.0.1 unless a firewall limits who can scrape it", m.host, exposure)
-        server = self.metrics.serve(m.host, m.port) if m.enabled else None
+        server = None
 
         async def _main() -> None:
             loop = asyncio.get_running_loop()
@@ -55,6 +56,8 @@ class Service:
             await self.daemon.run()
 
         try:
+            # Inside: a metrics port in use must still release the devices (the arm's control script stopped).
+            server = self.metrics.serve(m.host, m.port) if m.enabled else None
             asyncio.run(_main())
         finally:
             self.daemon.close()
@@ -141,7 +144,7 @@ def prepare(config_path: str | os.PathLike[str]) -> Service:
         cfg = load_config(config_path)
         logging.basicConfig(level=cfg.control.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
         ensemble = Ensemble.load(cfg.model.manifest, threads=cfg.model.threads)
-        problems = check_against_manifest(cfg, ensemble.manifest, str(config_path))
+        problems = config_problems(cfg, ensemble.manifest, str(config_path))
         if problems:  # as check-config says, before any device is opened
             raise ConfigError(problems)
         check_devices(cfg)

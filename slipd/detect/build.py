@@ -5,10 +5,12 @@ and the heuristics, so none of them needs to know about the others.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from slipd.config.load import check_against_manifest
 from slipd.config.schema import DecisionConfig
 from slipd.detect.decision import Decision
 from slipd.detect.detector import Detector, HeuristicDetector, SlipDetector
@@ -52,8 +54,7 @@ def build_detector(
                              f"{sensors or cfg.sensor.sensors} (use the onnx detector for two fingers)")
         # A published heuristic instead of the ensemble (comparisons on the rig); it has no start-up tare of
         # its own, so it expects a zeroed sensor (tare: bias_command).
-        params = cfg.model.baseline_params or cfg.model.manifest.parent / "baselines.json"
-        return HeuristicDetector(cfg.model.detector, params, offset)
+        return HeuristicDetector(cfg.model.detector, baseline_params_path(cfg), offset)
     if sensors is None:
         sensors = cfg.sensor.sensors if cfg is not None else 1
     if sensors > 1:
@@ -66,6 +67,27 @@ def build_detector(
         ])
     return Detector(ensemble, build_decision(rule, ensemble.threshold), spec, offset=offset,
                     tare_samples=tare_samples or 0, press_rise=rule.press_rise)
+
+
+def config_problems(cfg: SlipdConfig, manifest: Any, source: str) -> list[str]:
+    """Everything that refuses ``cfg`` with this model before a device is opened (``slipd check-config``, ``slipd
+    run``, ``slipd replay``): the config against the manifest, and a heuristic detector's parameters readable (the
+    daemon loads them when it builds its detector, which is after the devices were opened and told to hold)."""
+    problems = check_against_manifest(cfg, manifest, source)
+    if cfg.model.detector != "onnx":
+        from slipd.detect.baselines import load_params
+
+        try:
+            load_params(baseline_params_path(cfg), cfg.model.detector)
+        except ValueError as exc:
+            problems.append(f"{source}: model.baseline_params: {exc}")
+    return problems
+
+
+def baseline_params_path(cfg: SlipdConfig) -> Path:
+    """The tuned parameters a heuristic detector reads: ``model.baseline_params``, else baselines.json beside the
+    manifest."""
+    return cfg.model.baseline_params or cfg.model.manifest.parent / "baselines.json"
 
 
 def build_decision(rule: DecisionConfig, model_threshold: float) -> Decision:

@@ -387,6 +387,28 @@ def test_check_config_against_manifest(tmp_path, capsys):
     assert "model.stride: must divide the model's window (40), got 15" in err
 
 
+def test_check_config_and_run_read_a_heuristics_parameters_before_any_device(tmp_path, capsys, monkeypatch):
+    """A heuristic detector's tuned parameters are read when the daemon builds its detector, after the devices were
+    opened and the gripper told to hold: a missing file must refuse the config first, naming the key."""
+    tiny_model(tmp_path / "models")
+    text = with_(VALID.replace("models/m.json", "models/tiny.json"), model={"detector": "deceleration",
+                                                                           "baseline_params": "missing.json"},
+                 sensor={"tare": "bias_command"})
+    path = write(tmp_path, text, "h.yaml")
+    code, _, err = main_check_in_process(path, capsys)
+    assert code == 3 and "model.baseline_params" in err and "missing.json" in err
+
+    from slipd.config import ConfigError
+    from slipd.daemon import service
+
+    opened: list[str] = []
+    monkeypatch.setattr(service, "check_devices", lambda cfg: opened.append("checked"))
+    monkeypatch.setattr(service, "build_devices", lambda cfg, m: opened.append("built") or (None, None))
+    with pytest.raises(ConfigError, match=r"model\.baseline_params"):
+        service.prepare(path)
+    assert opened == []
+
+
 # ---------------------------------------------------------------------------------------------- bounded input
 def alias_bomb(levels: int = 10, width: int = 9) -> str:
     """The "billion laughs": each line is a list of ``width`` aliases to the line above (9**10 values)."""
