@@ -228,6 +228,10 @@ class GripController:
         # lags after the catch made it stick below the limit). The highest estimate of the grasp is the best one.
         own = state.friction if state.friction is not None and state.friction != self._grasp_mu else None
         from_alarm = self.alarm_friction.estimate()
+        if self._own_mu and state.friction is None:
+            # The contact forgot its estimate in contact: refuted (a sticking pillar uses far more than it,
+            # ``slipd.detect.contact.FRICTION_REFUTE``). The highest estimate is the best one only among valid ones.
+            self._mu, self._own_mu = None, False
         for est in (own, None if from_alarm is None else from_alarm.mu):
             if est is not None and est > 0 and math.isfinite(est):
                 self._mu = max(est, self._mu or 0.0)

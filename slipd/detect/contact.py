@@ -46,6 +46,17 @@ in the estimate at gross slip. With ``FRICTION_TOP_SHARE`` and samples from the 
 push carry 0.4-0.9 N), the robust test split within 15 % went from 74 % to 86 % and the transfer split from 91 % to
 98 % (`python tools/evaluate.py --contact --sets transfer,robust`, measured when that command filtered with a median
 of 21 instead of the daemon's 5)."""
+FRICTION_PRESS_RISE = 0.05
+"""No friction samples from a window over which the contact's summed normal force rose by more than this share: a
+press, or a grip closing, splays the pillars (each carries a few per cent of its normal force sideways) and the pillar
+estimate can judge one that stops following that splay sliding, at a utilisation of a few hundredths. Such a sample
+set the estimate to 0.05 on contacts of 0.5-0.8 (the simulator's still presses), and the risk and grip control then
+took a still hold for one at its friction limit."""
+FRICTION_REFUTE = 2.0
+"""An estimate that a pillar judged sticking uses more than this multiple of is refuted and forgotten: a sticking tip
+carries at most mu_s, within a few tens of per cent of mu_k (per-pillar spread included), so a pillar sticking at four
+times the estimate says the samples were misjudged ones (the first windows of a shear load, where the splay and the
+load cross, left 0.06 on contacts of 0.5-0.8)."""
 FRICTION_EDGE_SHARE = 0.2
 """Friction samples come from pillars above the contact threshold and above this share of the heaviest pillar's
 normal force. The threshold alone (pillars of a push carry 0.4-0.9 N: transfer split within 15 % 98 % against 91 %
@@ -151,10 +162,10 @@ class ContactStream:
         ``pillar_p`` (a model's per-pillar P(slip), [9]) that is the slip map instead of the feature estimate."""
         w = window.reshape(self.spec.window, N_PILLARS, 3)
         # Nine pillars once per decision: plain floats (a numpy call on nine values costs more than its work).
-        last = w[-1].tolist()
+        first, last = w[0].tolist(), w[-1].tolist()
         ends = fz, util, contact = utilisation(last)
         if pillar_p is None:
-            p, source = self.pillars.step(w[0].tolist(), last, ends), "features"
+            p, source = self.pillars.step(first, last, ends), "features"
         else:
             p, source = np.asarray(pillar_p, np.float64).tolist(), "model"
         grip = fx = fy = shear = pressed = top_pressed = 0.0
@@ -176,8 +187,15 @@ class ContactStream:
         # Only sliding pillars near the contact's top utilisation are samples of mu, and only they put the grip at
         # risk (``RISK_TOP_SHARE``, ``FRICTION_TOP_SHARE``).
         p_top = [q if u >= RISK_TOP_SHARE * top else 0.0 for q, u in zip(p, util, strict=True)]
-        est = self.friction.update(util, fz, [q if u >= FRICTION_TOP_SHARE * top else 0.0
+        pressing = grip > (1.0 + FRICTION_PRESS_RISE) * sum(z for _, _, z in first if z > CONTACT_THRESHOLD_N)
+        est = self.friction.update(util, fz, [q if u >= FRICTION_TOP_SHARE * top and not pressing else 0.0
                                               for q, u in zip(p, util, strict=True)])
+        # The pillars that could be samples (``FRICTION_EDGE_SHARE``): a light one's ratio is mostly noise.
+        floor = max(self.friction.min_fz_n, FRICTION_EDGE_SHARE * max(fz))
+        if est is not None and any(q < 0.5 and z > floor and u > FRICTION_REFUTE * est.mu
+                                   for z, u, q in zip(fz, util, p, strict=True)):
+            self.friction.reset()
+            est = None
         mu = None if est is None else est.mu
         state = ContactState(
             pillar_slip=tuple(p), friction=mu, friction_sd=None if est is None else est.sd,

@@ -346,3 +346,16 @@ def test_a_run_of_failed_grip_commands_fails_safe_once() -> None:
         t += DT
         c.update(_state(5.0, 3.0 + 0.2 * k, 0.25, 0.9), t, alarm=True)
     assert len(jaw.sent) == sent and fails == ["grip_control failed"] * 2
+
+
+def test_an_estimate_the_contact_refuted_is_dropped() -> None:
+    """The contact forgets an estimate a sticking pillar refutes (``slipd.detect.contact.FRICTION_REFUTE``); the
+    controller, which keeps the highest estimate of the grasp, must forget it too, or a misjudged 0.07 keeps asking
+    for more than the limit and stops the arm on a still hold."""
+    jaw = Jaw()
+    c, stops, _ = _ctl(jaw, max_force_n=40.0, margin=0.85)
+    t = _run(c, 0.0, 20, 30.0, 2.5, None, 0.0)  # taken over at 30 N, no friction known
+    t = _run(c, t, 1, 30.0, 2.5, 0.067, 0.0)  # one misjudged sample: 2.5 / (0.067 * 0.85) = 44 N asked for
+    assert c._mu == 0.067
+    _run(c, t, 100, 30.0, 2.5, None, 0.0)  # refuted: the contact has no estimate any more
+    assert c._mu is None and stops == [] and max(jaw.sent) < 40.0

@@ -234,3 +234,29 @@ def test_one_sensor_is_its_own_grasp_and_a_finger_out_of_contact_does_not_count(
     assert grasp_state([lone, None]) is None  # released on both: the controller resets
     both = grasp_state([held, _finger(8.0, 1.0, friction=None)])
     assert both is not None and both.friction is None and both.shear_n == 2.0
+
+
+def _hold(index: int, seed: int, seconds: float = 5.0):
+    from slipd.sim.datasets import hold_scene
+    from slipd.sim.scene import generate, parse_scene
+
+    d = hold_scene(np.random.default_rng(seed), index, hold_s=seconds)
+    rec = generate(parse_scene({k: v for k, v in d.items() if k != "_tags"}, d["name"]), seed)
+    assert not rec.slip.any()  # the truth: nothing slips
+    return rec
+
+
+def test_a_still_press_and_a_shear_hold_give_no_friction_estimate_and_no_risk() -> None:
+    """Holds where nothing slips (the simulator's, seed 7 of tests/detect/test_still_holds.py and its neighbours). A
+    press splays the pillars (a few per cent of each normal force sideways) and the first windows of a shear load cross
+    that splay: the pillar estimate judged one pillar sliding there, its utilisation (0.05-0.07) became the friction
+    estimate on contacts of 0.5-0.8, and the risk then read 0.6-1.0 for the whole hold. Now a pressing window gives
+    no sample (``FRICTION_PRESS_RISE``) and a pillar sticking at far more than the estimate refutes it
+    (``FRICTION_REFUTE``)."""
+    for index, seed in ((6, 7), (1, 8), (6, 9)):  # a slow press (0.95 s); two shear holds
+        rec = _hold(index, seed)
+        stream = ContactStream(FeatureSpec(pillars=tuple(range(9)), channels=("util",), window=40, median=5, stride=10))
+        states = [s for _, s in stream.push_many(rec.force)]
+        held = states[len(states) // 2 :]  # the hold, past the press and the shear load
+        assert all(s.friction is None for s in held), (index, seed, held[-1].friction)
+        assert max(s.risk for s in held) <= 0.05, (index, seed, max(s.risk for s in held))
