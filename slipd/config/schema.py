@@ -18,7 +18,7 @@ import os
 import re
 import reprlib
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 from pydantic import (
     BaseModel,
@@ -67,6 +67,21 @@ class FieldProblem(ValueError):
 
 class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_boolean_numbers(cls, v: Any, info: ValidationInfo) -> Any:
+        # pydantic takes true as 1 wherever a number is due: ``max_force_n: true`` would be a 1 N jaw,
+        # ``protocol: true`` protocol 1.0.
+        if isinstance(v, bool) and info.field_name is not None and not _admits_bool(
+                cls.model_fields[info.field_name].annotation):
+            raise ValueError(f"must be a number, not {str(v).lower()}")
+        return v
+
+
+def _admits_bool(annotation: Any) -> bool:
+    """Whether a field's type takes a boolean (bool itself, or a union with it)."""
+    return annotation is bool or any(_admits_bool(a) for a in get_args(annotation))
 
 
 def _host(value: str, key: str) -> str:
@@ -440,6 +455,15 @@ class ArmConfig(_Section):
     def _consistent(self) -> ArmConfig:
         if self.enabled and self.host is None:
             raise FieldProblem("host", "required when the arm is enabled")
+        if self.stop_method.startswith("dashboard"):
+            # No RTDE control interface: no watchdog and no deceleration. An engineer who sets them expects a
+            # watchdog to halt the arm when slipd dies, and none would.
+            for key in ("watchdog_s", "stop_deceleration"):
+                value, default = getattr(self, key), type(self).model_fields[key].default
+                if value != default:
+                    raise FieldProblem(key, f"{value:g} has no effect with stop_method {self.stop_method}, which "
+                                       "has no RTDE control interface (no watchdog: a dead slipd leaves the program "
+                                       f"running); leave it at its default ({default:g}) or use stopl / speed_stop")
         return self
 
 
@@ -558,6 +582,15 @@ class SlipdConfig(_Section):
                 raise _SectionProblem(("reaction", "grip_max_force_n"),
                                       f"{self.reaction.grip_max_force_n:g} N is above the gripper's full force "
                                       f"(gripper.max_force_n: {self.gripper.max_force_n:g} N)")
+        if self.reaction.policy != "grip_control":
+            # The grip_* keys are the grip controller's: under stop_and_secure nothing reads them, and a force limit
+            # set there would be believed to bind (a tighten still goes to the secure setting).
+            for key, field in type(self.reaction).model_fields.items():
+                value = getattr(self.reaction, key)
+                if key.startswith("grip_") and value != field.default:
+                    raise _SectionProblem(("reaction", key), f"{value} has no effect with reaction.policy "
+                                          f"{self.reaction.policy} (the grip_* keys are grip_control's); leave it at "
+                                          f"its default ({field.default}), or set reaction.policy: grip_control")
         if self.model.detector != "onnx" and self.sensor.tare == "startup":
             # The heuristics have no start-up tare of their own: they would read the sensor's raw offsets.
             raise _SectionProblem(("sensor", "tare"), f"startup: model.detector {self.model.detector} has no "

@@ -164,6 +164,38 @@ def test_grip_control_needs_a_gripper_that_can_reach_its_force_limit(tmp_path):
     assert cfg.reaction.grip_max_force_n == cfg.gripper.max_force_n == 40.0
 
 
+def test_numbers_are_read_as_yaml_1_2_and_a_boolean_is_no_number(tmp_path):
+    """YAML 1.1 (PyYAML's default) reads 0100 as octal 64, 1:30 as sexagesimal 90, and yes / on as true, which
+    pydantic then takes for 1 wherever a number is due: a hold position, a stall timeout, a 1 N jaw, protocol 1.0."""
+    cfg = load_config(write(tmp_path, VALID.replace("hold_position: 2048", "hold_position: 02048")))
+    assert cfg.gripper.hold_position == 2048
+    cfg = load_config(write(tmp_path, VALID.replace("secure_position: 2600", "secure_position: 0100")))
+    assert cfg.gripper.secure_position == 100
+    (line,) = errors_of(tmp_path, VALID.replace("sensor:\n", "sensor:\n  stall_timeout_ms: 1:30\n"))
+    assert "sensor.stall_timeout_ms" in line
+    for key, value in (("max_force_n", "yes"), ("max_force_n", "true"), ("protocol", "on"), ("retries", "true")):
+        (line,) = errors_of(tmp_path, VALID.replace("gripper:\n", f"gripper:\n  {key}: {value}\n"))
+        assert f"gripper.{key}" in line, (key, value, line)
+    cfg = load_config(write(tmp_path, VALID.replace("gripper:\n", "gripper:\n  enabled: yes\n")))
+    assert cfg.gripper.enabled is True  # a boolean key still reads yes
+    cfg = load_config(write(tmp_path, VALID.replace("gripper:\n", "gripper:\n  max_force_n: 4e1\n")))
+    assert cfg.gripper.max_force_n == 40.0
+
+
+def test_keys_that_the_chosen_mode_never_reads_are_refused(tmp_path):
+    """Unread options are refused, as unknown keys are: a grip_control key under stop_and_secure (a force limit there
+    would be believed to bind; a tighten still goes to the secure setting), a watchdog or deceleration with a dashboard
+    stop (no RTDE control interface: a dead slipd leaves the program running)."""
+    (line,) = errors_of(tmp_path, with_(VALID, reaction={"grip_max_force_n": 5.0}))
+    assert "reaction.grip_max_force_n: 5.0 has no effect with reaction.policy stop_and_secure" in line
+    cfg = load_config(write(tmp_path, with_(VALID, reaction={"policy": "grip_control", "grip_max_force_n": 5.0})))
+    assert cfg.reaction.grip_max_force_n == 5.0
+    for key, value in (("watchdog_s", 0.1), ("stop_deceleration", 5.0)):
+        (line,) = errors_of(tmp_path, with_(VALID, arm={"stop_method": "dashboard_stop", key: value}))
+        assert f"arm.{key}" in line and "no effect with stop_method dashboard_stop" in line
+    assert load_config(write(tmp_path, with_(VALID, arm={"stop_method": "speed_stop", "watchdog_s": 0.1})))
+
+
 def test_a_heuristic_detector_needs_a_zeroed_sensor(tmp_path):
     # The heuristics have no start-up tare of their own: with tare startup they read the raw offsets.
     (line,) = errors_of(tmp_path, with_(VALID, model={"detector": "reference_pillar"}, sensor={"tare": "startup"}))

@@ -320,7 +320,8 @@ def test_the_daemons_gripper_holds_within_the_objects_limit_from_start_up() -> N
             assert gripper.settings.force_limit_n == 8.0
         finally:
             gripper.close()
-        _, gripper = build_devices(override(cfg, {"reaction.policy": "stop_and_secure"}), Metrics())
+        _, gripper = build_devices(override(cfg, {"reaction.policy": "stop_and_secure",
+                                                  "reaction.grip_max_force_n": 30.0}), Metrics())
         assert gripper is not None
         try:
             assert servo.register("goal_pwm") == PWM_MAX  # stop_and_secure: the settings as they are
