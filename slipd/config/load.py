@@ -128,7 +128,13 @@ _Loader.add_implicit_resolver(
     _FLOAT_TAG,
     re.compile(r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"),
     list("-+0123456789."))
-_Loader.add_constructor(_INT_TAG, lambda loader, node: int(loader.construct_scalar(node), 10))
+
+
+def _construct_int(loader: _Loader, node: yaml.ScalarNode) -> int:
+    return int(loader.construct_scalar(node), 10)  # decimal, leading zeros and all (1.1's would read octal)
+
+
+_Loader.add_constructor(_INT_TAG, _construct_int)
 
 
 def _key_lines(node: yaml.Node | None, prefix: tuple[Any, ...] = ()) -> dict[tuple[Any, ...], int]:
