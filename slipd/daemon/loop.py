@@ -756,8 +756,10 @@ class Daemon:
         )
         await self.sensor.start()
         if self._set_up_sensor():
+            # The frames while the sensor zeroes itself are neither zeroed nor its steady output: not decided on (no
+            # alarm, no grip command from them), as after a reconnect; the first frame after it restarts the history.
+            self._bias_until = time.monotonic() + cfg.bias_timeout_s
             await asyncio.sleep(cfg.bias_timeout_s)
-            self.detector.restart()
         # Everything built so far (modules, the model, the devices) lives as long as the daemon: out of the
         # collector's sight, so a full collection scans only what the loop allocates since (it stalled the
         # loop for ~20 ms at the worst, tools/bench_daemon.py).

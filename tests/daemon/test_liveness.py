@@ -361,3 +361,36 @@ def test_the_health_polls_retry_an_owed_tighten_and_an_owed_arm_stop(base_cfg) -
     assert daemon.reaction.stop_owed
     daemon._on_arm_health(done("protective_stop"))
     assert daemon.reaction.stop_owed is None
+
+
+def test_frames_while_the_sensor_zeroes_itself_at_start_up_are_not_decided_on(base_cfg) -> None:
+    """With ``tare: bias_command`` the daemon waits ``bias_timeout_s`` at start-up while the sensor zeroes itself. The
+    frames of that time are neither zeroed nor its steady output: no decision (no alarm, no reaction) may come from
+    them, and going live needs a decision after the bias (as after a reconnect)."""
+    cfg = override(base_cfg, {"sensor.tare": "bias_command", "sensor.bias_timeout_s": 0.5, "arm.enabled": False,
+                              "reaction.actions": ["tighten_gripper"], "reaction.on_failsafe": "log_only"})
+    sensor, servo = EmulatedPapillArray(), EmulatedMX28()
+    cfg = override(cfg, {"sensor.port": sensor.port, "gripper.port": servo.port})
+    writer = Writer(sensor)
+    daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics())
+    seen: dict[str, object] = {}
+
+    async def main() -> None:
+        task = asyncio.create_task(daemon.run())
+        writer.start()  # streaming from the first moment, through the bias
+        await daemon.ready.wait()
+        seen["at_ready"] = (daemon.stats.decisions, daemon.live)
+        await until(lambda: daemon.live, what="live on frames after the bias")
+        seen["live_after"] = daemon.stats.decisions
+        daemon.stop()
+        await task
+
+    try:
+        asyncio.run(main())
+    finally:
+        writer.stop()
+        daemon.close()
+        sensor.close()
+        servo.close()
+    assert seen["at_ready"] == (0, False)
+    assert seen["live_after"] >= 1
