@@ -173,6 +173,14 @@ class GripController:
         if getattr(self, "metrics", None) is not None:
             self.metrics.grip_target.set(0.0)  # type: ignore[union-attr]
 
+    def secured(self, newtons: float) -> None:
+        """The fail-safe gripped at ``newtons`` behind the controller's back (``on_failsafe: stop_arm_and_tighten``):
+        that is the grip now, sent. Once decisions come again the controller relaxes from it as from its own target;
+        without this it kept its older, lower target as sent and never commanded it again, so the jaw stayed at the
+        limit while the controller believed it held less."""
+        if self.target is not None:
+            self.target = self._sent = float(newtons)
+
     def update(self, state: ContactState | None, now: float, *, alarm: bool = False) -> None:
         """One decision's contact state at monotonic time ``now``; ``alarm``: the detector's alarm is up
         (the contact slips, whatever the risk)."""

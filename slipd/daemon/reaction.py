@@ -176,6 +176,7 @@ class Reaction:
                 # limit is far below the jaw's full force).
                 self._submit(rec, "tighten_gripper", self.gripper_worker, self.gripper.grip_force,
                              self.grip_control.s.max_force_n)
+                self.grip_control.secured(self.grip_control.s.max_force_n)
             else:
                 self._submit(rec, "tighten_gripper", self.gripper_worker, self.gripper.tighten, None)
         if self.arm is None:

@@ -235,3 +235,22 @@ def test_one_arm_stop_in_flight_however_many_fail_safes() -> None:
     assert len(arm.calls) == 1 and r.failsafe_count == 51
     _wait([r.failsafe("sensor_stall")])  # the first is done: a new stop goes out
     assert len(arm.calls) == 2
+
+
+def test_grip_control_knows_the_fail_safe_gripped_at_the_limit() -> None:
+    """The fail-safe's grip at the object's limit goes to the jaw behind the controller's back: the controller must take
+    it as its sent target, or it keeps believing its older, lower target holds and never commands the jaw again."""
+    from slipd.daemon.grip_control import GripControlSettings
+    from slipd.detect.contact import ContactState
+
+    arm, grip = _Dev(), _Jaw()
+    r = Reaction(arm=arm, gripper=grip, arm_worker=None, gripper_worker=None, metrics=Metrics(), clock=_Clock(),
+                 on_failsafe="stop_arm_and_tighten", policy="grip_control", grip=GripControlSettings(max_force_n=30.0))
+    gc = r.grip_control
+    assert gc is not None
+    state = ContactState((0.0,) * 9, None, None, 0.0, 10.0, 1.0, shear_n=1.0)
+    for k in range(30):  # the grasp settles and the controller takes it over at 10 N
+        r.on_detection(state, 0.01 * k, False)
+    assert gc.target == 10.0
+    r.failsafe("sensor_stall")
+    assert grip.calls[-1] == ("grip_force", 30.0) and gc.target == 30.0
