@@ -38,6 +38,8 @@ class Fault:
 
 
 F = "tests/daemon/test_faults.py::"
+L = "tests/daemon/test_liveness.py::"
+R = "tests/daemon/test_reaction.py::"
 FAULTS: tuple[Fault, ...] = (
     Fault("Sensor stream stalls (no frame for `sensor.stall_timeout_ms`)",
           "Blind: one fail-safe per episode (stop the arm, policy `reaction.on_failsafe`; keep the grip), one "
@@ -48,9 +50,16 @@ FAULTS: tuple[Fault, ...] = (
            "tests/io/test_sensor.py::test_stall_then_resume_without_gap")),
     Fault("Sensor silent from start-up (port open, no frame ever)",
           "Fail-safe once within the stall timeout of the loop's start; `READY=1` is never sent and the systemd "
-          "watchdog never pinged (was: READY sent, no fail-safe while the arm moved)",
+          "watchdog never pinged (was: READY sent, no fail-safe while the arm moved); a sensor that starts streaming "
+          "later gets `READY=1` at the first live decision (was: never, and systemd killed the working daemon)",
           '`slipd_failsafe_stops_total{reason="sensor_silent"}`, `slipd_live` 0',
-          ("tests/daemon/test_liveness.py::test_silent_sensor_from_start_up_fails_safe_and_never_reports_ready",)),
+          ("tests/daemon/test_liveness.py::test_silent_sensor_from_start_up_fails_safe_and_never_reports_ready",
+           "tests/daemon/test_liveness.py::test_a_sensor_that_starts_late_still_gets_ready_reported_once_live")),
+    Fault("Frames while the sensor zeroes itself (`tare: bias_command`, start-up and after a reconnect)",
+          "Not decided on: no alarm or grip command from them; live only after a decision on frames after the bias "
+          "(was, at start-up: decided on, alarms reached the reaction)",
+          "(`slipd_live` stays 0 until then)",
+          ("tests/daemon/test_liveness.py::test_frames_while_the_sensor_zeroes_itself_at_start_up_are_not_decided_on",)),
     Fault("Every frame carries the same packet counter",
           "Repeats are dropped by the reader (not passed on as discontinuities that restarted the detector on "
           "every frame); no fresh sample within the stall timeout: fail-safe once, pings and arm kicks stop; "
@@ -166,15 +175,35 @@ FAULTS: tuple[Fault, ...] = (
           (F + "test_arm_protective_stop_and_link_loss_are_noticed_and_the_link_comes_back",
            "tests/io/test_arm.py::test_disconnect_detected_and_reconnect_works")),
     Fault("UR refuses the stop command",
-          "Falls back to the dashboard `stop`; failure counted",
-          '`slipd_device_errors_total{device="arm",kind="stop_failed"}`',
-          ("tests/io/test_arm.py::test_refused_stop_falls_back_to_dashboard_and_reconnect_reuploads",)),
+          "Falls back to the dashboard `stop`; when that fails too the stop is a failed reaction (recorded, logged; "
+          "was: recorded as done) and owed: sent again on every arm health poll that reaches the controller until "
+          "one is taken or a protective stop halted the arm",
+          '`slipd_device_errors_total{device="arm",kind="stop_failed"}`, '
+          '`slipd_device_errors_total{device="arm",kind="reaction"}`',
+          ("tests/io/test_arm.py::test_refused_stop_falls_back_to_dashboard_and_reconnect_reuploads",
+           R + "test_a_refused_arm_stop_is_a_failure_owed_until_the_controller_takes_one",
+           L + "test_the_health_polls_retry_an_owed_tighten_and_an_owed_arm_stop")),
+    Fault("Fail-safes while an arm stop hangs (a dashboard fallback waiting on a controller that does not answer); "
+          "a silent servo under grip_control",
+          "One arm stop in flight: the others join it (was: one queued per fail-safe, without bound); grip_control "
+          "fails safe once per run of failed grip commands (was: per command, at the servo rate)",
+          '`slipd_failsafe_stops_total`',
+          (R + "test_one_arm_stop_in_flight_however_many_fail_safes",
+           "tests/daemon/test_grip_control.py::test_a_run_of_failed_grip_commands_fails_safe_once")),
+    Fault("RTDE link drops and comes back (slipd's reconnect, or ur_rtde's own)",
+          "The control script a reconnect uploads is watched at once (was: at the next kick, which a blind daemon "
+          "never sends: an unwatched script stayed running); the watchdog is set again every 20 kicks",
+          '`slipd_device_errors_total{device="arm",kind="watchdog"}` (a failed kick)',
+          ("tests/io/test_arm.py::test_a_script_uploaded_by_a_reconnect_is_watched_at_once",)),
     Fault("Configuration edit breaks YAML / unknown key / out-of-range value",
           "`slipd run` / `check-config` refuse with exit 3, naming file, line or key path and reason; no device "
           "is touched",
           "(exit status; fuzzed below)",
           ("tests/config/test_config.py::test_broken_yaml_names_line_and_column",
            "tests/config/test_config.py::test_unknown_keys_rejected_with_suggestion",
+           "tests/config/test_config.py::test_numbers_are_read_as_yaml_1_2_and_a_boolean_is_no_number",
+           "tests/config/test_config.py::test_keys_that_the_chosen_mode_never_reads_are_refused",
+           "tests/config/test_config.py::test_check_config_and_run_read_a_heuristics_parameters_before_any_device",
            "tests/config/test_config.py::test_check_config_exit_codes",
            "tests/config/test_config.py::test_fuzz_short")),
     Fault("Model file half-copied / wrong hash / wrong shapes",
