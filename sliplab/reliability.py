@@ -146,6 +146,12 @@ FAULTS: tuple[Fault, ...] = (
           (F + "test_tighten_lost_while_the_servo_was_silent_is_retried_when_it_answers",
            "tests/daemon/test_reaction.py::test_failed_tighten_is_owed_and_retried_once_the_servo_answers",
            "tests/daemon/test_reaction.py::test_grip_controls_failsafe_grip_is_owed_as_itself_not_as_a_tighten")),
+    Fault("A gripper call hangs in the vendor library (a status poll, or a grip command it waits behind)",
+          "After 2 s it is a gripper fault: one fail-safe, logged (was: the gripper stayed 'ok' for good, the grip "
+          "frozen); healthy again once the call returns",
+          '`slipd_failsafe_stops_total{reason="gripper_fault"}`, '
+          '`slipd_device_errors_total{device="gripper",kind="unhealthy"}`',
+          (L + "test_a_gripper_call_that_hangs_is_a_gripper_fault",)),
     Fault("Gripper hardware error (overload) or torque off, seen by the health poll (every 0.5 s)",
           "Fail-safe stop once per occurrence (not per poll); no automatic reboot (it would drop the object)",
           '`slipd_failsafe_stops_total{reason="gripper_fault"}`, '

@@ -102,6 +102,10 @@ def supervision_period(stall_s: float) -> float:
 
 HEALTH_PERIOD_S = 0.15
 """Arm health poll period (100-200 ms asked for): ``read_state`` reads ur_rtde's cached receive values."""
+GRIPPER_HANG_S = 2.0
+"""A gripper call (a status poll, a grip command) still running after this long has hung: the gripper is not answering.
+One status read with its retries takes at most (retries + 1) x packet timeout (80 ms at the defaults); without this
+rule a call stuck in the vendor library left the gripper "ok" for good, the grip frozen where it was."""
 GRIPPER_HEALTH_PERIOD_S = 0.5
 """Slower for the gripper: its status block (83 bytes) takes ~20 ms at 57.6 kBd, and a tighten submitted
 while a status read is on the wire waits for it; 0.5 s keeps that chance small."""
@@ -634,7 +638,7 @@ class Daemon:
         arm_reconnect: Any = None
         reconnect_delay = ARM_RECONNECT_INITIAL_S
         next_reconnect = 0.0
-        next_grip = 0.0
+        next_grip = grip_sent = 0.0
         while not self._stop.is_set():
             now = time.monotonic()
             if arm is not None:
@@ -666,9 +670,13 @@ class Daemon:
                 if grip_poll is not None and grip_poll.done():
                     self._on_gripper_health(grip_poll)
                     grip_poll = None
+                elif grip_poll is not None and now - grip_sent > GRIPPER_HANG_S:
+                    # The poll queues behind whatever the gripper thread runs: either has hung.
+                    self._gripper_condition(f"not answering: a call has not returned for {now - grip_sent:.1f} s")
                 if grip_poll is None and now >= next_grip:
                     assert self.gripper_worker is not None
                     grip_poll = self.gripper_worker.submit(grip.read_status)
+                    grip_sent = now
                     next_grip = now + self.gripper_health_period_s
             self.stats.health_polls += 1
             with contextlib.suppress(asyncio.TimeoutError):
@@ -722,6 +730,10 @@ class Daemon:
                 problem = f"hardware error {', '.join(st.hardware_errors)}"
             else:
                 problem = "torque off"
+        self._gripper_condition(problem)
+
+    def _gripper_condition(self, problem: str) -> None:
+        """The gripper's condition ("" healthy): one fail-safe when it turns bad, an owed tighten sent when healthy."""
         before = self.health.get("gripper")
         self.health["gripper"] = problem or "ok"
         if problem and (before is None or before == "ok"):

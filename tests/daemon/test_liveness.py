@@ -394,3 +394,46 @@ def test_frames_while_the_sensor_zeroes_itself_at_start_up_are_not_decided_on(ba
         servo.close()
     assert seen["at_ready"] == (0, False)
     assert seen["live_after"] >= 1
+
+
+def test_a_gripper_call_that_hangs_is_a_gripper_fault(base_cfg, monkeypatch) -> None:
+    """A call stuck in the vendor library (the status poll, or a grip command it queues behind) never returned, so
+    the gripper stayed 'ok' for good with the grip frozen; past GRIPPER_HANG_S it is a gripper fault (one fail-safe),
+    and healthy again once the call returns."""
+    from slipd.daemon import loop as loop_mod
+
+    monkeypatch.setattr(loop_mod, "GRIPPER_HANG_S", 0.3)
+    release = threading.Event()
+
+    class Grip:
+        def read_status(self) -> object:
+            release.wait(10)
+            return SimpleNamespace(healthy=True, hardware_error=0, hardware_errors=())
+
+        def close(self) -> None:
+            pass
+
+    cfg = override(base_cfg, {"arm.enabled": False, "reaction.on_failsafe": "log_only",
+                              "reaction.actions": ["tighten_gripper"]})
+    daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics(), gripper=Grip(),  # type: ignore[arg-type]
+                    health_period_s=0.05, gripper_health_period_s=0.05)
+    seen: dict[str, object] = {}
+
+    async def main() -> None:
+        task = asyncio.create_task(daemon._health())
+        await asyncio.sleep(0.8)
+        seen["hung"] = (daemon.health.get("gripper"), daemon.stats.failsafes)
+        release.set()
+        await until(lambda: daemon.health.get("gripper") == "ok", what="healthy once the call returned")
+        seen["failsafes"] = daemon.stats.failsafes
+        daemon.stop()
+        await task
+
+    try:
+        asyncio.run(main())
+    finally:
+        release.set()
+        daemon.close()
+    health, failsafes = seen["hung"]
+    assert isinstance(health, str) and health.startswith("not answering: a call has not returned") and failsafes == 1
+    assert seen["failsafes"] == 1
