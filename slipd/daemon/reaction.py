@@ -105,6 +105,7 @@ class Reaction:
         self.stop_owed: str | None = None
         """The reason of an arm stop that failed or was refused and was not yet taken (``retry_stop``)."""
         self._stop_pending: Future[Any] | None = None
+        self._tighten_failing = False  # the latest gripper command of the reaction failed (one fail-safe per run)
         self._owed_call: Callable[..., Any] | None = None
         """The gripper call owed: the one that failed (a retry of grip_control's limit grip as a tighten would go to
         the secure setting, past the object's limit, and a force is no tighten level)."""
@@ -217,7 +218,7 @@ class Reaction:
             self.grip_control.reset()
         self._last_t = None
         self._last_level = 0.0
-        self._owed, self.tighten_owed, self._owed_call = False, None, None
+        self._owed, self.tighten_owed, self._owed_call, self._tighten_failing = False, None, None, False
 
     def _submit(self, rec: ReactionRecord, action: str, worker: DeviceWorker | None, fn: Callable[..., Any],
                 arg: Any) -> Future[Any]:
@@ -252,10 +253,14 @@ class Reaction:
                     # thread reads it first.
                     self.tighten_owed, self._owed_call = arg, fn
                     self._owed = True
-                    self.failsafe(f"{action} failed")
+                    if not self._tighten_failing:
+                        # One fail-safe per run of failures: the retry on every healthy poll (a servo that answers
+                        # its status but fails the command) would otherwise fail safe twice a second.
+                        self._tighten_failing = True
+                        self.failsafe(f"{action} failed")
             else:
                 if action == "tighten_gripper":
-                    self._owed = False  # the grasp is secured: nothing owed any more
+                    self._owed = self._tighten_failing = False  # the grasp is secured: nothing owed any more
                 else:
                     self.stop_owed = None  # the arm took a stop
                 if self.metrics is not None and action in rec.done:

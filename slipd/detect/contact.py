@@ -188,14 +188,9 @@ class ContactStream:
         # risk (``RISK_TOP_SHARE``, ``FRICTION_TOP_SHARE``).
         p_top = [q if u >= RISK_TOP_SHARE * top else 0.0 for q, u in zip(p, util, strict=True)]
         pressing = grip > (1.0 + FRICTION_PRESS_RISE) * sum(z for _, _, z in first if z > CONTACT_THRESHOLD_N)
-        est = self.friction.update(util, fz, [q if u >= FRICTION_TOP_SHARE * top and not pressing else 0.0
-                                              for q, u in zip(p, util, strict=True)])
-        # The pillars that could be samples (``FRICTION_EDGE_SHARE``): a light one's ratio is mostly noise.
-        floor = max(self.friction.min_fz_n, FRICTION_EDGE_SHARE * max(fz))
-        if est is not None and any(q < 0.5 and z > floor and u > FRICTION_REFUTE * est.mu
-                                   for z, u, q in zip(fz, util, p, strict=True)):
-            self.friction.reset()
-            est = None
+        self.friction.update(util, fz, [q if u >= FRICTION_TOP_SHARE * top and not pressing else 0.0
+                                        for q, u in zip(p, util, strict=True)])
+        est = self.friction.refute(util, fz, p, FRICTION_REFUTE)
         mu = None if est is None else est.mu
         state = ContactState(
             pillar_slip=tuple(p), friction=mu, friction_sd=None if est is None else est.sd,

@@ -58,7 +58,7 @@ class FrictionEstimator:
 
     def update(self, util: Sequence[float], fz: Sequence[float], p_slip: Sequence[float]) -> FrictionEstimate | None:
         """Add this decision's sliding pillars; returns the estimate (None while none was seen sliding)."""
-        floor = max(self.min_fz_n, self.edge_share * max(fz))
+        floor = self._floor(fz)
         prev = self._fz if self._fz is not None else fz
         rise = 1.0 + self.max_fz_rise
         # A ratio beyond any real friction (max_mu) is a glitch, not a sample.
@@ -76,6 +76,23 @@ class FrictionEstimator:
                 self._s += w * d * (u - self._m)
             self.samples += len(use)
         return self.estimate()
+
+    def refute(self, util: Sequence[float], fz: Sequence[float], p_slip: Sequence[float],
+               factor: float) -> FrictionEstimate | None:
+        """Forget the estimate when a pillar judged sticking (P(slip) < 0.5), among those that could be samples, uses
+        more than ``factor`` times it: a sticking tip carries at most mu_s, so its samples were misjudged ones. Returns
+        the estimate that stands (None: none, or refuted)."""
+        est = self.estimate()
+        floor = self._floor(fz)
+        if est is not None and any(q < 0.5 and w > floor and u > factor * est.mu
+                                   for u, w, q in zip(util, fz, p_slip, strict=True)):
+            self.reset()
+            return None
+        return est
+
+    def _floor(self, fz: Sequence[float]) -> float:
+        """The normal force a pillar needs to count (``min_fz_n``, ``edge_share`` of the heaviest)."""
+        return max(self.min_fz_n, self.edge_share * max(fz))
 
     def estimate(self) -> FrictionEstimate | None:
         """The current estimate, or None before any sliding pillar was seen."""

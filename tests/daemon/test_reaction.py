@@ -254,3 +254,22 @@ def test_grip_control_knows_the_fail_safe_gripped_at_the_limit() -> None:
     assert gc.target == 10.0
     r.failsafe("sensor_stall")
     assert grip.calls[-1] == ("grip_force", 30.0) and gc.target == 30.0
+
+
+def test_a_tighten_that_keeps_failing_on_retry_fails_safe_once() -> None:
+    """The owed tighten is retried on every healthy gripper poll (twice a second): a servo that answers its status
+    but fails the command must not fail safe on every retry."""
+    r, _, grip, clock = _reaction(grip_fail=True)
+    _wait(r.on_alarm(1.0))
+    assert _until(lambda: r._owed) and r.failsafe_count == 1
+    for _ in range(5):
+        _wait([r.retry_tighten()])
+        assert _until(lambda: r._owed)
+    assert r.failsafe_count == 1
+    grip.fail = False
+    _wait([r.retry_tighten()])
+    assert _until(lambda: not r._owed)
+    grip.fail = True
+    clock.t += 2.0  # past the re-arm window: a new alarm, a new tighten, a new run of failures
+    _wait(r.on_alarm(1.0))
+    assert _until(lambda: r.failsafe_count == 2)
