@@ -567,7 +567,11 @@ class SerialSensor:
         if want <= 1 or self._arrival is None:
             return False
         if self._held == 0:
-            self._hold_since = now
+            # Counted from the last hand-over, not from this read: the pause before it already kept frames from the
+            # stall check, and pause plus hold reached the stall timeout itself (a false stall after a restart, when
+            # a decision needs a whole window, with stall timeouts of about 23 ms and less).
+            last = self.last_frame_time
+            self._hold_since = now if last is None else min(now, last)
             self._held_frames = 0
         if now - self._hold_since >= self._hold_max_s:
             self._hold_frames = 0
