@@ -48,6 +48,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("slipd.daemon.reaction")
 
 ACTIONS = ("stop_arm", "tighten_gripper")
+STOP_RETRY_LOG_EVERY = 20
+"""An owed arm stop is retried on every arm health poll (0.15 s); one log line per this many tries."""
 MAX_RECORDS = 1000
 """Reactions kept in ``Reaction.records`` (the oldest are dropped): bounded state for a long-running daemon."""
 
@@ -105,6 +107,7 @@ class Reaction:
         self.stop_owed: str | None = None
         """The reason of an arm stop that failed or was refused and was not yet taken (``retry_stop``)."""
         self._stop_pending: Future[Any] | None = None
+        self._stop_retries = 0  # retries of the owed stop so far (their log lines are thinned)
         self._tighten_failing = False  # the latest gripper command of the reaction failed (one fail-safe per run)
         self._owed_call: Callable[..., Any] | None = None
         """The gripper call owed: the one that failed (a retry of grip_control's limit grip as a tighten would go to
@@ -190,7 +193,8 @@ class Reaction:
             return None
         arg, self._owed = self.tighten_owed, False
         call = self._owed_call or self.gripper.tighten
-        log.warning("gripper answers again: retrying the tighten that failed")
+        if not self._tighten_failing:  # a run of failed retries (twice a second) is logged once, by its first
+            log.warning("gripper answers again: retrying the tighten that failed")
         level = None if call != self.gripper.tighten else arg
         rec = ReactionRecord(t_decision=self.clock(), risk=1.0 if level is None else level)
         self.records.append(rec)
@@ -203,14 +207,16 @@ class Reaction:
             return None
         if self._stop_pending is not None and not self._stop_pending.done():
             return None
-        log.warning("arm: retrying the stop that failed (%s)", self.stop_owed)
+        self._stop_retries += 1
+        if self._stop_retries % STOP_RETRY_LOG_EVERY == 1:  # every arm poll (0.15 s): a line per 3 s, not per try
+            log.warning("arm: retrying the stop that failed (%s), try %d", self.stop_owed, self._stop_retries)
         rec = ReactionRecord(t_decision=self.clock(), risk=1.0)
         self.records.append(rec)
         return self._submit(rec, "stop_arm", self.arm_worker, self.arm.stop, f"retry: {self.stop_owed}")
 
     def arm_halted(self) -> None:
         """The controller reports the arm halted (a protective stop): an owed stop is no longer needed."""
-        self.stop_owed = None
+        self.stop_owed, self._stop_retries = None, 0
 
     def reset(self) -> None:
         """Forget the last reaction (a new grasp); a failed tighten is no longer owed."""
@@ -241,7 +247,10 @@ class Reaction:
             exc = f.exception()
             if exc is not None:
                 rec.errors[action] = str(exc)
-                log.error("%s failed: %s", action, exc)
+                quiet = self._tighten_failing if action != "stop_arm" else (
+                    self._stop_retries % STOP_RETRY_LOG_EVERY != 1 and self._stop_retries > 0)
+                if not quiet:  # a run of failed retries is logged by its first, not at the poll rate
+                    log.error("%s failed: %s", action, exc)
                 if self.metrics is not None:
                     self.metrics.device_errors.labels(device=action.split("_")[1], kind="reaction").inc()
                 if action == "stop_arm":
@@ -262,7 +271,7 @@ class Reaction:
                 if action == "tighten_gripper":
                     self._owed = self._tighten_failing = False  # the grasp is secured: nothing owed any more
                 else:
-                    self.stop_owed = None  # the arm took a stop
+                    self.stop_owed, self._stop_retries = None, 0  # the arm took a stop
                 if self.metrics is not None and action in rec.done:
                     self.metrics.reaction_seconds.observe(rec.done[action] - rec.t_decision)
 

@@ -273,3 +273,21 @@ def test_a_tighten_that_keeps_failing_on_retry_fails_safe_once() -> None:
     clock.t += 2.0  # past the re-arm window: a new alarm, a new tighten, a new run of failures
     _wait(r.on_alarm(1.0))
     assert _until(lambda: r.failsafe_count == 2)
+
+
+def test_a_stop_refused_at_every_poll_is_logged_by_a_line_per_twenty_tries(caplog) -> None:
+    """The owed stop is retried on every arm health poll (0.15 s): a controller that keeps refusing must not fill the
+    journal at the poll rate."""
+    import logging
+
+    caplog.set_level(logging.WARNING, logger="slipd.daemon.reaction")
+    arm = _RefusingArm()
+    r = Reaction(arm=arm, gripper=None, arm_worker=None, gripper_worker=None, metrics=Metrics(), clock=_Clock(),
+                 actions=["stop_arm"])
+    r.on_alarm(1.0)
+    for _ in range(45):
+        r.retry_stop()
+    assert len(arm.calls) == 46 and r.stop_owed == "slip alarm"
+    failed = [m for m in caplog.messages if m.startswith("stop_arm failed")]
+    retrying = [m for m in caplog.messages if m.startswith("arm: retrying")]
+    assert len(failed) == 4 and len(retrying) == 3  # the alarm's stop; tries 1, 21 and 41
