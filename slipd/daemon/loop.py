@@ -237,7 +237,7 @@ class Daemon:
             if time.monotonic() < self._bias_until:
                 return  # the sensor zeroes itself after a reconnect: these frames are not decided on
             self._bias_until = None
-            self._restart()  # the history starts after the bias
+            self._restart(retare=True)  # the history starts after the bias, on a sensor zeroed again
         n = len(block)
         breaks = np.flatnonzero(block.discontinuity) if block.discontinuity.any() else ()
         start = 0
@@ -456,10 +456,11 @@ class Daemon:
         self.sensor.send_command(CMD_BIAS)
         return True
 
-    def _restart(self) -> None:
+    def _restart(self, retare: bool = False) -> None:
         """The history is broken (discontinuity, reconnect): restart the detector; the next valid decision
-        is due once it has its samples again (tare, window) plus the stall timeout."""
-        self.detector.restart()
+        is due once it has its samples again (tare, window) plus the stall timeout. ``retare``: the sensor zeroed
+        itself (its bias)."""
+        self.detector.restart(retare)
         self.stats.restarts += 1
         self._prev_sample = None
         self._expect_decision(time.monotonic())

@@ -144,6 +144,11 @@ class ContactStream:
     def reset(self) -> None:
         """Forget history, slip states and the friction estimate (restart, new contact)."""
         self.features.reset()
+        self.release()
+
+    def release(self) -> None:
+        """The contact ended (the detector's gate says so): forget the slip states and the friction estimate, keep
+        the feature history (its windows stay aligned with the detector's)."""
         self.pillars.reset()
         self.friction.reset()
         self.latest = None

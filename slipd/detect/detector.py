@@ -127,9 +127,13 @@ class ContactGate:
         """One check at sample ``index``: update the baseline in free air, then the gate."""
         touching = self.touching(fz_tared)
         if touching is False and not self.open:
-            fz = np.asarray(fz_tared, np.float64)
-            ok = np.isfinite(fz)
-            self._baseline[ok] += self._alpha * (fz[ok] - self._baseline[ok])
+            rel = np.asarray(fz_tared, np.float64) - self._baseline
+            ok = np.isfinite(rel)
+            # Each step bounded by the contact threshold: free air moves a pillar by noise and drift, and one glitch
+            # (a finite -1e6 N, which the features clip but this raw value is not) shifted the baseline by 2000 N and
+            # held the gate open for good, the model running in free air.
+            thr = CONTACT_THRESHOLD_N
+            self._baseline[ok] += self._alpha * np.clip(rel[ok], -thr, thr)
         return self.update(touching, index)
 
     def update(self, touching: bool | None, index: int) -> tuple[bool, bool]:
@@ -144,10 +148,13 @@ class ContactGate:
             return self.open, True
         return self.open, False
 
-    def reset(self) -> None:
-        """No contact known (a restart: a new tare, so the baseline starts at zero again)."""
+    def reset(self, retare: bool = True) -> None:
+        """No contact known. ``retare``: the sensor was zeroed again (its bias, a start-up tare), so the baseline
+        starts at zero again; otherwise (a gap in the stream, the same tare) the drift it followed still stands, and
+        zeroing it opened the gate in free air once the drift had passed the threshold."""
         self.open, self._since = False, None
-        self._baseline[:] = 0.0
+        if retare:
+            self._baseline[:] = 0.0
 
 
 def gate_windows(force_tared: np.ndarray, spec: FeatureSpec) -> np.ndarray:
@@ -230,18 +237,21 @@ class Detector:
         return self.features._offset.reshape(9, 3).copy()
 
     def restart(self, retare: bool = False) -> None:
-        """After a reconnect or a counter discontinuity: forget the feature history and GRU states."""
+        """After a reconnect or a counter discontinuity: forget the feature history and GRU states. ``retare``: the
+        sensor was zeroed again (a start-up tare is taken again; the contact gate's free-air baseline starts at 0)."""
         self.features.reset()
         self.contact.reset()
         self.ensemble.reset()
         self.decision.reset()
         self.windows = 0
-        self.gate.reset()
+        self.gate.reset(retare)
         self._loads = [math.nan] * self.n_streams
         self.pressing = False
         self.resets += 1
         if retare and self.tare_samples:
             self._tared = False
+        if not self._tared:
+            # A tare under way (or asked for) starts again: samples from before the gap are another stream's.
             self._n_tare = 0
 
     def samples_to_decision(self) -> int:
@@ -400,6 +410,10 @@ class Detector:
         was_open = self.gate.open
         is_open, changed = self.gate.check(fz, index)
         if changed:
+            if not is_open:
+                # Released: the next grasp may be another object (the contact state's own release test, no pillar
+                # above 0.5 N tared, misses it once the tare has drifted by that much).
+                self.contact.release()
             # Made or lost: either way the next contact's first window meets h0, as in training.
             if self.row is None:
                 self.ensemble.reset()

@@ -232,3 +232,85 @@ def test_without_a_config_the_detector_and_evaluation_take_the_default_configs_r
     assert (det.decision.min_consecutive, det.press_rise) == (rule.min_consecutive, rule.press_rise)
     runner = ModelRunner(str(tiny_model_json))
     assert (runner.decision.min_consecutive, runner.press_rise) == (rule.min_consecutive, rule.press_rise)
+
+
+# ------------------------------------------------------------------------------------- the contact gate, restarts
+def _free_air(rng: np.random.Generator, n: int) -> np.ndarray:
+    return rng.normal(0, 0.005, size=(n, 9, 3)).astype(np.float32)
+
+
+def test_one_glitch_does_not_hold_the_contact_gate_open() -> None:
+    """A finite -1e6 N on one pillar at a window end (the features clip it, the gate read it raw) moved the free-air
+    baseline by 2000 N: the gate opened and never closed, the model ran in free air."""
+    from slipd import models
+    from slipd.detect.build import build_detector
+    from slipd.detect.ensemble import Ensemble
+
+    ens = Ensemble.load(models.packaged(models.DEFAULT_MODEL))
+    x = _free_air(np.random.default_rng(0), 3000)
+    x[499, 4, 2] = -1e6  # sample 499 ends a window (39 + 46 x 10)
+    det = build_detector(None, ens, tare_samples=0)
+    dets = det.push_many(x, np.arange(len(x)) * 1000)
+    assert not det.gate.open and abs(det.gate._baseline[4]) < 0.01
+    assert all(d.p_slip == 0.0 for i, d in dets if i > 520)  # the model never ran in free air
+
+
+def test_a_restart_keeps_the_drift_the_gate_followed_and_a_tare_under_way_starts_again() -> None:
+    """A restart on the same tare (a counter gap; the loop passes retare only after the sensor's bias) kept the offset
+    but zeroed the gate's free-air baseline: after 60 s of drift (0.01 N/s) the gate opened in free air. A restart
+    during the start-up tare kept the samples from before the gap, another stream's."""
+    from slipd import models
+    from slipd.detect.build import build_detector
+    from slipd.detect.ensemble import Ensemble
+    from slipd.recording import Recording
+
+    ens = Ensemble.load(models.packaged(models.DEFAULT_MODEL))
+    rng = np.random.default_rng(0)
+    n = 60000
+    x = _free_air(rng, n)
+    x[:, :, 2] += (np.arange(n) * 1e-5)[:, None].astype(np.float32)
+    det = build_detector(None, ens, tare_samples=0)
+    det.push_many(x, np.arange(n) * 1000)
+    det.restart()
+    y = _free_air(rng, 5000) + np.float32(0.6) * np.array([0, 0, 1], np.float32)
+    out = det.push_many(y, np.arange(5000) * 1000)
+    assert not det.gate.open and not any(d.p_slip != 0 for _, d in out)
+    det.restart(retare=True)  # zeroed again: the baseline starts at 0
+    assert not det.gate._baseline.any()
+
+    rec = Recording.load(models.SAMPLE_RECORDING)
+    pre = (rng.normal(0, 0.005, (60, 9, 3)) + np.array([0.3, -0.2, 2.0])).astype(np.float32)  # another bias
+    ens.reset()
+    restarted = build_detector(None, ens, tare_samples=100)
+    restarted.push_many(pre, np.arange(60) * 1000)
+    restarted.restart()
+    a = [(i, d.rising_edge) for i, d in restarted.push_many(rec.force, rec.t_us)]
+    ens.reset()
+    fresh = build_detector(None, ens, tare_samples=100)
+    b = [(i, d.rising_edge) for i, d in fresh.push_many(rec.force, rec.t_us)]
+    assert a == b and np.array_equal(restarted.offset, fresh.offset)
+
+
+def test_a_release_forgets_the_friction_estimate_even_after_a_drift() -> None:
+    """The contact state forgot the friction only once no pillar read above 0.5 N: after the tare drifted that far,
+    a released object's estimate was carried into the next grasp. The gate (which follows the drift) releases it."""
+    from slipd import models
+    from slipd.detect.build import build_detector
+    from slipd.detect.ensemble import Ensemble
+    from slipd.detect.features import stretch_offset
+    from slipd.recording import Recording
+
+    ens = Ensemble.load(models.packaged(models.DEFAULT_MODEL))
+    rec = Recording.load(models.SAMPLE_RECORDING)
+    grasp = (rec.force - stretch_offset(rec.force, (20, 300))).astype(np.float32)
+    rng = np.random.default_rng(0)
+    drift = np.float32(0.6) * np.array([0, 0, 1], np.float32)
+    n = 60000
+    ramp = _free_air(rng, n)
+    ramp[:, :, 2] += (np.arange(n) * 1e-5)[:, None].astype(np.float32)
+    x = np.concatenate([ramp, grasp[300:] + drift, _free_air(rng, 2000) + drift])
+    det = build_detector(None, ens, tare_samples=0)
+    out = det.push_many(x, np.arange(len(x)) * 1000)
+    assert any(d.contact is not None and d.contact.friction is not None for _, d in out)  # the slip gave one
+    last = out[-1][1]
+    assert not det.gate.open and last.contact is not None and last.contact.friction is None
