@@ -102,11 +102,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
         except ConfigError as exc:
             _err(exc)
             return EXIT_CONFIG
-    if args.model:
-        model = models.packaged(args.model) if models.is_name(args.model) else Path(args.model)
-    else:
-        model = cfg.model.manifest if cfg is not None else models.packaged(models.DEFAULT_MODEL)
     try:
+        if args.model:
+            model = models.packaged(args.model) if models.is_name(args.model) else Path(args.model)
+        else:
+            model = cfg.model.manifest if cfg is not None else models.packaged(models.DEFAULT_MODEL)
         ensemble = Ensemble.load(model)
     except (ModelError, FileNotFoundError) as exc:
         _err(f"slipd replay: {exc}")

@@ -241,3 +241,13 @@ def test_the_controllers_friction_estimate_round_trips_and_replay_puts_it_beside
     for d in decisions:
         want = None if d["index"] < 300 else round(float(est[d["index"]]), 4)
         assert d["controller_friction"] == want
+
+
+def test_replay_with_an_unknown_model_name_exits_4_with_one_line(capsys) -> None:
+    """`--model` names a packaged model: an unknown name raised a traceback (exit 1) instead of the model's exit 4."""
+    from slipd import models
+    from slipd.cli import main
+
+    code = main(["replay", str(models.SAMPLE_RECORDING), "--model", "nonexistent_model_name"])
+    err = capsys.readouterr().err
+    assert code == 4 and err.startswith("slipd replay:") and err.count("\n") == 1, err

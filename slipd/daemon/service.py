@@ -148,14 +148,22 @@ def prepare(config_path: str | os.PathLike[str]) -> Service:
         if problems:  # as check-config says, before any device is opened
             raise ConfigError(problems)
         check_devices(cfg)
+        recorder = None
+        if cfg.recorder.enabled:
+            # Before the devices: a directory that cannot be made or written is a config problem (exit 3), not a
+            # traceback after the gripper was told to hold.
+            from slipd.daemon.recorder import Recorder
+
+            try:
+                recorder = Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz, sensors=cfg.sensor.sensors,
+                                                meta={"model_sha256": ensemble.manifest.sha256})
+            except OSError as exc:
+                raise ConfigError([f"{config_path}: recorder.directory: {cfg.recorder.directory} cannot be used: "
+                                   f"{exc.strerror or exc}"]) from exc
         metrics = Metrics()
         arm, gripper = build_devices(cfg, metrics)
         daemon = Daemon(cfg, ensemble, metrics=metrics, arm=arm, gripper=gripper, notifier=Notifier())
-        if cfg.recorder.enabled:
-            from slipd.daemon.recorder import Recorder
-
-            daemon.recorder = Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz, sensors=cfg.sensor.sensors,
-                                                   meta={"model_sha256": ensemble.manifest.sha256})
+        daemon.recorder = recorder
     except BaseException:
         native.close()
         raise

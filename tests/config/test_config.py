@@ -568,3 +568,22 @@ def test_two_sensors_need_the_onnx_detector() -> None:
     assert override(cfg, {"sensor.sensors": 2}).sensor.sensors == 2
     with pytest.raises(ConfigError, match=r"model\.detector: deceleration reads one sensor"):
         override(cfg, {"sensor.sensors": 2, "model.detector": "deceleration", "sensor.tare": "bias_command"})
+
+
+def test_an_unusable_recorder_directory_is_refused_before_any_device(tmp_path, monkeypatch):
+    """A recorder directory that cannot be made (here under a regular file) raised a traceback after the gripper
+    was told to hold; it is a config problem naming the key, found before the devices are opened."""
+    from slipd.config import ConfigError
+    from slipd.daemon import service
+
+    tiny_model(tmp_path / "models")
+    (tmp_path / "afile").write_text("")
+    text = with_(VALID.replace("models/m.json", "models/tiny.json"),
+                 recorder={"enabled": True, "directory": str(tmp_path / "afile" / "rec")})
+    path = write(tmp_path, text, "r.yaml")
+    opened: list[str] = []
+    monkeypatch.setattr(service, "check_devices", lambda cfg: None)
+    monkeypatch.setattr(service, "build_devices", lambda cfg, m: opened.append("built") or (None, None))
+    with pytest.raises(ConfigError, match=r"recorder\.directory"):
+        service.prepare(path)
+    assert opened == []
