@@ -61,6 +61,8 @@ DIR_MODE = 0o750
 PREFIX = "slip-"
 STAGING_SUFFIXES = (".part", ".tmp")
 FORMATS = ("npz", "csv")
+MAX_TRIGGER_EVENTS = 100
+"""Fail-safe events one recording names beside its trigger (bounded: one per blind episode, but an episode may last)."""
 MAX_KEPT_PATHS = 1000
 MAX_EPISODE_S = 30.0
 """Longest recording of one alarm episode (after its onset); a latched alarm records no more than this."""
@@ -242,6 +244,16 @@ class Recorder:
         The stretch ends ``seconds_after`` of frames from now; alarms meanwhile are part of it. ``wait_after``
         False: write the stretch up to now at once (a fail-safe on a stalled sensor: no frame may follow).
         """
+        if self._pending_end is not None and reason != "alarm":
+            # A fail-safe inside a running recording: it names the event, and when no frame may follow (a stalled
+            # sensor) the stretch so far is written now; it was refused, and the recording waited for frames that
+            # never came (lost at a kill, or written seconds later with a gap and no word of the fail-safe).
+            events = self._trigger.setdefault("events", [])
+            if len(events) < MAX_TRIGGER_EVENTS:
+                events.append({"t_us": int(t_us), "reason": reason, "wall_time": time.time(), **details})
+            if not wait_after:
+                self._dump()
+            return True
         if self._pending_end is not None or (reason == "alarm" and self._latched):
             return False
         self._trigger = {"t_us": int(t_us), "reason": reason, "wall_time": time.time(), **details}

@@ -338,3 +338,20 @@ def test_a_fail_safe_writes_what_led_to_it_at_once(tmp_path):
     assert r.meta["trigger"]["reason"] == "failsafe" and r.meta["trigger"]["cause"] == "sensor_stalled"
     np.testing.assert_array_equal(r.t_us, t_us[n - 500 :])  # the last 0.5 s, up to the last frame handled
     np.testing.assert_array_equal(r.force, force[n - 500 :, 0])
+
+
+def test_a_fail_safe_during_an_alarm_recording_writes_it_at_once_and_names_it(tmp_path):
+    """The recording of an alarm waits for its frames after; a fail-safe on a stalled sensor meanwhile (no frame may
+    follow) was refused, so the recording was lost at a kill, or written seconds later with a gap and no word of the
+    fail-safe. Now the stretch so far is written at once, and the recording names the fail-safe."""
+    rec = Recorder(tmp_path, RATE, seconds_before=0.05, seconds_after=0.5)
+    feed(rec, 0, 100, alarm_at={79})
+    assert rec.recording
+    assert rec.trigger(99_000, "sensor_stall", wait_after=False, stalled_ms=55.0)
+    assert not rec.recording
+    (f,) = rec.wait(5)
+    r = Recording.load(f)
+    assert r.meta["trigger"]["reason"] == "alarm" and r.t_us[-1] == 99_000
+    (event,) = r.meta["trigger"]["events"]
+    assert event["reason"] == "sensor_stall" and event["stalled_ms"] == 55.0
+    rec.close()
