@@ -355,25 +355,33 @@ class Recorder:
                 p.unlink(missing_ok=True)
 
     def _write_logged(self, snap: _Snapshot) -> list[Path]:
+        paths: list[Path] = []
         try:
-            paths = self._write(snap)
+            self._write(snap, paths)
         except Exception:
             with self._lock:
                 self.failures += 1
             log.exception("recorder: writing %s failed", snap.name)
+            # What the failed format left half-written goes (a full disk kept every episode's staging file, outside
+            # the size bound, until a restart); the formats written before it are complete recordings.
+            for p in self.directory.glob(f"{snap.name}.*"):
+                if p.name.endswith(STAGING_SUFFIXES):
+                    p.unlink(missing_ok=True)
             raise
-        with self._lock:
-            self.written.extend(paths)
+        finally:
+            with self._lock:
+                self.written.extend(paths)
+            try:
+                self._enforce_bound(keep=snap.name)  # after a failure too: the disk is what fills
+            except OSError:
+                log.exception("recorder: enforcing max_total_mb failed")
         log.info("recorder: wrote %s", ", ".join(str(p) for p in paths))
-        try:
-            self._enforce_bound(keep=snap.name)
-        except OSError:
-            log.exception("recorder: enforcing max_total_mb failed")
         return paths
 
-    def _write(self, snap: _Snapshot) -> list[Path]:
+    def _write(self, snap: _Snapshot, paths: list[Path]) -> None:
+        """Write ``snap`` in every format, appending each finished file to ``paths`` (a failure leaves the ones
+        before it there)."""
         rec = Recording(t_us=snap.t_us, force=snap.force, disp=snap.disp, meta=snap.meta)
-        paths = []
         for fmt in self.formats:
             final = self.directory / f"{snap.name}.{fmt}"
             staging = final.with_name(final.name + ".part")
@@ -384,7 +392,6 @@ class Recorder:
             _finalize(staging, final)
             paths.append(final)
         _fsync_dir(self.directory)
-        return paths
 
     def recordings(self) -> dict[str, list[Path]]:
         """Complete recordings in the directory: name stem -> its files, oldest first."""

@@ -355,3 +355,25 @@ def test_a_fail_safe_during_an_alarm_recording_writes_it_at_once_and_names_it(tm
     (event,) = r.meta["trigger"]["events"]
     assert event["reason"] == "sensor_stall" and event["stalled_ms"] == 55.0
     rec.close()
+
+
+def test_a_failed_write_leaves_no_staging_file_and_the_size_bound_still_holds(tmp_path, monkeypatch):
+    """A full disk failing the CSV of every episode left each one's half-written staging file, outside the size bound,
+    and skipped the bound, so the directory grew until a restart."""
+    from slipd.daemon import recorder as recorder_mod
+
+    def full_disk(rec, path):
+        Path(path).write_bytes(b"x" * 200_000)  # what a write gets out before the disk is full
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(recorder_mod, "write_sdk_csv", full_disk)
+    rec = Recorder(tmp_path, RATE, seconds_before=0.5, seconds_after=0.1, formats=["npz", "csv"], max_total_mb=0.2)
+    for ep in range(6):
+        feed(rec, ep * 1000, ep * 1000 + 1000, alarm_at={ep * 1000 + 700})
+        rec.wait(5)
+    rec.close()
+    assert rec.failures == 6
+    names = [p.name for p in tmp_path.iterdir()]
+    assert not [n for n in names if n.endswith((".part", ".tmp"))], names
+    assert rec.total_bytes() <= rec.max_total_bytes
+    assert sum(p.stat().st_size for p in tmp_path.iterdir()) <= rec.max_total_bytes
