@@ -146,7 +146,11 @@ class Recorder:
         self._dcopied = 0
         self._chunks: list[list[np.ndarray]] = []  # [t, force, disp] blocks copied out of the ring
         self._dchunks: list[list[np.ndarray]] = []  # [t, p, alarm] blocks of decisions
-        self._latched = False  # the alarm outlived its episode's recording: no new one until it falls
+        # Per sensor: its alarm is up now; its alarm outlived its episode's recording (no new one until it falls).
+        # One flag for all let the other finger's quiet decisions clear a latched finger's latch, and the latched
+        # alarm then started a recording every max_episode_s.
+        self._alarm_up = np.zeros(self.sensors, bool)
+        self._latched = np.zeros(self.sensors, bool)
         self._trigger: dict[str, Any] = {}
         self._seq = 0
         self.max_pending = max_pending
@@ -231,11 +235,12 @@ class Recorder:
             self._drisk[i] = contact.risk
             self._dfric[i] = np.nan if contact.friction is None else contact.friction
         self.decisions_seen += 1
+        self._alarm_up[sensor] = alarm
         if not alarm:
-            self._latched = False
+            self._latched[sensor] = False
         elif self._pending_end is not None:
             self._pending_end = min(max(self._pending_end, self.frames_seen + self.after), self._limit)
-        elif not self._latched:
+        elif not self._latched[sensor]:
             self.trigger(t_us, "alarm", p_slip=float(p_slip), sensor=int(sensor))
 
     def trigger(self, t_us: int, reason: str, *, wait_after: bool = True, **details: Any) -> bool:
@@ -254,7 +259,7 @@ class Recorder:
             if not wait_after:
                 self._dump()
             return True
-        if self._pending_end is not None or (reason == "alarm" and self._latched):
+        if self._pending_end is not None or (reason == "alarm" and self._latched[int(details.get("sensor", 0))]):
             return False
         self._trigger = {"t_us": int(t_us), "reason": reason, "wall_time": time.time(), **details}
         self._pending_end = self.frames_seen + (self.after if wait_after else 0)
@@ -304,7 +309,7 @@ class Recorder:
     def _dump(self) -> None:
         trig, self._trigger = self._trigger, {}
         if self._pending_end is not None and self.frames_seen >= self._limit:
-            self._latched = True  # bounded: a latched alarm starts no new recording until it falls
+            self._latched |= self._alarm_up  # bounded: a latched alarm starts no new recording until it falls
         self._pending_end = None
         self._spill()
         chunks, dchunks, self._chunks, self._dchunks = self._chunks, self._dchunks, [], []

@@ -377,3 +377,17 @@ def test_a_failed_write_leaves_no_staging_file_and_the_size_bound_still_holds(tm
     assert not [n for n in names if n.endswith((".part", ".tmp"))], names
     assert rec.total_bytes() <= rec.max_total_bytes
     assert sum(p.stat().st_size for p in tmp_path.iterdir()) <= rec.max_total_bytes
+
+
+def test_a_latched_alarm_on_one_finger_is_one_recording_whatever_the_other_says(tmp_path):
+    """With two sensors the latch was one flag: the quiet finger's decisions cleared it, and a finger alarming for
+    5 s started a recording every max_episode_s (10 against 1 with one sensor), pushing the onset's out of the quota."""
+    rec = Recorder(tmp_path, RATE, seconds_before=0.05, seconds_after=0.05, max_episode_s=0.5, sensors=2)
+    force = np.zeros((1, 2, 9, 3), np.float32)
+    for i in range(5000):
+        rec.push_frames(np.array([1000 * i]), force, force)
+        if i % 10 == 9:
+            rec.push_decision(1000 * i, 0.1, False, sensor=0)
+            rec.push_decision(1000 * i, 0.9, i >= 1000, sensor=1)  # finger 1 alarms from 1 s on, without a break
+    rec.close()
+    assert len(list_recordings(tmp_path)) == 1
