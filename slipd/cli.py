@@ -116,12 +116,21 @@ def cmd_replay(args: argparse.Namespace) -> int:
         if problems:  # as check-config and run refuse it
             _err("\n".join(problems))
             return EXIT_CONFIG
+    if args.json and not Path(args.json).resolve().parent.is_dir():
+        _err(f"slipd replay: --json {args.json}: its folder does not exist")  # before the output, not after it
+        return EXIT_USAGE
     try:
         rec = Recording.load(args.recording)
     except RecordingError as exc:
         _err(f"slipd replay: {exc}")
         return EXIT_RUNTIME
-    dets = replay(rec, ensemble, cfg)
+    try:
+        dets = replay(rec, ensemble, cfg)
+    except (ValueError, TypeError) as exc:
+        # What the recording's metadata asks of the decision path and cannot be (a tare stretch beyond its end, a
+        # tare offset of the wrong shape, two sensors for a one-sensor detector): one line, not a traceback.
+        _err(f"slipd replay: {args.recording}: {' '.join(str(exc).split())}")
+        return EXIT_RUNTIME
     alarms = [d for d in dets if d.rising_edge]
     t0 = int(rec.t_us[0]) if len(rec) else 0
     print(f"{args.recording}: {len(rec)} samples, {len(dets)} decisions, {len(alarms)} alarm(s)")

@@ -251,3 +251,24 @@ def test_replay_with_an_unknown_model_name_exits_4_with_one_line(capsys) -> None
     code = main(["replay", str(models.SAMPLE_RECORDING), "--model", "nonexistent_model_name"])
     err = capsys.readouterr().err
     assert code == 4 and err.startswith("slipd replay:") and err.count("\n") == 1, err
+
+
+def test_replay_on_metadata_the_decision_path_cannot_follow_prints_one_line(tmp_path, capsys) -> None:
+    """A tare stretch beyond the recording, a tare stretch that is no [start, stop], a tare offset of the wrong shape,
+    a --json into a folder that does not exist: each raised a traceback (the last after the output was printed)."""
+    from slipd.cli import main
+
+    cases = {"short.npz": (_rec(10), {"tare_samples": [20, 300]}, "empty tare stretch [20, 300)"),
+             "stretch.npz": (_rec(200), {"tare_samples": 5}, "meta tare_samples: 5, expected [start, stop]"),
+             "offset.npz": (_rec(200), {"tare_offset": [1, 2, 3]}, "meta tare_offset: shape [3], expected [9, 3]")}
+    for name, (rec, meta, part) in cases.items():
+        rec.meta.update(meta)
+        rec.save(tmp_path / name)
+        assert main(["replay", str(tmp_path / name)]) == 1
+        out = capsys.readouterr()
+        assert out.out == "" and out.err.count("\n") == 1 and part in out.err, out.err
+    rec = _rec(200)
+    rec.save(tmp_path / "ok.npz")
+    assert main(["replay", str(tmp_path / "ok.npz"), "--json", str(tmp_path / "nowhere" / "o.json")]) == 2
+    out = capsys.readouterr()
+    assert out.out == "" and "its folder does not exist" in out.err

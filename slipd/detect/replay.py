@@ -34,10 +34,17 @@ def detector_for(rec: Recording, ensemble: Ensemble, cfg: SlipdConfig | None = N
     """The detector the daemon would build for this recording (see the module docstring for the tare)."""
     n = rec.sensors
     if "tare_offset" in rec.meta:
-        return build_detector(cfg, ensemble, offset=np.asarray(rec.meta["tare_offset"], np.float32), sensors=n)
+        offset = np.asarray(rec.meta["tare_offset"], np.float32)
+        if offset.shape not in ((9, 3), (n, 9, 3)):
+            raise ValueError(f"meta tare_offset: shape {list(offset.shape)}, expected [9, 3] or [{n}, 9, 3]")
+        return build_detector(cfg, ensemble, offset=offset, sensors=n)
     if cfg is not None:
         return build_detector(cfg, ensemble, sensors=n)
-    a, b = rec.meta.get("tare_samples", ensemble.feature_spec.tare_samples)
+    stretch = rec.meta.get("tare_samples", ensemble.feature_spec.tare_samples)
+    integral = isinstance(stretch, (list, tuple)) and all(isinstance(v, (int, np.integer)) for v in stretch)
+    if not (integral and len(stretch) == 2):
+        raise ValueError(f"meta tare_samples: {stretch!r}, expected [start, stop] sample indices")
+    a, b = stretch
     if a == 0:
         return build_detector(None, ensemble, tare_samples=int(b), sensors=n)
     return build_detector(None, ensemble, offset=tare_offset(rec.force, int(a), int(b)), sensors=n)
