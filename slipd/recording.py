@@ -106,10 +106,12 @@ class Recording:
 
     @property
     def rate_hz(self) -> float:
-        """Nominal sample rate from the median sample spacing."""
+        """Nominal sample rate from the median sample spacing (1 kHz, the sensor's, where that says nothing: fewer
+        than two samples, or timestamps that mostly repeat, which ``check_times`` accepts)."""
         if len(self.t_us) < 2:
             return 1000.0
-        return 1e6 / float(np.median(np.diff(self.t_us)))
+        step = float(np.median(np.diff(self.t_us)))
+        return 1e6 / step if step > 0 else 1000.0
 
     @property
     def events(self) -> dict[str, float]:

@@ -272,3 +272,11 @@ def test_replay_on_metadata_the_decision_path_cannot_follow_prints_one_line(tmp_
     assert main(["replay", str(tmp_path / "ok.npz"), "--json", str(tmp_path / "nowhere" / "o.json")]) == 2
     out = capsys.readouterr()
     assert out.out == "" and "its folder does not exist" in out.err
+
+
+def test_the_rate_of_a_recording_with_repeated_timestamps_is_the_sensors() -> None:
+    """Timestamps that repeat are accepted (they do not go backwards); the median spacing was then 0 and the rate a
+    ZeroDivisionError."""
+    rec = _rec(10)
+    rec.t_us[:] = 5000
+    assert rec.rate_hz == 1000.0
