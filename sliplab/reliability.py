@@ -234,9 +234,11 @@ FAULTS: tuple[Fault, ...] = (
            "tests/daemon/test_recorder.py::test_a_latched_alarm_on_one_finger_is_one_recording_whatever_the_other_says")),
     Fault("Fail-safe while an alarm's recording waits for its frames after",
           "The recording names the fail-safe and, when no frame may follow (a stalled sensor), is written at once "
-          "(was: the fail-safe's trigger refused; the recording lost at a kill, or written later with a gap)",
+          "(was: the fail-safe's trigger refused; the recording lost at a kill, or written later with a gap); a "
+          "fail-safe's recording carries the tare offset the daemon used, as an alarm's does (replay re-tared)",
           "(recorder log; `trigger.events` in the recording)",
-          ("tests/daemon/test_recorder.py::test_a_fail_safe_during_an_alarm_recording_writes_it_at_once_and_names_it",)),
+          ("tests/daemon/test_recorder.py::test_a_fail_safe_during_an_alarm_recording_writes_it_at_once_and_names_it",
+           "tests/daemon/test_liveness.py::test_a_fail_safe_recording_carries_the_tare_offset_the_daemon_used")),
     Fault("`metrics.host` other than loopback",
           "Accepted with a start-up warning naming the exposure (every interface for 0.0.0.0)",
           "(log)",

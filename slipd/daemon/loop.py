@@ -292,10 +292,7 @@ class Daemon:
             self._latest[s] = det
             if rec is not None:
                 if det.alarm and not rec.recording:
-                    # The recording this alarm starts replays with the offset the daemon used (slipd replay).
-                    offset = getattr(det_, "offset", None)
-                    if offset is not None:
-                        rec.meta["tare_offset"] = np.asarray(offset).tolist()
+                    self._note_offset()
                 rec.push_decision(det.t_us, det.p_slip, det.alarm, s, det.contact)
             if det.contact is not None:
                 # Issue 16: contact metrics and grip_control, apart from the hot path; the grip controller gets the
@@ -488,7 +485,15 @@ class Daemon:
         self._fail_safe(cause)
         if self.recorder is not None and self._last_t_us is not None:
             # What led to the fault, written now: the frames after it may never come (a stalled or lost sensor).
+            self._note_offset()
             self.recorder.trigger(self._last_t_us, "failsafe", wait_after=False, cause=cause, detail=detail)
+
+    def _note_offset(self) -> None:
+        """The recording about to start replays with the tare offset the daemon used (``slipd replay``): an alarm's,
+        and a fail-safe's (without it replay re-tared from frames taken under load, and every decision differed)."""
+        offset = getattr(self.detector, "offset", None)
+        if offset is not None and self.recorder is not None:
+            self.recorder.meta["tare_offset"] = np.asarray(offset).tolist()
 
     def _blind_cause(self, now: float) -> tuple[str, str] | None:
         """Liveness, defined once: (cause, detail) when the daemon cannot see, else None. Live means no

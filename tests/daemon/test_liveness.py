@@ -437,3 +437,26 @@ def test_a_gripper_call_that_hangs_is_a_gripper_fault(base_cfg, monkeypatch) -> 
     health, failsafes = seen["hung"]
     assert isinstance(health, str) and health.startswith("not answering: a call has not returned") and failsafes == 1
     assert seen["failsafes"] == 1
+
+
+def test_a_fail_safe_recording_carries_the_tare_offset_the_daemon_used(base_cfg, tmp_path) -> None:
+    """An alarm's recording carried the daemon's tare offset, a fail-safe's did not: replay then re-tared from frames
+    taken under load and every decision differed from the daemon's."""
+    from slipd.daemon.recorder import Recorder
+    from slipd.recording import Recording
+
+    daemon = Daemon(base_cfg, Ensemble.load(base_cfg.model.manifest), metrics=Metrics())
+    daemon.recorder = Recorder(tmp_path, 1000, seconds_before=0.1, seconds_after=0.0)
+    rng = np.random.default_rng(0)
+    force = (rng.normal(0, 0.01, (300, 9, 3)) + np.array([0.2, -0.1, 1.0])).astype(np.float32)
+    daemon.detector.push_many(force, np.arange(300) * 1000)  # the start-up tare: an offset of about (0.2, -0.1, 1.0)
+    daemon.recorder.push_frames(np.arange(300) * 1000, force, np.zeros_like(force))
+    daemon._last_t_us = 299_000
+    daemon._go_blind("sensor_stall", "no frame for 60 ms")
+    (path,) = daemon.recorder.wait(5)
+    rec = Recording.load(path)
+    assert rec.meta["trigger"]["reason"] == "failsafe"
+    offset = np.asarray(rec.meta["tare_offset"])
+    assert np.allclose(offset, daemon.detector.offset) and abs(offset[0, 2] - 1.0) < 0.05
+    daemon.recorder.close()
+    daemon.close()
