@@ -17,6 +17,7 @@ import ipaddress
 import os
 import re
 import reprlib
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Literal, get_args
 
@@ -77,6 +78,16 @@ class _Section(BaseModel):
                 cls.model_fields[info.field_name].annotation):
             raise ValueError(f"must be a number, not {str(v).lower()}")
         return v
+
+    def changed(self, keys: Iterable[str]) -> tuple[str, Any, Any] | None:
+        """The first of ``keys`` set to something other than its default, as (key, value, default); None when all
+        keep theirs. Keys a mode never reads are refused when set: unread options, like unknown keys."""
+        fields = type(self).model_fields
+        for key in keys:
+            value, default = getattr(self, key), fields[key].default
+            if value != default:
+                return key, value, default
+        return None
 
 
 def _admits_bool(annotation: Any) -> bool:
@@ -458,12 +469,12 @@ class ArmConfig(_Section):
         if self.stop_method.startswith("dashboard"):
             # No RTDE control interface: no watchdog and no deceleration. An engineer who sets them expects a
             # watchdog to halt the arm when slipd dies, and none would.
-            for key in ("watchdog_s", "stop_deceleration"):
-                value, default = getattr(self, key), type(self).model_fields[key].default
-                if value != default:
-                    raise FieldProblem(key, f"{value:g} has no effect with stop_method {self.stop_method}, which "
-                                       "has no RTDE control interface (no watchdog: a dead slipd leaves the program "
-                                       f"running); leave it at its default ({default:g}) or use stopl / speed_stop")
+            unread = self.changed(("watchdog_s", "stop_deceleration"))
+            if unread is not None:
+                key, value, default = unread
+                raise FieldProblem(key, f"{value:g} has no effect with stop_method {self.stop_method}, which "
+                                   "has no RTDE control interface (no watchdog: a dead slipd leaves the program "
+                                   f"running); leave it at its default ({default:g}) or use stopl / speed_stop")
         return self
 
 
@@ -585,12 +596,12 @@ class SlipdConfig(_Section):
         if self.reaction.policy != "grip_control":
             # The grip_* keys are the grip controller's: under stop_and_secure nothing reads them, and a force limit
             # set there would be believed to bind (a tighten still goes to the secure setting).
-            for key, field in type(self.reaction).model_fields.items():
-                value = getattr(self.reaction, key)
-                if key.startswith("grip_") and value != field.default:
-                    raise _SectionProblem(("reaction", key), f"{value} has no effect with reaction.policy "
-                                          f"{self.reaction.policy} (the grip_* keys are grip_control's); leave it at "
-                                          f"its default ({field.default}), or set reaction.policy: grip_control")
+            unread = self.reaction.changed(k for k in type(self.reaction).model_fields if k.startswith("grip_"))
+            if unread is not None:
+                key, value, default = unread
+                raise _SectionProblem(("reaction", key), f"{value} has no effect with reaction.policy "
+                                      f"{self.reaction.policy} (the grip_* keys are grip_control's); leave it at "
+                                      f"its default ({default}), or set reaction.policy: grip_control")
         if self.model.detector != "onnx" and self.sensor.tare == "startup":
             # The heuristics have no start-up tare of their own: they would read the sensor's raw offsets.
             raise _SectionProblem(("sensor", "tare"), f"startup: model.detector {self.model.detector} has no "
@@ -601,11 +612,11 @@ class SlipdConfig(_Section):
         if self.model.detector != "onnx":
             # A heuristic decides on every sample with its own tuned rule: these keys would be read by nothing, and an
             # engineer who sets them expects an effect (unread options are refused, as unknown keys are).
-            for section, key in (("model", "stride"), ("decision", "threshold"), ("decision", "hysteresis"),
-                                 ("decision", "min_consecutive"), ("decision", "press_rise")):
-                part = getattr(self, section)
-                value, default = getattr(part, key), type(part).model_fields[key].default
-                if value != default:
+            for section, keys in (("model", ("stride",)),
+                                  ("decision", ("threshold", "hysteresis", "min_consecutive", "press_rise"))):
+                unread = getattr(self, section).changed(keys)
+                if unread is not None:
+                    key, value, default = unread
                     raise _SectionProblem((section, key), f"{value} has no effect with model.detector "
                                           f"{self.model.detector}, which decides on every sample with its tuned "
                                           f"parameters (model.baseline_params); leave it at its default ({default})")

@@ -208,11 +208,16 @@ class Reaction:
         if self._stop_pending is not None and not self._stop_pending.done():
             return None
         self._stop_retries += 1
-        if self._stop_retries % STOP_RETRY_LOG_EVERY == 1:  # every arm poll (0.15 s): a line per 3 s, not per try
+        if self._stop_retry_logged():
             log.warning("arm: retrying the stop that failed (%s), try %d", self.stop_owed, self._stop_retries)
         rec = ReactionRecord(t_decision=self.clock(), risk=1.0)
         self.records.append(rec)
         return self._submit(rec, "stop_arm", self.arm_worker, self.arm.stop, f"retry: {self.stop_owed}")
+
+    def _stop_retry_logged(self) -> bool:
+        """The owed stop is retried at every arm poll (0.15 s): its first failure and every ``STOP_RETRY_LOG_EVERY``-th
+        retry are logged, a line per 3 s, not per try."""
+        return self._stop_retries % STOP_RETRY_LOG_EVERY == 1 or self._stop_retries == 0
 
     def arm_halted(self) -> None:
         """The controller reports the arm halted (a protective stop): an owed stop is no longer needed."""
@@ -247,9 +252,8 @@ class Reaction:
             exc = f.exception()
             if exc is not None:
                 rec.errors[action] = str(exc)
-                quiet = self._tighten_failing if action != "stop_arm" else (
-                    self._stop_retries % STOP_RETRY_LOG_EVERY != 1 and self._stop_retries > 0)
-                if not quiet:  # a run of failed retries is logged by its first, not at the poll rate
+                # A run of failed retries is logged by its first, not at the poll rate.
+                if self._stop_retry_logged() if action == "stop_arm" else not self._tighten_failing:
                     log.error("%s failed: %s", action, exc)
                 if self.metrics is not None:
                     self.metrics.device_errors.labels(device=action.split("_")[1], kind="reaction").inc()
