@@ -317,8 +317,10 @@ class Daemon:
                     rec.trigger(det.t_us, "alarm", p_slip=det.p_slip, sensor=s)
         if grasp:  # a sensor without a valid decision (or contact state) for the last one
             self._on_grasp(grasp)
-        if rec is not None and recorded < k:
-            rec.push_frames(stamps[recorded:], force[recorded:], disp[recorded:])
+        if rec is not None:
+            if recorded < k:
+                rec.push_frames(stamps[recorded:], force[recorded:], disp[recorded:])
+            rec.settle()  # a recording that ended in this block is written with its last frame's decisions
         if valid.all() and not self._nonfinite_burst:
             # A valid decision on every sensor (a blind finger is a blind daemon); one on held values beyond
             # the bridge is no sign of life.

@@ -195,7 +195,8 @@ class Recorder:
 
     def push_frames(self, t_us: np.ndarray, force: np.ndarray, disp: np.ndarray) -> None:
         """Add a block of raw frames (``t_us`` [k]; ``force``/``disp`` [k, 9, 3] or [k, S, 9, 3]) by slices of
-        the ring; completes a dump when one is due (exactly at the frame that ends it)."""
+        the ring. A recording whose last frame came in earlier is written first (``settle``); one that ends inside
+        this block stops taking frames at its last one."""
         k = len(t_us)
         shape = (k, self.sensors, N_PILLARS, 3)
         force = np.asarray(force).reshape(shape)
@@ -203,6 +204,7 @@ class Recorder:
         cap = self.capacity
         done = 0
         while done < k:
+            self.settle()
             m = k - done
             if self._pending_end is not None:
                 if self.frames_seen - self._copied >= cap:
@@ -215,8 +217,14 @@ class Recorder:
             self._disp[i : i + m] = disp[done : done + m]
             self.frames_seen += m
             done += m
-            if self._pending_end is not None and self.frames_seen >= self._pending_end:
-                self._dump()
+
+    def settle(self) -> None:
+        """Write the recording whose last frame is in, now that the decisions on that frame are in too: the daemon
+        pushes a deciding frame before its decisions (``push_decision``), so writing at the frame itself left the
+        decisions on a recording's last frame out of it (replay decides there). The daemon calls this at the end of
+        every block; the next frames call it first."""
+        if self._pending_end is not None and self.frames_seen >= self._pending_end:
+            self._dump()
 
     def push_decision(self, t_us: int, p_slip: float, alarm: bool, sensor: int = 0,
                       contact: ContactState | None = None) -> None:

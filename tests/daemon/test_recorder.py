@@ -35,6 +35,28 @@ def feed(rec: Recorder, start: int, stop: int, alarm_at: set[int] = frozenset(),
             rec.push_decision(1000 * i, 0.9 if i in alarm_at else 0.1, i in alarm_at)
 
 
+def test_a_recording_holds_the_decision_on_its_last_frame(tmp_path):
+    """The daemon pushes a deciding frame, then its decisions: a recording that ends on a deciding frame is written
+    once they are in (the next block's frames, or ``settle`` at the end of a block), not without them. Replay
+    decides on that frame, so a recording without its decision disagreed with replay at the end."""
+    rec = Recorder(tmp_path, RATE, seconds_before=0.1, seconds_after=0.05)
+    feed(rec, 0, 1050, alarm_at={999}, every=10)  # the alarm frame decides; its stretch ends on frame 1049
+    rec.settle()
+    rec.close()
+    (f,) = list_recordings(tmp_path)
+    r = Recording.load(f)
+    assert r.t_us[-1] == 1_049_000
+    d = r.meta["decisions"]
+    assert d["t_us"][-1] == 1_049_000 and d["t_us"] == list(range(909_000, 1_050_000, 10_000))
+    # Without ``settle``, the next block's frames write it first, and those frames are not in it.
+    rec = Recorder(tmp_path / "b", RATE, seconds_before=0.1, seconds_after=0.05)
+    feed(rec, 0, 1060, alarm_at={999}, every=10)
+    assert rec.wait() and len(rec.written) == 1
+    again = Recording.load(rec.written[0])
+    assert again.t_us[-1] == 1_049_000 and again.meta["decisions"]["t_us"][-1] == 1_049_000
+    rec.close()
+
+
 def test_ring_wraps_and_dump_holds_the_stretch_around_the_alarm(tmp_path):
     rec = Recorder(tmp_path, RATE, seconds_before=0.1, seconds_after=0.05)
     assert rec.capacity == 150

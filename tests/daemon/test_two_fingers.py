@@ -92,6 +92,9 @@ def test_only_finger_1_slips_alarm_names_sensor_1_recorder_and_replay_reproduce_
             assert pillars == pytest.approx(list(c.pillar_slip), abs=1e-3) and risk == pytest.approx(c.risk, abs=1e-3)
             compared += 1
     assert compared > 0.9 * len(dec["t_us"])
+    # Every decision replay makes on the recording's frames is in it (replay, given the daemon's tare, also decides
+    # inside the start-up tare, where the daemon reports only the last window).
+    assert sorted(zip(dec["t_us"], dec["sensor"])) == sorted(k for k in by_key if k[0] >= dec["t_us"][0])
 
 
 def test_freshness_is_per_finger_on_every_path(cfg) -> None:
