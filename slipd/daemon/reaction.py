@@ -114,6 +114,9 @@ class Reaction:
         the secure setting, past the object's limit, and a force is no tighten level)."""
         self._last_t: float | None = None
         self._last_level = 0.0
+        self._grasp_level = 0.0
+        """The highest tighten level sent for this grasp (1: the secure setting, as a fail-safe's tighten): a later
+        graded tighten never goes below it, since securing never loosens. ``reset`` (a new grasp) clears it."""
         self.failsafe_count = 0
         if policy not in ("stop_and_secure", "grip_control"):
             raise ValueError(f"unknown reaction policy {policy!r}")
@@ -143,7 +146,9 @@ class Reaction:
             if action == "stop_arm" and self.arm is not None and not recent:
                 futures.append(self._submit(rec, action, self.arm_worker, self.arm.stop, "slip alarm"))
             elif action == "tighten_gripper" and self.gripper is not None:
-                arg = level if self.graded else None
+                # Past the re-arm window an alarm of lower risk must not move the jaw back from where it was secured.
+                arg = max(level, self._grasp_level) if self.graded else None
+                self._grasp_level = 1.0 if arg is None else arg
                 futures.append(self._submit(rec, action, self.gripper_worker, self.gripper.tighten, arg))
         self._last_t, self._last_level = t0, max(level, self._last_level if recent else 0.0)
         return futures
@@ -182,6 +187,7 @@ class Reaction:
                              self.grip_control.s.max_force_n)
                 self.grip_control.secured(self.grip_control.s.max_force_n)
             else:
+                self._grasp_level = 1.0
                 self._submit(rec, "tighten_gripper", self.gripper_worker, self.gripper.tighten, None)
         if self.arm is None:
             return None
@@ -195,6 +201,8 @@ class Reaction:
         call = self._owed_call or self.gripper.tighten
         if not self._tighten_failing:  # a run of failed retries (twice a second) is logged once, by its first
             log.warning("gripper answers again: retrying the tighten that failed")
+        if call == self.gripper.tighten and arg is not None:
+            arg = max(arg, self._grasp_level)  # owed from before a secure: the grip stays where it was secured
         level = None if call != self.gripper.tighten else arg
         rec = ReactionRecord(t_decision=self.clock(), risk=1.0 if level is None else level)
         self.records.append(rec)
@@ -228,7 +236,7 @@ class Reaction:
         if self.grip_control is not None:
             self.grip_control.reset()
         self._last_t = None
-        self._last_level = 0.0
+        self._last_level = self._grasp_level = 0.0
         self._owed, self.tighten_owed, self._owed_call, self._tighten_failing = False, None, None, False
 
     def _submit(self, rec: ReactionRecord, action: str, worker: DeviceWorker | None, fn: Callable[..., Any],

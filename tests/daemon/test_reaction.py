@@ -65,6 +65,23 @@ def test_rearm_window_suppresses_repeats_but_graded_escalates() -> None:
     clock.t += 2.0
     _wait(r.on_alarm(0.5))
     assert len(arm.calls) == 2
+    # Past the window the arm is stopped again, but the grip is never loosened: 0.5 would move the jaw back from 0.9.
+    assert grip.calls[-1] == ("tighten", 0.9)
+
+
+def test_graded_grip_never_loosens_after_a_secure_or_until_a_new_grasp() -> None:
+    """A fail-safe's tighten (the secure setting) counts as level 1; a later graded alarm squeezes at that level, and
+    so does the retry of a lower tighten owed from before. A new grasp (``reset``) starts from the alarm's level."""
+    r, _arm, grip, clock = _reaction(graded=True, rearm_after_s=1.0, on_failsafe="stop_arm_and_tighten")
+    _wait([f for f in [r.failsafe("sensor_stall")] if f is not None])
+    assert _until(lambda: ("tighten", None) in grip.calls)
+    clock.t += 2.0
+    _wait(r.on_alarm(0.3))
+    assert grip.calls[-1] == ("tighten", 1.0)
+    r.reset()
+    clock.t += 2.0
+    _wait(r.on_alarm(0.3))
+    assert grip.calls[-1] == ("tighten", 0.3)
 
 
 def test_actions_order_and_selection() -> None:
