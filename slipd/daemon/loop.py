@@ -111,6 +111,7 @@ GRIPPER_HEALTH_PERIOD_S = 0.5
 while a status read is on the wire waits for it; 0.5 s keeps that chance small."""
 ARM_RECONNECT_INITIAL_S = 0.25
 ARM_RECONNECT_MAX_S = 5.0
+"""Back-off of the arm's reconnects, and of the gripper's (its port reopened after an unplugged adapter)."""
 NONFINITE_BRIDGE_S = 0.005
 """Non-finite samples the feature stage may bridge (it holds the last finite value): a few ms. Longer
 runs make every decision one on a frozen picture of the grasp, so liveness fails."""
@@ -156,6 +157,7 @@ class Daemon:
         self.health_period_s = health_period_s
         self.gripper_health_period_s = gripper_health_period_s
         self.health: dict[str, str] = {}
+        self._gripper_lost = False  # the gripper's port was dropped (an I/O error): the health task reopens it
         """Last known device condition: ``{"arm": "ok" | "disconnected" | "protective_stop",
         "gripper": "ok" | reason}``; filled by the health poll."""
         self.metrics = metrics or Metrics()
@@ -647,6 +649,9 @@ class Daemon:
         reconnect_delay = ARM_RECONNECT_INITIAL_S
         next_reconnect = 0.0
         next_grip = grip_sent = 0.0
+        grip_reconnect: Any = None
+        grip_delay = ARM_RECONNECT_INITIAL_S
+        next_grip_reconnect = 0.0
         while not self._stop.is_set():
             now = time.monotonic()
             if arm is not None:
@@ -675,13 +680,28 @@ class Daemon:
                     assert self.arm_worker is not None
                     arm_poll = self.arm_worker.submit(self._probe_arm)
             if grip is not None:
+                if grip_reconnect is not None and grip_reconnect.done():
+                    ok = grip_reconnect.exception() is None and bool(grip_reconnect.result())
+                    grip_reconnect = None
+                    if ok:
+                        self._gripper_lost = False
+                        self.metrics.reconnects.labels(device="gripper").inc()
+                        grip_delay, next_grip = ARM_RECONNECT_INITIAL_S, now  # the next poll says how it holds
+                    else:
+                        next_grip_reconnect = now + grip_delay
+                        grip_delay = min(2 * grip_delay, ARM_RECONNECT_MAX_S)
                 if grip_poll is not None and grip_poll.done():
                     self._on_gripper_health(grip_poll)
                     grip_poll = None
                 elif grip_poll is not None and now - grip_sent > GRIPPER_HANG_S:
                     # The poll queues behind whatever the gripper thread runs: either has hung.
                     self._gripper_condition(f"not answering: a call has not returned for {now - grip_sent:.1f} s")
-                if grip_poll is None and now >= next_grip:
+                if self._gripper_lost and grip_poll is None and grip_reconnect is None:
+                    # Its port was dropped (an unplugged adapter): reopen it, with back-off; nothing else is sent.
+                    if now >= next_grip_reconnect:
+                        assert self.gripper_worker is not None
+                        grip_reconnect = self.gripper_worker.submit(grip.reconnect)
+                elif grip_poll is None and grip_reconnect is None and now >= next_grip:
                     assert self.gripper_worker is not None
                     grip_poll = self.gripper_worker.submit(grip.read_status)
                     grip_sent = now
@@ -730,6 +750,9 @@ class Daemon:
         exc = fut.exception()
         if exc is not None:
             problem = f"not answering: {exc}"
+            # A port the driver dropped after an I/O error, or never had: reconnected by the health task.
+            self._gripper_lost = getattr(exc, "kind", None) in ("io", "not_connected") and hasattr(
+                self.gripper, "reconnect")
         else:
             st = fut.result()
             if st.healthy:

@@ -18,6 +18,7 @@ import logging
 import math
 import os
 import select
+import termios
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -157,6 +158,12 @@ class Gripper(ABC):
     def grip_force(self, newtons: float) -> float:
         """Grip with ``newtons`` (force control); returns the send time. Grippers without it refuse."""
         raise NotImplementedError(f"{type(self).__name__} has no force control")
+
+    def reconnect(self) -> bool:
+        """Open the link again after it was lost (an unplugged adapter); True when the device answers. It must not
+        move the jaw or switch torque on: a servo that lost its power comes back with torque off, and switching it
+        on unasked would be a restart after a stop (the daemon restarts only on a person's request)."""
+        return False
 
     @abstractmethod
     def release(self) -> None:
@@ -332,6 +339,10 @@ class DynamixelGripper(Gripper):
         self._v2 = settings.protocol == 2.0
         self._effort_sent: int | None = None  # 2.0: skip rewriting an unchanged Goal PWM
         self._goal_sent: int | None = None  # grip_force: the goal position it set (others clear it)
+        self._torque_off = False
+        """The servo said its torque is off (a status read, or the check after a tighten): until ``connect`` or
+        ``recover`` switch it on, commands are refused, so a tighten fails (and stays owed) instead of passing for
+        done while the jaw applies nothing (a power blip on the servo's supply resets it with torque off)."""
 
     # Public API ---------------------------------------------------------------------------------------
     def connect(self) -> None:
@@ -356,6 +367,26 @@ class DynamixelGripper(Gripper):
                 self._setup_v2()
             else:
                 self._write(V1_TORQUE_ENABLE, bytes([1]))
+            self._torque_off = False
+
+    def reconnect(self) -> bool:
+        """Reopen the port after an I/O error dropped it (an unplugged USB adapter, the same device path back) and
+        ping the servo. Nothing is written: torque, goal and effort stay as the servo has them, and the next status
+        read says whether it still holds (``Gripper.reconnect``). The effort and goal written before are forgotten,
+        so the next command writes both."""
+        with self._lock:
+            if self._port is not None:
+                return True
+            try:
+                self._open()
+                self.model_number = self._ping()
+            except GripperError as exc:
+                log.debug("%s: reconnect failed: %s", self.device, exc)
+                self._drop_port()
+                return False
+            self._effort_sent = self._goal_sent = None
+            log.warning("%s: port reopened, servo answers (model %s)", self.device, self.model_number)
+            return True
 
     def hold(self) -> None:
         """Goal and effort at the hold setting."""
@@ -376,6 +407,12 @@ class DynamixelGripper(Gripper):
         with self._lock:
             t_sent = self._command(position, effort)
             self.last_tighten_monotonic = t_sent
+            # After the bytes left (the reaction's latency is unchanged): a servo that lost its power took the command
+            # and applies nothing. One byte read on the worker thread makes that tighten a failure, owed, not done.
+            if not self._read(V2_TORQUE_ENABLE if self._v2 else V1_TORQUE_ENABLE, 1, allow_hw_error=True)[0][0]:
+                self._torque_off = True
+                raise self._error("tighten sent, but the servo's torque is off (power lost?): it grips nothing",
+                                  kind="torque_off")
             return t_sent
 
     def grip_force(self, newtons: float) -> float:
@@ -425,6 +462,7 @@ class DynamixelGripper(Gripper):
 
                 hw = u(V2_HARDWARE_ERROR, 1)
                 load_pct = u(126, 2, signed=True) / 10.0
+                self._torque_off = not u(V2_TORQUE_ENABLE, 1) and not hw  # a hardware error answers for itself
                 return GripperStatus(
                     load=load_pct * self.settings.closing_sign,
                     position=u(132, 4, signed=True),
@@ -446,6 +484,7 @@ class DynamixelGripper(Gripper):
             # Bit 10 marks a CW load, i.e. towards decreasing positions.
             load_pct = (raw_load & 0x3FF) / 10.0 * (-1 if raw_load & 0x400 else 1)
             hw = err & V1_HARDWARE_BITS
+            self._torque_off = not data[V1_TORQUE_ENABLE - base] and not hw
             return GripperStatus(
                 load=load_pct * self.settings.closing_sign,
                 position=w(36),
@@ -467,6 +506,7 @@ class DynamixelGripper(Gripper):
             else:
                 self._write(V1_TORQUE_ENABLE, bytes([1]))
             self._effort_sent = None
+            self._torque_off = False
             self.hold()
 
     def close(self) -> None:
@@ -479,9 +519,14 @@ class DynamixelGripper(Gripper):
                     self._write(V2_TORQUE_ENABLE if self._v2 else V1_TORQUE_ENABLE, bytes([0]))
                 except GripperError as exc:
                     log.warning("%s: torque off at close failed: %s", self.device, exc)
+            self._drop_port()
+
+    def _drop_port(self) -> None:
+        """Forget the port (closed quietly): ``reconnect`` opens it again."""
+        if self._port is not None:
             with contextlib.suppress(Exception):
                 self._port.closePort()
-            self._port = None
+        self._port = None
 
     @property
     def device(self) -> str:
@@ -544,6 +589,9 @@ class DynamixelGripper(Gripper):
     def _command(self, position: int, effort: int) -> float:
         """Write effort and goal position; returns the monotonic time the first packet was written."""
         port = self._require_port()
+        if self._torque_off:
+            raise self._error("the servo's torque is off (power lost?): reconnect and check the gripper, then restart",
+                              kind="torque_off")
         self._goal_sent = None
         effort = min(effort, self.settings.effort_cap)  # the one place every position command passes
         if self._v2:
@@ -583,9 +631,12 @@ class DynamixelGripper(Gripper):
         for attempt in range(1, attempts + 1):
             try:
                 out = fn(port, self.settings.dxl_id, *args)
-            except (serial.SerialException, OSError) as exc:
+            except (serial.SerialException, OSError, termios.error) as exc:
+                # A hung-up tty (the adapter unplugged) raises termios.error from the SDK's clearPort. The port is
+                # dropped: a file handle on a vanished device never works again, ``reconnect`` opens the path anew.
                 port.is_using = False  # the SDK leaves its busy flag set when the port raises
                 self._count("io")
+                self._drop_port()
                 raise self._error(f"{op} failed: serial I/O error: {exc}", address, kind="io") from exc
             result, err = out[-2], out[-1]
             if result == COMM_SUCCESS:

@@ -460,3 +460,65 @@ def test_a_fail_safe_recording_carries_the_tare_offset_the_daemon_used(base_cfg,
     assert np.allclose(offset, daemon.detector.offset) and abs(offset[0, 2] - 1.0) < 0.05
     daemon.recorder.close()
     daemon.close()
+
+
+def test_an_unplugged_gripper_adapter_is_reopened_and_the_owed_tighten_sent(base_cfg, tmp_path) -> None:
+    """The USB adapter of the servo is unplugged and plugged back under the same path. The driver kept its dead file
+    handle (a bare termios.error, not even counted) and the daemon never reopened it: the gripper stayed 'not
+    answering' and the tighten a slip alarm owed was never sent. Now the health task reopens the port with back-off
+    and, the servo holding again, the owed tighten goes out."""
+    from dynamixel_sdk import PacketHandler
+
+    from slipd.io.gripper import _TimedPortHandler
+    from slipd.sim.devices.mx28 import JawParams
+
+    link = tmp_path / "ttyDXL"
+
+    def plug() -> EmulatedMX28:
+        dev = EmulatedMX28(protocol=2.0, jaw=JawParams(initial_position=2000.0))
+        if link.is_symlink():
+            link.unlink()
+        link.symlink_to(dev.port)
+        return dev
+
+    first = plug()
+    servos = [first]
+    cfg = override(base_cfg, {"arm.enabled": False, "reaction.on_failsafe": "log_only",
+                              "reaction.actions": ["tighten_gripper"], "gripper.port": str(link)})
+    metrics = Metrics()
+    _, gripper = build_devices(cfg, metrics)
+    daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=metrics, gripper=gripper,
+                    health_period_s=0.05, gripper_health_period_s=0.05)
+    seen: dict[str, object] = {}
+
+    async def main() -> None:
+        task = asyncio.create_task(daemon._health())
+        await until(lambda: daemon.health.get("gripper") == "ok", what="healthy at first")
+        first.close()  # unplugged
+        daemon.reaction.on_alarm(1.0)
+        await until(lambda: daemon.reaction.tighten_owed is None and daemon.reaction._owed, what="the tighten owed")
+        await until(lambda: daemon.health.get("gripper", "").startswith("not answering"), what="not answering")
+        second = plug()  # back under the same path; the servo kept its power: torque on, holding
+        servos.append(second)
+        port = _TimedPortHandler(second.port, 100.0)
+        port.baudrate = 1_000_000
+        port.openPort()
+        try:
+            PacketHandler(2.0).write1ByteTxRx(port, 1, 64, 1)
+        finally:
+            port.closePort()
+        secure = cfg.gripper.secure_position
+        await until(lambda: second.register("goal_position") == secure, what="the owed tighten at the servo")
+        seen["health"] = daemon.health.get("gripper")
+        seen["reconnects"] = metrics.registry.get_sample_value("slipd_reconnects_total", {"device": "gripper"})
+        daemon.stop()
+        await task
+
+    try:
+        asyncio.run(main())
+    finally:
+        daemon.close()
+        for s in servos:
+            s.close()
+    assert seen["reconnects"] == 1 and seen["health"] == "ok"
+    assert metrics.registry.get_sample_value("slipd_device_errors_total", {"device": "gripper", "kind": "io"})

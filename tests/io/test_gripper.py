@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import random
 import threading
+import time
 
 import pytest
 import serial
@@ -377,14 +378,80 @@ def test_torque_off_servo_ignores_goals(emu, gripper, clock, protocol):
     g = DynamixelGripper(make_settings(emu))
     g._open()  # talk without connect(), which would switch torque back on
     try:
-        g.tighten()
+        # The goal is sent (the reaction's latency is the same), then the torque check makes it a failure: a tighten
+        # that grips nothing must stay owed, not pass for done.
+        with pytest.raises(GripperError) as info:
+            g.tighten()
+        assert info.value.kind == "torque_off"
         clock.advance(1.0)
         assert emu.register("goal_position") == SECURE_POS
         assert emu.grip_force_n == pytest.approx(0.0, abs=1e-6)
         assert emu.jaw_position == pytest.approx(CONTACT, abs=0.5)
         assert not g.read_status().torque_enabled
+        with pytest.raises(GripperError, match="torque is off"):
+            g.hold()  # refused while the servo's torque is known off: nothing sent
+        assert emu.register("goal_position") == SECURE_POS
+        g.connect()  # a person's restart: torque on again, commands obeyed
+        g.hold()
+        clock.advance(1.0)
+        assert emu.register("goal_position") == HOLD_POS and emu.grip_force_n > 1.0
     finally:
         g.close()
+
+
+@pytest.mark.parametrize("protocol", [2.0], ids=["p2"])  # the emulator's power cycle follows the 2.0 table
+def test_a_power_blip_makes_the_next_tighten_fail_and_stay_failed(emu, gripper, clock):
+    """The servo's supply dips (the USB adapter stays up): it comes back with torque off and no error. A tighten
+    sent then used to return as done while the jaw applied 0 N."""
+    gripper.hold()
+    clock.advance(1.0)
+    emu.reboot()
+    time.sleep(emu.boot_s + 0.05)
+    with pytest.raises(GripperError) as info:
+        gripper.tighten()
+    assert info.value.kind == "torque_off"
+    clock.advance(1.0)
+    assert emu.grip_force_n == pytest.approx(0.0, abs=1e-6) and emu.register("torque_enable") == 0
+    with pytest.raises(GripperError):
+        gripper.tighten(0.5)  # known off: refused before sending
+    assert not gripper.read_status().healthy
+
+
+def test_an_unplugged_adapter_drops_the_port_and_reconnect_reopens_it_without_torque(protocol, clock, metrics,
+                                                                                      tmp_path):
+    """The USB adapter is unplugged and plugged back under the same (udev) path: the I/O error drops the dead port,
+    ``reconnect`` opens the path anew and pings; it switches nothing on (a servo that lost power stays off)."""
+    link = tmp_path / "ttyDXL"
+
+    def plug() -> EmulatedMX28:
+        dev = EmulatedMX28(protocol=protocol, jaw=JawParams(initial_position=2000.0), clock=clock)
+        if link.is_symlink():
+            link.unlink()
+        link.symlink_to(dev.port)
+        return dev
+
+    first = plug()
+    g = DynamixelGripper(make_settings(first, port=str(link)), metrics)
+    second = None
+    try:
+        g.connect()
+        g.hold()
+        first.close()  # unplugged
+        with pytest.raises(GripperError) as info:
+            g.read_status()
+        assert info.value.kind == "io" and errors(metrics, "io") >= 1  # was a bare termios.error, uncounted
+        assert not g.reconnect()  # nothing there yet
+        second = plug()  # back, the same path; a new servo power-up: torque off
+        assert g.reconnect()
+        assert second.register("torque_enable") == 0  # reconnect switched nothing on
+        st = g.read_status()
+        assert not st.torque_enabled and not st.healthy
+        with pytest.raises(GripperError, match="torque is off"):
+            g.tighten()
+    finally:
+        g.close()
+        if second is not None:
+            second.close()
 
 
 @pytest.mark.parametrize("protocol", [2.0], ids=["p2"])  # REBOOT is a Protocol 2.0 instruction
