@@ -52,6 +52,11 @@ V2_OPERATING_MODE = 11
 V2_TORQUE_ENABLE = 64
 V2_HARDWARE_ERROR = 70
 V2_GOAL_PWM = 100
+V2_PWM_LIMIT = 36  # EEPROM: PWM Limit (2), ..., Max Position Limit (48, 4), Min Position Limit (52, 4)
+V2_MAX_POSITION = 48
+V2_MIN_POSITION = 52
+V2_LIMITS_END = 56
+V1_CW_ANGLE_LIMIT = 6  # EEPROM: CW Angle Limit (6, 2), CCW Angle Limit (8, 2)
 V2_PROFILE_ACCELERATION = 108
 V2_PROFILE_VELOCITY = 112
 V2_GOAL_POSITION = 116
@@ -364,8 +369,10 @@ class DynamixelGripper(Gripper):
                         )
                     log.warning("%s: hardware error %s at connect: rebooting", self.device, decode_hardware_error(hw))
                     self._reboot()
+                self._check_limits_v2()
                 self._setup_v2()
             else:
+                self._check_limits_v1()
                 self._write(V1_TORQUE_ENABLE, bytes([1]))
             self._torque_off = False
 
@@ -561,6 +568,44 @@ class DynamixelGripper(Gripper):
                 self.device, timer, s.packet_timeout_ms, timer,
             )
         self._port = port
+
+    def _positions(self) -> list[tuple[str, int]]:
+        s = self.settings
+        named = [("hold_position", s.hold_position), ("secure_position", s.secure_position)]
+        return named + ([("open_position", s.open_position)] if s.open_position is not None else [])
+
+    def _refuse(self, reason: str, address: int) -> GripperError:
+        return self._error(f"{reason}: the servo would refuse it when it matters (at a slip alarm); change the key or "
+                           "the servo's EEPROM limit (Dynamixel Wizard)", address, kind="limits")
+
+    def _check_limits_v2(self) -> None:
+        """The servo's own EEPROM limits against the settings, at start-up: a goal or effort beyond them is refused
+        by the servo (data limit error), and the first command to pass them is the tighten a slip alarm sends."""
+        data, _ = self._read(V2_PWM_LIMIT, V2_LIMITS_END - V2_PWM_LIMIT, allow_hw_error=True)
+        pwm_limit = int.from_bytes(data[0:2], "little")
+        hi = int.from_bytes(data[V2_MAX_POSITION - V2_PWM_LIMIT : V2_MAX_POSITION - V2_PWM_LIMIT + 4], "little")
+        lo = int.from_bytes(data[V2_MIN_POSITION - V2_PWM_LIMIT : V2_MIN_POSITION - V2_PWM_LIMIT + 4], "little")
+        s = self.settings
+        for key, pwm in (("hold_pwm", s.hold_pwm), ("secure_pwm", s.secure_pwm)):
+            if min(pwm, s.effort_cap) > pwm_limit:
+                raise self._refuse(f"gripper.{key} {pwm} is above the servo's PWM Limit {pwm_limit}", V2_PWM_LIMIT)
+        for key, pos in self._positions():
+            if not lo <= pos <= hi:
+                raise self._refuse(f"gripper.{key} {pos} lies outside the servo's position limits [{lo}, {hi}]",
+                                   V2_MAX_POSITION)
+
+    def _check_limits_v1(self) -> None:
+        """As ``_check_limits_v2`` for Protocol 1.0: joint mode (CW and CCW Angle Limit both 0 is wheel mode, where
+        a goal position means nothing) and the positions within the angle limits."""
+        data, _ = self._read(V1_CW_ANGLE_LIMIT, 4, allow_hw_error=True)
+        cw, ccw = int.from_bytes(data[0:2], "little"), int.from_bytes(data[2:4], "little")
+        if cw == 0 and ccw == 0:
+            raise self._refuse("the servo is in wheel mode (CW and CCW Angle Limit 0): no goal position holds",
+                               V1_CW_ANGLE_LIMIT)
+        for key, pos in self._positions():
+            if not cw <= pos <= ccw:
+                raise self._refuse(f"gripper.{key} {pos} lies outside the servo's angle limits [{cw}, {ccw}]",
+                                   V1_CW_ANGLE_LIMIT)
 
     def _setup_v2(self) -> None:
         s = self.settings

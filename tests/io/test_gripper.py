@@ -578,3 +578,27 @@ def test_an_object_force_limit_caps_every_command_the_hold_included(emu, metrics
         g.close()
     with pytest.raises(ValueError, match="force_limit_n"):
         make_settings(emu, force_limit_n=50.0)  # above the jaw's full force: a limit that never binds
+
+
+@pytest.mark.parametrize(("protocol", "register", "value", "key"), [
+    (2.0, "pwm_limit", 200, "hold_pwm"),
+    (2.0, "max_position_limit", 2300, "secure_position"),
+    (2.0, "min_position_limit", 1600, "open_position"),
+    (1.0, "ccw_angle_limit", 2300, "secure_position"),
+    (1.0, "cw_angle_limit", 0, "wheel mode"),
+], ids=["p2-pwm", "p2-max-position", "p2-min-position", "p1-angle", "p1-wheel"])
+def test_connect_refuses_settings_beyond_the_servos_own_limits(emu, metrics, register, value, key):
+    """A limit set on the servo (EEPROM) narrower than the config: start-up passed and the servo refused the first
+    command beyond it, the tighten of a slip alarm (with Goal PWM already raised, under 2.0). Now connect refuses,
+    naming the key, before anything is written."""
+    emu.table.set(register, value)
+    if key == "wheel mode":
+        emu.table.set("ccw_angle_limit", 0)
+    g = DynamixelGripper(make_settings(emu, hold_pwm=300), metrics)
+    try:
+        with pytest.raises(GripperError) as info:
+            g.connect()
+        assert info.value.kind == "limits" and key in str(info.value)
+        assert emu.register("torque_enable") == 0  # nothing switched on, nothing moved
+    finally:
+        g.close()
