@@ -158,6 +158,33 @@ FAULTS: tuple[Fault, ...] = (
           '`slipd_device_errors_total{device="gripper",kind="unhealthy"}`',
           (F + "test_servo_hardware_error_seen_by_the_health_poll_fails_safe",
            "tests/io/test_gripper.py::test_overload_is_reported_and_recovered")),
+    Fault("Servo power blip (its supply dips, the USB adapter stays up): back with torque off and no error",
+          "A tighten sent then fails (torque read after the bytes left): owed, fail-safe; commands are refused while "
+          "torque is known off, and slipd never switches it on unasked (was: the tighten returned as done while the "
+          "jaw applied 0 N, and every later alarm did the same)",
+          '`slipd_failsafe_stops_total{reason="tighten_gripper failed"}`, '
+          '`slipd_device_errors_total{device="gripper",kind="reaction"}`',
+          ("tests/io/test_gripper.py::test_a_power_blip_makes_the_next_tighten_fail_and_stay_failed",
+           "tests/io/test_gripper.py::test_torque_off_servo_ignores_goals")),
+    Fault("Gripper USB adapter unplugged and plugged back (same device path)",
+          "The I/O error drops the port; the health task reopens it with back-off (0.25 s doubling to 5 s), writing "
+          "nothing, and an owed tighten goes out once the servo holds (was: a bare termios.error, uncounted, and the "
+          "dead handle kept until a restart)",
+          '`slipd_reconnects_total{device="gripper"}`, `slipd_device_errors_total{device="gripper",kind="io"}`',
+          (L + "test_an_unplugged_gripper_adapter_is_reopened_and_the_owed_tighten_sent",
+           "tests/io/test_gripper.py::test_an_unplugged_adapter_drops_the_port_and_reconnect_reopens_it_without_torque")),
+    Fault("Servo EEPROM limits narrower than the config (PWM Limit, position or angle limits, 1.0 wheel mode)",
+          "`slipd run` exits 5 at start-up naming the key and the limit, before torque is switched on (was: start-up "
+          "passed and the servo refused the first tighten of a slip alarm)",
+          "(exit status)",
+          ("tests/io/test_gripper.py::test_connect_refuses_settings_beyond_the_servos_own_limits",)),
+    Fault("A later graded alarm of lower risk (reaction.graded)",
+          "The grip never loosens: the highest level sent for the grasp (1 after a secure or a fail-safe's tighten) "
+          "stands, an owed lower tighten is retried at it (was: the jaw moved back, 32.7 -> 15.2 N on the emulated "
+          "MX-28)",
+          "(reaction records)",
+          ("tests/daemon/test_reaction.py::test_graded_grip_never_loosens_after_a_secure_or_until_a_new_grasp",
+           "tests/daemon/test_reaction.py::test_rearm_window_suppresses_repeats_but_graded_escalates")),
     Fault("Sensor port missing at start-up",
           "`slipd run` exits 5 with one line naming `sensor.port`, no traceback, before the gripper or the arm "
           "is opened (was: exit 1 with a traceback after both were opened)",
