@@ -784,6 +784,7 @@ class Daemon:
         from slipd.io.sensor import SerialSensor
 
         cfg = self.cfg.sensor
+        self.reaction.post = asyncio.get_running_loop().call_soon_threadsafe  # device outcomes on this thread
         self.sensor = SerialSensor(
             sensor_port or cfg.port,
             on_block=self._on_frames,
@@ -827,6 +828,7 @@ class Daemon:
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
             await self.sensor.stop()
+            self.reaction.post = None  # outcomes after the loop's end are handled where they happen
             self.metrics.ready.set(0)
             self.metrics.live.set(0)
             if self.notifier is not None:

@@ -112,6 +112,11 @@ class Reaction:
         self._owed_call: Callable[..., Any] | None = None
         """The gripper call owed: the one that failed (a retry of grip_control's limit grip as a tighten would go to
         the secure setting, past the object's limit, and a force is no tighten level)."""
+        self.post: Callable[[Callable[[Future[Any]], None], Future[Any]], Any] | None = None
+        """Where a device call's outcome is handled: the daemon sets its loop's ``call_soon_threadsafe`` while it runs,
+        so that the reaction's state (the stop in flight, what is owed, the grip controller's target after a fail-safe)
+        changes on the loop's thread alone; a future's callbacks otherwise run on the device worker's thread, beside
+        the loop's own use of that state. None: on the worker's thread (no loop)."""
         self._last_t: float | None = None
         self._last_level = 0.0
         self._grasp_level = 0.0
@@ -287,8 +292,18 @@ class Reaction:
                 if self.metrics is not None and action in rec.done:
                     self.metrics.reaction_seconds.observe(rec.done[action] - rec.t_decision)
 
-        fut.add_done_callback(finished)
+        fut.add_done_callback(lambda f: self._handle(finished, f))
         return fut
+
+    def _handle(self, finished: Callable[[Future[Any]], None], fut: Future[Any]) -> None:
+        post = self.post
+        if post is not None:
+            try:
+                post(finished, fut)
+                return
+            except RuntimeError:  # the loop has closed (shut down): handled here, not lost
+                pass
+        finished(fut)
 
 
 def _run_inline(call: Callable[[], None]) -> Future[Any]:

@@ -380,6 +380,8 @@ def test_frames_while_the_sensor_zeroes_itself_at_start_up_are_not_decided_on(ba
         writer.start()  # streaming from the first moment, through the bias
         await daemon.ready.wait()
         seen["at_ready"] = (daemon.stats.decisions, daemon.live)
+        # Device outcomes are handled on this loop's thread while the daemon runs (``Reaction.post``).
+        seen["post"] = daemon.reaction.post == asyncio.get_running_loop().call_soon_threadsafe
         await until(lambda: daemon.live, what="live on frames after the bias")
         seen["live_after"] = daemon.stats.decisions
         daemon.stop()
@@ -394,6 +396,7 @@ def test_frames_while_the_sensor_zeroes_itself_at_start_up_are_not_decided_on(ba
         servo.close()
     assert seen["at_ready"] == (0, False)
     assert seen["live_after"] >= 1
+    assert seen["post"] and daemon.reaction.post is None
 
 
 def test_a_gripper_call_that_hangs_is_a_gripper_fault(base_cfg, monkeypatch) -> None:

@@ -308,3 +308,43 @@ def test_a_stop_refused_at_every_poll_is_logged_by_a_line_per_twenty_tries(caplo
     failed = [m for m in caplog.messages if m.startswith("stop_arm failed")]
     retrying = [m for m in caplog.messages if m.startswith("arm: retrying")]
     assert len(failed) == 4 and len(retrying) == 3  # the alarm's stop; tries 1, 21 and 41
+
+
+def test_device_outcomes_are_handled_on_the_loops_thread_while_the_daemon_runs() -> None:
+    """A future's callbacks run on the device worker's thread: a failed tighten's fail-safe then queued an arm stop and
+    set the grip controller's target there, beside the loop's own use of that state. With ``post`` (the daemon's loop)
+    the outcome is handled on the loop's thread."""
+    import asyncio
+    import contextlib
+    import threading
+
+    r, arm, _grip, clock = _reaction(actions=["tighten_gripper"], grip_fail=True)
+    threads: list[int] = []
+    failsafe = r.failsafe
+
+    def spy(reason: str):
+        threads.append(threading.get_ident())
+        return failsafe(reason)
+
+    r.failsafe = spy  # type: ignore[method-assign]
+
+    async def main() -> int:
+        r.post = asyncio.get_running_loop().call_soon_threadsafe
+        futs = r.on_alarm(1.0)
+        with contextlib.suppress(RuntimeError):
+            await asyncio.wrap_future(futs[0])  # the tighten fails on the gripper's thread
+        for _ in range(100):
+            if threads:
+                break
+            await asyncio.sleep(0.01)
+        return threading.get_ident()
+
+    loop_thread = asyncio.run(main())
+    assert threads == [loop_thread] and r._owed
+    assert arm.event.wait(5) and arm.calls[0][1].startswith("fail-safe")
+    # A loop that has closed: the outcome is handled where it happens, not lost.
+    threads.clear()
+    r._tighten_failing = False
+    clock.t += 2.0
+    _wait(r.on_alarm(1.0))
+    assert _until(lambda: len(threads) == 1) and threads[0] != loop_thread
