@@ -439,6 +439,7 @@ class DynamixelGripper(Gripper):
             port = self._require_port()
             if not self._v2:
                 return self._command(s.secure_position, effort)
+            self._refuse_torque_off()
             if effort != self._effort_sent:
                 self._write(V2_GOAL_PWM, effort.to_bytes(2, "little"))
                 self._effort_sent = effort
@@ -634,9 +635,7 @@ class DynamixelGripper(Gripper):
     def _command(self, position: int, effort: int) -> float:
         """Write effort and goal position; returns the monotonic time the first packet was written."""
         port = self._require_port()
-        if self._torque_off:
-            raise self._error("the servo's torque is off (power lost?): reconnect and check the gripper, then restart",
-                              kind="torque_off")
+        self._refuse_torque_off()
         self._goal_sent = None
         effort = min(effort, self.settings.effort_cap)  # the one place every position command passes
         if self._v2:
@@ -652,6 +651,12 @@ class DynamixelGripper(Gripper):
         )
         self._write(V1_GOAL_BLOCK, data)
         return port.last_write_monotonic
+
+    def _refuse_torque_off(self) -> None:
+        """Every grip command, while the servo is known to have its torque off (``_torque_off``)."""
+        if self._torque_off:
+            raise self._error("the servo's torque is off (power lost?): check the gripper, then restart slipd",
+                              kind="torque_off")
 
     def _ping(self) -> int:
         model, _result, _err = self._txrx("ping", None, self._packet.ping)

@@ -415,6 +415,10 @@ def test_a_power_blip_makes_the_next_tighten_fail_and_stay_failed(emu, gripper, 
     with pytest.raises(GripperError):
         gripper.tighten(0.5)  # known off: refused before sending
     assert not gripper.read_status().healthy
+    pwm = emu.register("goal_pwm")
+    with pytest.raises(GripperError) as info:
+        gripper.grip_force(1.0)  # grip_control's command too (it has no read after it: 60 a second)
+    assert info.value.kind == "torque_off" and emu.register("goal_pwm") == pwm  # nothing sent
 
 
 def test_an_unplugged_adapter_drops_the_port_and_reconnect_reopens_it_without_torque(protocol, clock, metrics,
