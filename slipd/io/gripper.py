@@ -344,6 +344,7 @@ class DynamixelGripper(Gripper):
         self._v2 = settings.protocol == 2.0
         self._effort_sent: int | None = None  # 2.0: skip rewriting an unchanged Goal PWM
         self._goal_sent: int | None = None  # grip_force: the goal position it set (others clear it)
+        self._pwm_limit = PWM_MAX  # 2.0: the servo's own PWM Limit (EEPROM), read at connect; grip_force stays within
         self._torque_off = False
         """The servo said its torque is off (a status read, or the check after a tighten): until ``connect`` or
         ``recover`` switch it on, commands are refused, so a tighten fails (and stays owed) instead of passing for
@@ -434,7 +435,8 @@ class DynamixelGripper(Gripper):
         if not math.isfinite(newtons):
             raise ValueError(f"grip_force: newtons must be finite, got {newtons!r}")
         top = PWM_MAX if self._v2 else TORQUE_LIMIT_MAX
-        effort = min(s.effort_cap, max(0, round(float(newtons) / s.max_force_n * top)))
+        cap = min(s.effort_cap, self._pwm_limit) if self._v2 else s.effort_cap
+        effort = min(cap, max(0, round(float(newtons) / s.max_force_n * top)))
         with self._lock:
             port = self._require_port()
             if not self._v2:
@@ -590,6 +592,11 @@ class DynamixelGripper(Gripper):
         for key, pwm in (("hold_pwm", s.hold_pwm), ("secure_pwm", s.secure_pwm)):
             if min(pwm, s.effort_cap) > pwm_limit:
                 raise self._refuse(f"gripper.{key} {pwm} is above the servo's PWM Limit {pwm_limit}", V2_PWM_LIMIT)
+        self._pwm_limit = pwm_limit
+        if pwm_limit < s.effort_cap:
+            # grip_control's force commands reach up to effort_cap: beyond the limit the servo would refuse them.
+            log.warning("%s: the servo's PWM Limit %d caps the grip at %.1f N (gripper.max_force_n %.1f N at PWM %d)",
+                        self.device, pwm_limit, pwm_limit / PWM_MAX * s.max_force_n, s.max_force_n, PWM_MAX)
         for key, pos in self._positions():
             if not lo <= pos <= hi:
                 raise self._refuse(f"gripper.{key} {pos} lies outside the servo's position limits [{lo}, {hi}]",

@@ -606,3 +606,20 @@ def test_connect_refuses_settings_beyond_the_servos_own_limits(emu, metrics, reg
         assert emu.register("torque_enable") == 0  # nothing switched on, nothing moved
     finally:
         g.close()
+
+
+@pytest.mark.parametrize("protocol", [2.0], ids=["p2"])
+def test_grip_force_stays_within_the_servos_pwm_limit(emu, metrics, caplog):
+    """grip_control's force commands reach up to the effort cap: past a lower PWM Limit the servo refused them (a grip
+    command failure, a fail-safe) just when the controller wanted the most grip. They stop at the limit, and start-up
+    says what grip that leaves."""
+    emu.table.set("pwm_limit", 600)
+    g = DynamixelGripper(make_settings(emu, hold_pwm=300, secure_pwm=600), metrics)
+    try:
+        with caplog.at_level("WARNING"):
+            g.connect()
+        assert "PWM Limit 600 caps the grip" in caplog.text
+        g.grip_force(g.settings.max_force_n)
+        assert emu.register("goal_pwm") == 600
+    finally:
+        g.close()
