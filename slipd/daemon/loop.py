@@ -77,7 +77,9 @@ if TYPE_CHECKING:
 log = logging.getLogger("slipd.daemon.loop")
 
 # How long ``Daemon.close`` waits for a device's thread to finish its queued calls and close the device.
-DEVICE_CLOSE_TIMEOUT_S = 10.0
+DEVICE_CLOSE_TIMEOUT_S = 5.0
+"""How long ``close`` waits for the device threads, all of them together: well under systemd's ``TimeoutStopSec``
+(10 s), so that a hung device is left behind and the process still exits before it is killed."""
 
 
 def _settle(fut: asyncio.Future[None]) -> None:
@@ -180,6 +182,7 @@ class Daemon:
             grip=GripControlSettings.from_config(cfg.reaction),
         )
         self.notifier = notifier
+        self._crashed: BaseException | None = None  # a crash of supervision or the health task (``_on_task_end``)
         self.recorder: Recorder | None = None
         self.stats = LoopStats()
         self.sensor: Any = None
@@ -809,8 +812,11 @@ class Daemon:
         # loop for ~20 ms at the worst, tools/bench_daemon.py).
         gc.collect()
         gc.freeze()
-        supervisor = asyncio.create_task(self._supervise())
-        health = asyncio.create_task(self._health()) if self.health_period_s > 0 else None
+        supervisor = asyncio.create_task(self._supervise(), name="supervision")
+        health = asyncio.create_task(self._health(), name="device health") if self.health_period_s > 0 else None
+        for task in (supervisor, health):
+            if task is not None:
+                task.add_done_callback(self._on_task_end)
         self.metrics.ready.set(1)
         self.ready.set()
         try:
@@ -825,7 +831,7 @@ class Daemon:
                 if task is None:
                     continue
                 task.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
+                with contextlib.suppress(Exception, asyncio.CancelledError):  # a crash was logged by _on_task_end
                     await task
             await self.sensor.stop()
             self.reaction.post = None  # outcomes after the loop's end are handled where they happen
@@ -833,7 +839,22 @@ class Daemon:
             self.metrics.live.set(0)
             if self.notifier is not None:
                 self.notifier.stopping()
+        if self._crashed is not None:
+            raise RuntimeError("the daemon's supervision or health task crashed") from self._crashed
         return self.stats
+
+    def _on_task_end(self, task: asyncio.Task[None]) -> None:
+        """Supervision or the health task ended before the daemon: a crash would leave it unsupervised (no stall check,
+        no device health, no arm reconnect) while the systemd watchdog was still pinged. Fail safe and stop: systemd
+        restarts it."""
+        if task.cancelled() or self._stop.is_set():
+            return
+        exc = task.exception()
+        log.error("%s ended unexpectedly (%r): failing safe and stopping", task.get_name(), exc,
+                  exc_info=exc)
+        self._fail_safe("internal_error")
+        self._crashed = exc
+        self.stop()
 
     def stop(self) -> None:
         """Ask ``run`` to finish (safe from signal handlers on the loop)."""
@@ -845,7 +866,11 @@ class Daemon:
         Each device is closed on its own thread, after whatever was queued there (the libraries are not
         thread-safe); a thread still stuck in a vendor call after ``DEVICE_CLOSE_TIMEOUT_S`` (ur_rtde's
         reconnect timeouts after a dropped link) is left behind so that the daemon still exits."""
-        for name, w, dev in (("gripper", self.gripper_worker, self.gripper), ("arm", self.arm_worker, self.arm)):
+        # The arm first (ending its control script halts it), both at once under one deadline: one after the other, a
+        # hung gripper thread delayed the arm's close by its whole timeout, past systemd's kill.
+        devices = [("arm", self.arm_worker, self.arm), ("gripper", self.gripper_worker, self.gripper)]
+        waiting = []
+        for name, w, dev in devices:
             if dev is None:
                 continue
             if w is None:
@@ -853,7 +878,10 @@ class Daemon:
                     dev.close()
                 continue
             w.submit(_close_quietly, dev)
-            if not w.close(timeout=DEVICE_CLOSE_TIMEOUT_S):
+            waiting.append((name, w))
+        deadline = time.monotonic() + DEVICE_CLOSE_TIMEOUT_S
+        for name, w in waiting:
+            if not w.close(timeout=max(0.0, deadline - time.monotonic())):
                 log.warning("%s: its thread is still in a vendor call after %.0f s; exiting without closing it",
                             name, DEVICE_CLOSE_TIMEOUT_S)
         if self.recorder is not None:

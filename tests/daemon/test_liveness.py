@@ -10,6 +10,7 @@ real AF_UNIX datagram socket (``$NOTIFY_SOCKET``) that records ``READY=1`` and `
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import socket
 import threading
@@ -525,3 +526,70 @@ def test_an_unplugged_gripper_adapter_is_reopened_and_the_owed_tighten_sent(base
             s.close()
     assert seen["reconnects"] == 1 and seen["health"] == "ok"
     assert metrics.registry.get_sample_value("slipd_device_errors_total", {"device": "gripper", "kind": "io"})
+
+
+def test_a_crash_of_the_health_task_fails_safe_and_stops_the_daemon(base_cfg) -> None:
+    """The supervision and health tasks had no watcher: one that raised died unseen (no device health, no arm
+    reconnect for the rest of the run) while the systemd watchdog was still pinged. Now its end fails safe, stops the
+    daemon and makes ``run`` fail (exit 1: systemd restarts it)."""
+
+    class Grip:
+        def read_status(self) -> object:
+            return object()  # no ``healthy``: the health task's bookkeeping raises
+
+        def close(self) -> None:
+            pass
+
+    cfg = override(base_cfg, {"arm.enabled": False, "reaction.on_failsafe": "log_only",
+                              "reaction.actions": ["tighten_gripper"]})
+    daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics(), gripper=Grip(),  # type: ignore[arg-type]
+                    health_period_s=0.05, gripper_health_period_s=0.05)
+
+    async def main() -> None:
+        task = asyncio.create_task(daemon._health(), name="device health")
+        task.add_done_callback(daemon._on_task_end)
+        await until(lambda: daemon._stop.is_set(), what="the daemon asked to stop")
+        with contextlib.suppress(AttributeError):
+            await task
+
+    try:
+        asyncio.run(main())
+    finally:
+        daemon.close()
+    assert daemon.stats.failsafes == 1 and isinstance(daemon._crashed, AttributeError)
+
+
+def test_close_ends_the_arm_first_and_waits_once_for_a_hung_gripper(base_cfg, monkeypatch) -> None:
+    """Shutdown closed the gripper, then the arm, each with its own 10 s timeout: a hung gripper thread delayed the end
+    of the arm's control script past systemd's TimeoutStopSec (10 s), where SIGKILL raced it. Now the arm goes first
+    and both share one deadline."""
+    from slipd.daemon import loop as loop_mod
+
+    monkeypatch.setattr(loop_mod, "DEVICE_CLOSE_TIMEOUT_S", 0.5)
+    release = threading.Event()
+    closed: dict[str, float] = {}
+
+    class Grip:
+        def read_status(self) -> object:
+            return SimpleNamespace(healthy=True, hardware_error=0, hardware_errors=())
+
+        def close(self) -> None:
+            release.wait(10)  # hung in the vendor library
+
+    class Arm:
+        def read_state(self) -> object:
+            return SimpleNamespace(connected=True, protective_stop=False)
+
+        def close(self) -> None:
+            closed["arm"] = time.monotonic()
+
+    cfg = override(base_cfg, {"reaction.on_failsafe": "log_only"})
+    daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics(), gripper=Grip(),  # type: ignore[arg-type]
+                    arm=Arm())  # type: ignore[arg-type]
+    t0 = time.monotonic()
+    try:
+        daemon.close()
+        took = time.monotonic() - t0
+    finally:
+        release.set()
+    assert closed["arm"] - t0 < 0.3 and took < 1.0
