@@ -34,11 +34,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     import logging
 
     from slipd.config import ConfigError
-    from slipd.daemon.service import DeviceError, prepare
+    from slipd.daemon.service import DeviceError, StopRequested, prepare
     from slipd.detect.manifest import ModelError
+    from slipd.io.sensor import SensorError
 
     try:
         service = prepare(args.config)
+    except StopRequested:
+        return EXIT_OK  # asked to stop during start-up: what was opened is closed again
     except ConfigError as exc:
         _err(exc)
         return EXIT_CONFIG
@@ -50,6 +53,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         return EXIT_DEVICE
     try:
         service.run()
+    except StopRequested:
+        return EXIT_OK  # before the loop took the signals over; the devices were closed
+    except SensorError as exc:  # the port exists but cannot be opened (busy, not a tty): a device at start-up
+        _err(f"slipd: sensor: {exc}")
+        return EXIT_DEVICE
     except Exception:
         logging.getLogger("slipd").exception("daemon failed")
         return EXIT_RUNTIME

@@ -192,6 +192,26 @@ FAULTS: tuple[Fault, ...] = (
           "(reaction log)",
           ("tests/daemon/test_reaction.py::test_device_outcomes_are_handled_on_the_loops_thread_while_the_daemon_runs",
            L + "test_frames_while_the_sensor_zeroes_itself_at_start_up_are_not_decided_on")),
+    Fault("SIGTERM or SIGINT during start-up (devices opening, the arm's control script just uploaded)",
+          "Held back while the devices open, then the devices are closed (the control script ended) and `slipd run` "
+          "exits 0 (was: killed at once, or a traceback, the script left running with no watchdog)",
+          "(exit status)",
+          ("tests/daemon/test_cli_run.py::test_a_stop_during_start_up_ends_the_arms_control_script",)),
+    Fault("A second SIGTERM or SIGINT while the devices close, or a device thread hung at shutdown",
+          "Ignored (logged) during the close; the arm is closed first and both device threads share one 5 s deadline, "
+          "under systemd's 10 s TimeoutStopSec (was: the default action killed the process before the script ended; "
+          "10 s per device, one after the other)",
+          "(log)",
+          (L + "test_close_ends_the_arm_first_and_waits_once_for_a_hung_gripper",)),
+    Fault("Sensor port present but not openable at start-up (held by another process, not a tty)",
+          "`slipd run` exits 5 with one line (was: exit 1 with a traceback)",
+          "(exit status)",
+          ("tests/daemon/test_cli_run.py::test_a_sensor_port_that_cannot_be_opened_exits_5_in_one_line",)),
+    Fault("Supervision or the device health task crashes",
+          "Logged, one fail-safe, the daemon stops and `slipd run` exits 1 for systemd to restart it (was: dead "
+          "unseen, no device health or arm reconnect, the systemd watchdog still pinged)",
+          '`slipd_failsafe_stops_total{reason="internal_error"}`',
+          (L + "test_a_crash_of_the_health_task_fails_safe_and_stops_the_daemon",)),
     Fault("Sensor port missing at start-up",
           "`slipd run` exits 5 with one line naming `sensor.port`, no traceback, before the gripper or the arm "
           "is opened (was: exit 1 with a traceback after both were opened)",

@@ -8,6 +8,7 @@ before the gripper is commanded or ur_rtde's control script replaces the user's 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 
@@ -51,7 +52,7 @@ def build_devices(cfg: SlipdConfig, metrics: Metrics) -> tuple[URArm | None, Dyn
 
     Raises ``DeviceError`` naming the device; a gripper already opened is closed again when the arm fails.
     """
-    gripper = None
+    gripper = arm = None
     try:
         if cfg.gripper.enabled:
             # grip_control: the object's force limit caps every command, the hold setting's included.
@@ -60,12 +61,18 @@ def build_devices(cfg: SlipdConfig, metrics: Metrics) -> tuple[URArm | None, Dyn
             gripper.connect()
             # slipd owns the grip: it holds at the hold setting from the start and tightens on an alarm.
             gripper.hold()
-        arm = None
         if cfg.arm.enabled:
             arm = URArm(cfg.arm, metrics=metrics)
             arm.connect()
-    except Exception as exc:  # any driver failure at start-up: refuse to run, say which device
-        if gripper is not None:
-            gripper.close()
+    except BaseException as exc:
+        # Any driver failure at start-up: refuse to run, say which device. A stop asked for meanwhile (SIGTERM, SIGINT:
+        # ``slipd.daemon.service.StopRequested``) closes what is open too: the arm's control script ends, so the
+        # arm cannot move on unwatched after slipd has gone.
+        for dev in (arm, gripper):
+            if dev is not None:
+                with contextlib.suppress(Exception):
+                    dev.close()
+        if not isinstance(exc, Exception):
+            raise
         raise DeviceError(f"device start-up failed: {' '.join(str(exc).split())}") from exc
     return arm, gripper

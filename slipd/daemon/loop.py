@@ -850,6 +850,8 @@ class Daemon:
         if task.cancelled() or self._stop.is_set():
             return
         exc = task.exception()
+        if exc is None:
+            return  # done with nothing to do (the health task without a device to poll)
         log.error("%s ended unexpectedly (%r): failing safe and stopping", task.get_name(), exc,
                   exc_info=exc)
         self._fail_safe("internal_error")

@@ -17,7 +17,9 @@ import os
 import signal
 import sys
 import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 from slipd.config import ConfigError, SlipdConfig, load_config
 from slipd.daemon.devices import DeviceError, build_devices, check_devices
@@ -28,6 +30,44 @@ from slipd.detect.ensemble import Ensemble
 from slipd.metrics import Metrics
 
 log = logging.getLogger("slipd.service")
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class StopRequested(BaseException):  # a request, like KeyboardInterrupt, not an error
+    """SIGTERM or SIGINT before the loop runs (start-up: devices being opened, the model warming up): unwinds
+    ``prepare`` like KeyboardInterrupt, so that whatever was opened is closed again. The loop installs its own
+    handlers (``Daemon.stop``); ``slipd run`` then exits 0."""
+
+
+def _stop_requested(signum: int, _frame: object) -> None:
+    raise StopRequested(signal.Signals(signum).name)
+
+
+def _ignored_while_closing(signum: int, _frame: object) -> None:
+    log.warning("%s while closing the devices: ignored, the shutdown goes on", signal.Signals(signum).name)
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back while the devices open: a stop that lands inside a driver's connect (ur_rtde
+    uploading its control script) would unwind before the driver object was kept, and nothing could end that script.
+    Delivered when the devices are open and known, so that ``prepare`` closes them."""
+    main = threading.current_thread() is threading.main_thread()
+    if main:
+        signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        if main:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+
+
+def _on_signals(handler: Callable[[int, Any], None]) -> None:
+    """Install ``handler`` for SIGINT and SIGTERM (the main thread alone may; elsewhere, as in tests, nothing)."""
+    if threading.current_thread() is threading.main_thread():
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, handler)
 
 
 @dataclass
@@ -60,6 +100,9 @@ class Service:
             server = self.metrics.serve(m.host, m.port) if m.enabled else None
             asyncio.run(_main())
         finally:
+            # The loop's handlers went with it (back to the default: die at once); a second SIGTERM must not cut the
+            # shutdown short, before the arm's control script has ended.
+            _on_signals(_ignored_while_closing)
             self.daemon.close()
             if server is not None:
                 server.shutdown()
@@ -139,7 +182,9 @@ def metrics_exposure(host: str) -> str:
 def prepare(config_path: str | os.PathLike[str]) -> Service:
     """Load and check everything, then open the devices (in that order). Raises ConfigError, ModelError or
     DeviceError; nothing is opened when the config or the model is refused or a device is missing."""
+    _on_signals(_stop_requested)  # a stop during start-up unwinds it, closing what is open (StopRequested)
     native = NativeOutput()  # first: the log handler must take the original stderr, not the pipe
+    arm = gripper = None
     try:
         cfg = load_config(config_path)
         logging.basicConfig(level=cfg.control.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -161,13 +206,18 @@ def prepare(config_path: str | os.PathLike[str]) -> Service:
                 raise ConfigError([f"{config_path}: recorder.directory: {cfg.recorder.directory} cannot be used: "
                                    f"{exc.strerror or exc}"]) from exc
         metrics = Metrics()
-        arm, gripper = build_devices(cfg, metrics)
+        with _signals_held():
+            arm, gripper = build_devices(cfg, metrics)
         daemon = Daemon(cfg, ensemble, metrics=metrics, arm=arm, gripper=gripper, notifier=Notifier())
         daemon.recorder = recorder
     except BaseException:
+        for dev in (arm, gripper):  # opened, then a stop or a failure before the daemon took them over
+            if dev is not None:
+                with contextlib.suppress(Exception):
+                    dev.close()
         native.close()
         raise
     return Service(cfg, daemon, metrics, native)
 
 
-__all__ = ["DeviceError", "Service", "prepare"]
+__all__ = ["DeviceError", "Service", "StopRequested", "prepare"]

@@ -169,3 +169,49 @@ def test_a_metrics_port_in_use_still_releases_the_devices() -> None:
         assert closed == [True]
     finally:
         taken.close()
+
+
+def test_a_stop_during_start_up_ends_the_arms_control_script(tiny_model_json: Path, tmp_path: Path) -> None:
+    """SIGINT or SIGTERM right after ur_rtde uploaded its control script (start-up, before the loop's handlers): the
+    process died at once (SIGTERM) or with a traceback (SIGINT), the script left running with no watchdog armed, so
+    the application's next move ran with no one to stop it. Now the devices are closed (the script ended), exit 0."""
+    from slipd.sim.devices.ur_controller import URControllerProcess
+
+    with EmulatedMX28() as servo, EmulatedPapillArray(_quiet_recording(), loop=True) as sensor, \
+            URControllerProcess("127.0.0.9") as ur:
+        cfg = yaml.safe_load(_config(tmp_path, tiny_model_json, sensor.port, servo.port).read_text())
+        cfg["arm"].update(enabled=True, host=ur.host)
+        cfg["reaction"].update(actions=["stop_arm", "tighten_gripper"], on_failsafe="stop_arm")
+        path = tmp_path / "arm.yaml"
+        path.write_text(yaml.safe_dump(cfg))
+        results = []
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            before = ur.state().scripts_received
+            proc = subprocess.Popen([sys.executable, "-m", "slipd", "run", "--config", str(path)],
+                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            deadline = time.monotonic() + 60
+            while ur.state().scripts_received == before or not ur.state().control_script_running:
+                assert time.monotonic() < deadline and proc.poll() is None, "the control script never came up"
+                time.sleep(0.001)
+            proc.send_signal(sig)
+            out = proc.communicate(timeout=60)[0]
+            time.sleep(0.3)
+            results.append((sig.name, proc.returncode, ur.state().control_script_running, "Traceback" in out))
+            ur.drop_connections(0.0)
+            time.sleep(0.5)
+    assert results == [("SIGINT", 0, False, False), ("SIGTERM", 0, False, False)]
+
+
+def test_a_sensor_port_that_cannot_be_opened_exits_5_in_one_line(tiny_model_json: Path, tmp_path: Path) -> None:
+    """The port exists and may be opened (``check_devices`` passes) but another process holds it: exit 1 with a
+    traceback, where the README promises 5 and one line."""
+    import fcntl
+
+    with EmulatedMX28() as servo, EmulatedPapillArray(_quiet_recording(), loop=True) as sensor:
+        path = _config(tmp_path, tiny_model_json, sensor.port, servo.port)
+        with open(sensor.port, "rb", buffering=0) as held:
+            fcntl.flock(held.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # as pyserial's exclusive open does
+            r = subprocess.run([sys.executable, "-m", "slipd", "run", "--config", str(path)],
+                               capture_output=True, text=True, timeout=120)
+    assert r.returncode == 5, r.stderr
+    assert "Traceback" not in r.stderr and "cannot open sensor port" in r.stderr.strip().splitlines()[-1]
