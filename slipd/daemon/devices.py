@@ -47,6 +47,14 @@ def check_devices(cfg: SlipdConfig, sensor_port: str | None = None) -> None:
             raise DeviceError(f"arm.host {cfg.arm.host}: RTDE port {RTDE_PORT} does not answer: {exc}") from exc
 
 
+def close_quietly(*devices: object) -> None:
+    """Close each device given (None: skipped), whatever the others do: a failure here must not keep the rest open."""
+    for dev in devices:
+        if dev is not None:
+            with contextlib.suppress(Exception):
+                dev.close()  # type: ignore[attr-defined]
+
+
 def build_devices(cfg: SlipdConfig, metrics: Metrics) -> tuple[URArm | None, DynamixelGripper | None]:
     """Open and connect the configured arm and gripper (blocking; before the loop starts).
 
@@ -68,10 +76,7 @@ def build_devices(cfg: SlipdConfig, metrics: Metrics) -> tuple[URArm | None, Dyn
         # Any driver failure at start-up: refuse to run, say which device. A stop asked for meanwhile (SIGTERM, SIGINT:
         # ``slipd.daemon.service.StopRequested``) closes what is open too: the arm's control script ends, so the
         # arm cannot move on unwatched after slipd has gone.
-        for dev in (arm, gripper):
-            if dev is not None:
-                with contextlib.suppress(Exception):
-                    dev.close()
+        close_quietly(arm, gripper)
         if not isinstance(exc, Exception):
             raise
         raise DeviceError(f"device start-up failed: {' '.join(str(exc).split())}") from exc

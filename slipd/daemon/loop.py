@@ -55,6 +55,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from slipd.daemon.devices import close_quietly
 from slipd.daemon.grip_control import GripControlSettings
 from slipd.daemon.reaction import Reaction
 from slipd.daemon.worker import DeviceWorker
@@ -87,9 +88,41 @@ def _settle(fut: asyncio.Future[None]) -> None:
         fut.set_result(None)
 
 
-def _close_quietly(dev: Any) -> None:
-    with contextlib.suppress(Exception):
-        dev.close()
+class _Reconnects:
+    """One device's reconnects on its worker thread: at most one in flight, the back-off doubling after each failure
+    (``ARM_RECONNECT_INITIAL_S`` to ``ARM_RECONNECT_MAX_S``) and starting over after a success."""
+
+    def __init__(self, worker: DeviceWorker, reconnect: Any) -> None:
+        self._worker, self._reconnect = worker, reconnect
+        self._fut: concurrent.futures.Future[Any] | None = None
+        self._delay = ARM_RECONNECT_INITIAL_S
+        self._next = 0.0
+
+    @property
+    def pending(self) -> bool:
+        return self._fut is not None
+
+    def outcome(self, now: float) -> bool | None:
+        """Whether the reconnect in flight succeeded, once it has ended (None until then, or with none in flight)."""
+        if self._fut is None or not self._fut.done():
+            return None
+        fut, self._fut = self._fut, None
+        ok = fut.exception() is None and bool(fut.result())
+        if ok:
+            self._delay = ARM_RECONNECT_INITIAL_S
+        else:
+            self._next = now + self._delay
+            self._delay = min(2 * self._delay, ARM_RECONNECT_MAX_S)
+        return ok
+
+    def due(self, now: float) -> bool:
+        """None in flight and the back-off has passed."""
+        return self._fut is None and now >= self._next
+
+    def attempt(self, now: float) -> None:
+        """Start one when it is due."""
+        if self.due(now):
+            self._fut = self._worker.submit(self._reconnect)
 
 SUPERVISION_PERIOD_S = 0.005
 """Supervision tick for short stall timeouts (up to 25 ms); longer ones allow up to SUPERVISION_MAX_PERIOD_S."""
@@ -159,9 +192,9 @@ class Daemon:
         self.health_period_s = health_period_s
         self.gripper_health_period_s = gripper_health_period_s
         self.health: dict[str, str] = {}
-        self._gripper_lost = False  # the gripper's port was dropped (an I/O error): the health task reopens it
         """Last known device condition: ``{"arm": "ok" | "disconnected" | "protective_stop",
         "gripper": "ok" | reason}``; filled by the health poll."""
+        self._gripper_lost = False  # the gripper's port was dropped (an I/O error): the health task reopens it
         self.metrics = metrics or Metrics()
         self.ensemble = ensemble
         self.detector: SlipDetector = build_detector(cfg, ensemble)
@@ -648,63 +681,48 @@ class Daemon:
             return
         arm_poll: Any = None
         grip_poll: Any = None
-        arm_reconnect: Any = None
-        reconnect_delay = ARM_RECONNECT_INITIAL_S
-        next_reconnect = 0.0
+        arm_reconnect = grip_reconnect = None
+        if arm is not None and self.arm_worker is not None:
+            arm_reconnect = _Reconnects(self.arm_worker, arm.reconnect)
+        if grip is not None and self.gripper_worker is not None and hasattr(grip, "reconnect"):
+            grip_reconnect = _Reconnects(self.gripper_worker, grip.reconnect)
         next_grip = grip_sent = 0.0
-        grip_reconnect: Any = None
-        grip_delay = ARM_RECONNECT_INITIAL_S
-        next_grip_reconnect = 0.0
         while not self._stop.is_set():
             now = time.monotonic()
             if arm is not None:
                 if arm_poll is not None and arm_poll.done():
                     self._on_arm_health(arm_poll)
                     arm_poll = None
-                if arm_reconnect is not None and arm_reconnect.done():
-                    ok = arm_reconnect.exception() is None and bool(arm_reconnect.result())
-                    arm_reconnect = None
-                    if ok:
-                        self.metrics.reconnects.labels(device="arm").inc()
-                        log.warning("arm: reconnected")
-                        reconnect_delay = ARM_RECONNECT_INITIAL_S
-                        self.health["arm"] = "reconnected"  # the next poll says whether it is healthy
-                    else:
-                        next_reconnect = now + reconnect_delay
-                        reconnect_delay = min(2 * reconnect_delay, ARM_RECONNECT_MAX_S)
+                assert arm_reconnect is not None
+                if arm_reconnect.outcome(now):
+                    self.metrics.reconnects.labels(device="arm").inc()
+                    log.warning("arm: reconnected")
+                    self.health["arm"] = "reconnected"  # the next poll says whether it is healthy
                 # A control script the watchdog ended (blind, frozen) is re-uploaded only while live: a blind
                 # daemon would let it expire again at once.
                 state = self.health.get("arm")
                 lost = state == "disconnected" or (self.live and state == "script_stopped")
-                if lost and arm_reconnect is None and now >= next_reconnect:
-                    assert self.arm_worker is not None
-                    arm_reconnect = self.arm_worker.submit(arm.reconnect)
-                elif arm_poll is None and arm_reconnect is None:
+                if lost and arm_reconnect.due(now):
+                    arm_reconnect.attempt(now)
+                elif arm_poll is None and not arm_reconnect.pending:
                     assert self.arm_worker is not None
                     arm_poll = self.arm_worker.submit(self._probe_arm)
             if grip is not None:
-                if grip_reconnect is not None and grip_reconnect.done():
-                    ok = grip_reconnect.exception() is None and bool(grip_reconnect.result())
-                    grip_reconnect = None
-                    if ok:
-                        self._gripper_lost = False
-                        self.metrics.reconnects.labels(device="gripper").inc()
-                        grip_delay, next_grip = ARM_RECONNECT_INITIAL_S, now  # the next poll says how it holds
-                    else:
-                        next_grip_reconnect = now + grip_delay
-                        grip_delay = min(2 * grip_delay, ARM_RECONNECT_MAX_S)
+                if grip_reconnect is not None and grip_reconnect.outcome(now):
+                    self._gripper_lost = False
+                    self.metrics.reconnects.labels(device="gripper").inc()
+                    next_grip = now  # the next poll says how it holds
                 if grip_poll is not None and grip_poll.done():
                     self._on_gripper_health(grip_poll)
                     grip_poll = None
                 elif grip_poll is not None and now - grip_sent > GRIPPER_HANG_S:
                     # The poll queues behind whatever the gripper thread runs: either has hung.
                     self._gripper_condition(f"not answering: a call has not returned for {now - grip_sent:.1f} s")
-                if self._gripper_lost and grip_poll is None and grip_reconnect is None:
+                reconnecting = grip_reconnect is not None and grip_reconnect.pending
+                if self._gripper_lost and grip_reconnect is not None and grip_poll is None:
                     # Its port was dropped (an unplugged adapter): reopen it, with back-off; nothing else is sent.
-                    if now >= next_grip_reconnect:
-                        assert self.gripper_worker is not None
-                        grip_reconnect = self.gripper_worker.submit(grip.reconnect)
-                elif grip_poll is None and grip_reconnect is None and now >= next_grip:
+                    grip_reconnect.attempt(now)
+                elif grip_poll is None and not reconnecting and now >= next_grip:
                     assert self.gripper_worker is not None
                     grip_poll = self.gripper_worker.submit(grip.read_status)
                     grip_sent = now
@@ -754,8 +772,7 @@ class Daemon:
         if exc is not None:
             problem = f"not answering: {exc}"
             # A port the driver dropped after an I/O error, or never had: reconnected by the health task.
-            self._gripper_lost = getattr(exc, "kind", None) in ("io", "not_connected") and hasattr(
-                self.gripper, "reconnect")
+            self._gripper_lost = getattr(exc, "kind", None) in ("io", "not_connected")
         else:
             st = fut.result()
             if st.healthy:
@@ -876,10 +893,9 @@ class Daemon:
             if dev is None:
                 continue
             if w is None:
-                with contextlib.suppress(Exception):
-                    dev.close()
+                close_quietly(dev)
                 continue
-            w.submit(_close_quietly, dev)
+            w.submit(close_quietly, dev)
             waiting.append((name, w))
         deadline = time.monotonic() + DEVICE_CLOSE_TIMEOUT_S
         for name, w in waiting:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from slipd.config import ConfigError, SlipdConfig, load_config
-from slipd.daemon.devices import DeviceError, build_devices, check_devices
+from slipd.daemon.devices import DeviceError, build_devices, check_devices, close_quietly
 from slipd.daemon.loop import Daemon
 from slipd.daemon.sdnotify import Notifier
 from slipd.detect.build import config_problems
@@ -211,10 +211,7 @@ def prepare(config_path: str | os.PathLike[str]) -> Service:
         daemon = Daemon(cfg, ensemble, metrics=metrics, arm=arm, gripper=gripper, notifier=Notifier())
         daemon.recorder = recorder
     except BaseException:
-        for dev in (arm, gripper):  # opened, then a stop or a failure before the daemon took them over
-            if dev is not None:
-                with contextlib.suppress(Exception):
-                    dev.close()
+        close_quietly(arm, gripper)  # opened, then a stop or a failure before the daemon took them over
         native.close()
         raise
     return Service(cfg, daemon, metrics, native)
