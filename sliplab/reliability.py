@@ -139,7 +139,7 @@ FAULTS: tuple[Fault, ...] = (
            "tests/daemon/test_reaction.py::test_gripper_failure_falls_back_to_arm_stop",
            "tests/io/test_gripper.py::test_a_short_silence_is_bridged_by_retries")),
     Fault("Servo answers again after a tighten failed",
-          "The failed tighten is owed until the grasp is reset and sent again when the health poll hears the "
+          "The failed tighten is owed until the grasp ends and sent again when the health poll hears the "
           "servo (was: never retried); under grip_control the fail-safe's grip at the object's limit is owed as "
           "itself (was: re-sent as a tighten, refused, and a tighten goes past the limit)",
           "(reaction log; `slipd_device_errors_total{device=\"gripper\",kind=\"reaction\"}` for the failure)",
@@ -178,6 +178,13 @@ FAULTS: tuple[Fault, ...] = (
           "passed and the servo refused the first tighten of a slip alarm)",
           "(exit status)",
           ("tests/io/test_gripper.py::test_connect_refuses_settings_beyond_the_servos_own_limits",)),
+    Fault("The object leaves the jaw while a tighten is owed (the servo silent during the alarm)",
+          "No finger in contact: the grasp has ended and what was owed to it is dropped, also a tighten in flight "
+          "that fails later; an owed arm stop stays owed (was: the owed tighten went out when the servo answered, "
+          "closing the jaw at the secure setting on the next object or a hand)",
+          "(log line)",
+          (L + "test_a_tighten_owed_to_a_grasp_that_let_go_is_not_sent_to_the_next",
+           R + "test_a_tighten_that_fails_after_its_grasp_let_go_is_not_owed")),
     Fault("A later graded alarm of lower risk (reaction.graded)",
           "The grip never loosens: the highest level sent for the grasp (1 after a secure or a fail-safe's tighten) "
           "stands, an owed lower tighten is retried at it (was: the jaw moved back, 32.7 -> 15.2 N on the emulated "

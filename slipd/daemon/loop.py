@@ -62,6 +62,7 @@ from slipd.daemon.worker import DeviceWorker
 from slipd.detect.build import build_detector
 from slipd.detect.contact import grasp_state
 from slipd.detect.detector import SlipDetector
+from slipd.geometry import CONTACT_THRESHOLD_N
 from slipd.metrics import Metrics
 
 if TYPE_CHECKING:
@@ -259,6 +260,8 @@ class Daemon:
         # state, and a gauge's function reads it; nothing is set per decision.
         self._latest: list[Detection | None] = [None] * ns
         self._latest_contact: list[ContactState | None] = [None] * ns
+        self._grasp_held = False
+        """Some finger was in contact at the latest decision with a contact state (``_track_grasp``)."""
         for k in range(ns):
             m.p_slip.labels(sensor=str(k)).set_function(partial(self._latest_value, k, "p_slip"))
             m.risk.labels(sensor=str(k)).set_function(partial(self._latest_value, k, "risk"))
@@ -355,6 +358,8 @@ class Daemon:
                     rec.trigger(det.t_us, "alarm", p_slip=det.p_slip, sensor=s)
         if grasp:  # a sensor without a valid decision (or contact state) for the last one
             self._on_grasp(grasp)
+        if dets:
+            self._track_grasp()
         if rec is not None:
             if recorded < k:
                 rec.push_frames(stamps[recorded:], force[recorded:], disp[recorded:])
@@ -370,6 +375,17 @@ class Daemon:
             if bad != self._nonfinite_seen:  # counted once per block, not per sample
                 m.nonfinite.inc(bad - self._nonfinite_seen)
                 self._nonfinite_seen = bad
+
+    def _track_grasp(self) -> None:
+        """A grasp ends when no finger is in contact any more (every sensor's latest contact state at or below the
+        SDK's contact threshold, the grip controller's release rule): the reaction then forgets what it owed that
+        grasp. A tighten owed to an object that has gone was sent once the servo answered again, closing the jaw on
+        nothing, on the next object at the old grasp's secure force, or on a hand in the way."""
+        held = any(c is not None and c.grip_n > CONTACT_THRESHOLD_N for c in self._latest_contact)
+        if held != self._grasp_held:
+            self._grasp_held = held
+            if not held:
+                self.reaction.released()
 
     def _on_grasp(self, dets: list[Detection]) -> None:
         """One decision's contact states, one per sensor, to the grip controller (``policy: grip_control``): a gripper

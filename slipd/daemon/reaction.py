@@ -17,9 +17,11 @@ Policies:
   of running the actions.
 Fail-safe (sensor stall, model failure, a device error while reacting): stop the arm, keep the grip.
 
-A tighten that failed (the servo did not answer) stays owed until the grasp is reset: ``retry_tighten``
+A tighten that failed (the servo did not answer) stays owed until the grasp ends: ``retry_tighten``
 sends it again, and the daemon calls it whenever the gripper's health poll hears the servo, so a servo
-that was silent during the alarm still secures the grasp once it is back.
+that was silent during the alarm still secures the grasp once it is back. When no finger is in contact
+any more the daemon calls ``released``: the owed tighten is void (and so is one of that grasp that fails
+later), and the next grasp starts from nothing (no re-arm window, no graded level).
 
 An arm stop the controller refused (``StopResult.ok`` False: the configured method and its fallback both
 failed) or that raised is a failure like a device error: recorded, logged, counted, and owed; the daemon
@@ -122,6 +124,8 @@ class Reaction:
         self._grasp_level = 0.0
         """The highest tighten level sent for this grasp (1: the secure setting, as a fail-safe's tighten): a later
         graded tighten never goes below it, since securing never loosens. ``reset`` (a new grasp) clears it."""
+        self._grasp_id = 0
+        """Counts grasps (``reset``): a gripper command that fails is owed only to the grasp it was sent for."""
         self.failsafe_count = 0
         if policy not in ("stop_and_secure", "grip_control"):
             raise ValueError(f"unknown reaction policy {policy!r}")
@@ -236,8 +240,16 @@ class Reaction:
         """The controller reports the arm halted (a protective stop): an owed stop is no longer needed."""
         self.stop_owed, self._stop_retries = None, 0
 
+    def released(self) -> None:
+        """The grasp let go (no finger in contact): ``reset``. An owed arm stop stays owed (what stopped the arm is
+        not undone by the object leaving the jaw)."""
+        if self._owed:
+            log.warning("contact released: the tighten owed to that grasp is dropped")
+        self.reset()
+
     def reset(self) -> None:
-        """Forget the last reaction (a new grasp); a failed tighten is no longer owed."""
+        """Forget the last reaction (a new grasp); a failed tighten is no longer owed, nor one in flight that fails."""
+        self._grasp_id += 1
         if self.grip_control is not None:
             self.grip_control.reset()
         self._last_t = None
@@ -257,6 +269,7 @@ class Reaction:
                 raise RuntimeError(f"stop refused by the controller: {getattr(result, 'error', '') or 'no reason'}")
             rec.done[action] = self.clock()
 
+        grasp = self._grasp_id
         fut: Future[Any] = worker.submit(call) if worker is not None else _run_inline(call)
         if action == "stop_arm":
             self._stop_pending = fut
@@ -275,10 +288,11 @@ class Reaction:
                     self.stop_owed = self.stop_owed or str(arg)
                 else:
                     # A gripper that cannot tighten leaves the object at risk: halt the arm whatever the policy,
-                    # and owe the tighten until the servo answers again (retry_tighten). ``_owed`` last: the loop
-                    # thread reads it first.
-                    self.tighten_owed, self._owed_call = arg, fn
-                    self._owed = True
+                    # and owe the tighten until the servo answers again (retry_tighten), unless its grasp has let
+                    # go meanwhile. ``_owed`` last: the loop thread reads it first.
+                    if grasp == self._grasp_id:
+                        self.tighten_owed, self._owed_call = arg, fn
+                        self._owed = True
                     if not self._tighten_failing:
                         # One fail-safe per run of failures: the retry on every healthy poll (a servo that answers
                         # its status but fails the command) would otherwise fail safe twice a second.

@@ -364,6 +364,64 @@ def test_the_health_polls_retry_an_owed_tighten_and_an_owed_arm_stop(base_cfg) -
     assert daemon.reaction.stop_owed is None
 
 
+def test_a_tighten_owed_to_a_grasp_that_let_go_is_not_sent_to_the_next(base_cfg) -> None:
+    """An alarm's tighten fails (the servo is silent), then the object leaves the jaw (no finger in contact at the
+    following decisions): when the servo answers again nothing is sent, where the owed tighten once closed the jaw
+    at the secure setting on whatever was there (the next object, a hand). Without the release it is still sent;
+    an owed arm stop survives the release."""
+    from concurrent.futures import Future
+
+    from slipd.io.arm import StopResult
+
+    class Grip:
+        def __init__(self) -> None:
+            self.fail, self.calls = True, 0
+
+        def tighten(self, level: float | None = None) -> None:
+            self.calls += 1
+            if self.fail:
+                raise RuntimeError("no status packet")
+
+    class Arm:
+        calls = 0
+
+        def stop(self, reason: str) -> StopResult:
+            self.calls += 1
+            return StopResult(False, "stopl", reason, 0.0, 0.0, error="refused")
+
+    done: Future[object] = Future()
+    done.set_result(SimpleNamespace(healthy=True, hardware_error=0, hardware_errors=()))
+    cfg = override(base_cfg, {"arm.enabled": False, "reaction.on_failsafe": "log_only",
+                              "reaction.actions": ["tighten_gripper"]})
+    rng = np.random.default_rng(0)
+
+    def frames(n: int, fz: float) -> np.ndarray:
+        force = rng.normal(0.0, 0.01, (n, 1, 9, 3)).astype(np.float32)
+        force[:, :, :, 2] += fz
+        return force
+
+    for release in (False, True):
+        grip, arm = Grip(), Arm()
+        daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics())
+        daemon.reaction.gripper, daemon.reaction.gripper_worker = grip, None  # calls run inline
+        daemon.reaction.arm, daemon.reaction.arm_worker = arm, None
+        daemon.reaction.actions, daemon.reaction.on_failsafe = ("stop_arm", "tighten_gripper"), "stop_arm"
+        daemon.health["gripper"] = "ok"
+        force = np.concatenate([frames(300, 0.0), frames(300, 1.5)] + ([frames(300, 0.0)] if release else []))
+        t_us = np.arange(len(force), dtype=np.int64) * 1000
+        for k in range(0, len(force), 10):
+            daemon._on_block(t_us[k : k + 10], force[k : k + 10], np.zeros_like(force[k : k + 10]))
+            if k == 500:  # in contact: an alarm whose tighten fails, and whose arm stop is refused
+                assert daemon._grasp_held
+                daemon.reaction.on_alarm(1.0)
+                assert daemon.reaction._owed and grip.calls == 1 and daemon.reaction.stop_owed
+        assert daemon._grasp_held is not release
+        grip.fail = False
+        daemon._on_gripper_health(done)  # the servo answers again
+        assert grip.calls == (1 if release else 2)
+        assert daemon.reaction.stop_owed  # the arm stays owed its stop
+
+
 def test_frames_while_the_sensor_zeroes_itself_at_start_up_are_not_decided_on(base_cfg) -> None:
     """With ``tare: bias_command`` the daemon waits ``bias_timeout_s`` at start-up while the sensor zeroes itself. The
     frames of that time are neither zeroed nor its steady output: no decision (no alarm, no reaction) may come from

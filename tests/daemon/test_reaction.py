@@ -124,6 +124,27 @@ def test_failed_tighten_is_owed_and_retried_once_the_servo_answers() -> None:
     assert r.retry_tighten() is None
 
 
+def test_a_tighten_that_fails_after_its_grasp_let_go_is_not_owed() -> None:
+    """A tighten still on the gripper's thread when the grasp ends (``released``) and failing after it is owed to no
+    one: the next grasp must not get it when the servo answers."""
+    gate = threading.Event()
+
+    class _Slow(_Dev):
+        def tighten(self, level: float | None = None) -> None:
+            gate.wait(5)
+            raise RuntimeError("no status packet")
+
+    arm, grip = _Dev(), _Slow()
+    r = Reaction(arm=arm, gripper=grip, arm_worker=DeviceWorker("arm"), gripper_worker=DeviceWorker("grip"),
+                 metrics=Metrics())
+    futs = r.on_alarm(1.0)
+    r.released()
+    gate.set()
+    _wait(futs)
+    assert _until(lambda: r.failsafe_count == 1)  # the failure is still a device fault: fail safe
+    assert not r._owed and r.retry_tighten() is None
+
+
 def test_records_are_bounded() -> None:
     from slipd.daemon.reaction import MAX_RECORDS
 
