@@ -67,8 +67,9 @@ def build_devices(cfg: SlipdConfig, metrics: Metrics) -> tuple[URArm | None, Dyn
             limit = cfg.reaction.grip_max_force_n if cfg.reaction.policy == "grip_control" else None
             gripper = DynamixelGripper(DynamixelSettings.from_config(cfg.gripper, force_limit_n=limit), metrics=metrics)
             gripper.connect()
-            # slipd owns the grip: it holds at the hold setting from the start and tightens on an alarm.
-            gripper.hold()
+            # slipd owns the grip: it holds at the hold setting from the start (or keeps the tighter grip a restart
+            # found) and tightens on an alarm.
+            gripper.take_over()
         if cfg.arm.enabled:
             arm = URArm(cfg.arm, metrics=metrics)
             arm.connect()

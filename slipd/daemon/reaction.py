@@ -121,9 +121,10 @@ class Reaction:
         the loop's own use of that state. None: on the worker's thread (no loop)."""
         self._last_t: float | None = None
         self._last_level = 0.0
-        self._grasp_level = 0.0
-        """The highest tighten level sent for this grasp (1: the secure setting, as a fail-safe's tighten): a later
-        graded tighten never goes below it, since securing never loosens. ``reset`` (a new grasp) clears it."""
+        self._grasp_level = float(getattr(gripper, "level_found", 0.0))
+        """The highest tighten level sent for this grasp (1: the secure setting, as a fail-safe's tighten; at start-up
+        the level the gripper found in place, ``Gripper.take_over``): a later graded tighten never goes below it, since
+        securing never loosens. ``reset`` (a new grasp) clears it."""
         self._grasp_id = 0
         """Counts grasps (``reset``): a gripper command that fails is owed only to the grasp it was sent for."""
         self.failsafe_count = 0

@@ -144,6 +144,8 @@ class Gripper(ABC):
     """What the reaction needs from a gripper. All methods block; call them on a device worker."""
 
     last_tighten_monotonic: float | None = None  # when the last tighten command left for the device
+    level_found: float = 0.0
+    """The grip level ``take_over`` found in place and kept (0: the hold setting): the grasp's level so far."""
 
     @abstractmethod
     def connect(self) -> None:
@@ -152,6 +154,13 @@ class Gripper(ABC):
     @abstractmethod
     def hold(self) -> None:
         """Grip at the hold setting."""
+
+    def take_over(self) -> float:
+        """At start-up: grip at the hold setting, unless the device already grips tighter (slipd restarted mid-grasp),
+        which stands. Returns the level kept, 0 (hold) .. 1 (secure). Without a way to read the grip: ``hold``."""
+        self.hold()
+        self.level_found = 0.0
+        return 0.0
 
     @abstractmethod
     def tighten(self, level: float | None = None) -> float:
@@ -345,6 +354,9 @@ class DynamixelGripper(Gripper):
         self._effort_sent: int | None = None  # 2.0: skip rewriting an unchanged Goal PWM
         self._goal_sent: int | None = None  # grip_force: the goal position it set (others clear it)
         self._pwm_limit = PWM_MAX  # 2.0: the servo's own PWM Limit (EEPROM), read at connect; grip_force stays within
+        self._found: tuple[int, int] | None = None
+        """(goal position, effort) the servo was gripping with when ``connect`` found its torque on in position mode, or
+        None (torque off, another mode, rebooted): what ``take_over`` must not loosen."""
         self._torque_off = False
         """The servo said its torque is off (a status read, or the check after a tighten): until ``connect`` or
         ``recover`` switch it on, commands are refused, so a tighten fails (and stays owed) instead of passing for
@@ -371,11 +383,29 @@ class DynamixelGripper(Gripper):
                     log.warning("%s: hardware error %s at connect: rebooting", self.device, decode_hardware_error(hw))
                     self._reboot()
                 self._check_limits_v2()
+                self._found = self._grip_found_v2()
                 self._setup_v2()
             else:
                 self._check_limits_v1()
+                self._found = self._grip_found_v1()
                 self._write(V1_TORQUE_ENABLE, bytes([1]))
             self._torque_off = False
+
+    def _grip_found_v2(self) -> tuple[int, int] | None:
+        """The goal and effort in force when torque is on in position mode (a grip slipd's setup leaves as it is)."""
+        if not self._read(V2_TORQUE_ENABLE, 1)[0][0] or self._read(V2_OPERATING_MODE, 1)[0][0] != POSITION_MODE:
+            return None
+        data = self._read(V2_GOAL_PWM, V2_GOAL_POSITION + 4 - V2_GOAL_PWM)[0]  # Goal PWM .. Goal Position, one read
+        goal = int.from_bytes(data[V2_GOAL_POSITION - V2_GOAL_PWM :], "little", signed=True)
+        return goal, int.from_bytes(data[:2], "little")
+
+    def _grip_found_v1(self) -> tuple[int, int] | None:
+        """1.0: the goal block (Goal Position, Moving Speed, Torque Limit) when torque is on."""
+        data = self._read(V1_TORQUE_ENABLE, V1_GOAL_BLOCK + 6 - V1_TORQUE_ENABLE)[0]
+        if not data[0]:
+            return None
+        block = data[V1_GOAL_BLOCK - V1_TORQUE_ENABLE :]
+        return int.from_bytes(block[:2], "little"), int.from_bytes(block[4:6], "little")
 
     def reconnect(self) -> bool:
         """Reopen the port after an I/O error dropped it (an unplugged USB adapter, the same device path back) and
@@ -401,6 +431,33 @@ class DynamixelGripper(Gripper):
         s = self.settings
         with self._lock:
             self._command(s.hold_position, s.hold_pwm)
+
+    def take_over(self) -> float:
+        """At start-up, after ``connect``: the hold setting, or the tighter grip the servo had when connect found its
+        torque on (slipd restarted, by systemd or a person, while it held an object it had secured): a goal further
+        closed than the hold position (up to the secure one) and a higher effort stand. Setting the hold then would
+        loosen a grasp that needed the secure force, and the object could fall out as slipd came back. Returns the
+        level kept, 0 (hold) .. 1 (secure), for the reaction (a graded tighten never goes below it)."""
+        s = self.settings
+        with self._lock:
+            position, effort, level = s.hold_position, s.hold_pwm, 0.0
+            found, self._found = self._found, None
+            if found is not None:
+                goal, got = found
+                span = s.secure_position - s.hold_position or 1
+                beyond = min(1.0, (goal - s.hold_position) / span)  # > 0: closed further than the hold position
+                if beyond > 0.0:
+                    position = s.hold_position + round(beyond * span)
+                    level = beyond
+                if got > s.hold_pwm:
+                    effort = min(got, max(s.secure_pwm, s.hold_pwm))
+                    level = max(level, min(1.0, (effort - s.hold_pwm) / max(1, s.secure_pwm - s.hold_pwm)))
+                if level > 0.0:
+                    log.warning("%s: the servo already grips tighter than the hold setting (goal %d, effort %d): kept "
+                                "(slipd restarted mid-grasp?), level %.2f", self.device, goal, got, level)
+            self._command(position, effort)
+            self.level_found = level
+            return level
 
     def tighten(self, level: float | None = None) -> float:
         """Tighten to the secure setting, or to ``level`` (0 = hold .. 1 = secure). Returns the send time."""

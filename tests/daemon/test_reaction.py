@@ -145,6 +145,20 @@ def test_a_tighten_that_fails_after_its_grasp_let_go_is_not_owed() -> None:
     assert not r._owed and r.retry_tighten() is None
 
 
+def test_a_graded_tighten_never_goes_below_the_grip_found_at_start_up() -> None:
+    """slipd restarted mid-grasp and the gripper kept the secure grip it found (``Gripper.take_over``): a graded alarm
+    of low risk tightens at that level, not below it; a new grasp starts from nothing."""
+    grip = _Dev()
+    grip.level_found = 1.0
+    r = Reaction(arm=_Dev(), gripper=grip, arm_worker=DeviceWorker("arm"), gripper_worker=DeviceWorker("grip"),
+                 metrics=Metrics(), graded=True, rearm_after_s=0.0)
+    _wait(r.on_alarm(0.3))
+    assert grip.calls == [("tighten", 1.0)]
+    r.released()
+    _wait(r.on_alarm(0.3))
+    assert grip.calls[-1] == ("tighten", 0.3)
+
+
 def test_records_are_bounded() -> None:
     from slipd.daemon.reaction import MAX_RECORDS
 

@@ -219,6 +219,44 @@ def test_hold_sets_goal_and_effort_and_grips(emu, gripper, clock, protocol):
     assert emu.grip_force_n == pytest.approx(expected_force(HOLD_POS, 300, protocol), rel=1e-3)
 
 
+def test_a_restart_mid_grasp_keeps_the_tighter_grip_it_finds(emu, metrics, clock, protocol):
+    """slipd restarted (systemd after a crash, a person) while the jaw holds an object it had secured: the new
+    process's start-up grip (``take_over``) keeps the secure goal and effort in place, where the hold setting would
+    loosen the grasp as slipd came back. A servo gripping looser than the hold setting, or with its torque off (power
+    on), gets the hold setting."""
+    effort_reg = "goal_pwm" if protocol == 2.0 else "torque_limit"
+    first = DynamixelGripper(make_settings(emu), metrics)
+    first.connect()
+    assert first.take_over() == 0.0  # torque was off: a fresh start holds
+    assert (emu.register("goal_position"), emu.register(effort_reg)) == (HOLD_POS, 300)
+    first.tighten()
+    clock.advance(1.0)
+    secured = emu.grip_force_n
+    first.close()  # the process ends; the servo keeps its torque and goal (torque_off_on_close is off)
+
+    again = DynamixelGripper(make_settings(emu), metrics)
+    again.connect()
+    assert again.take_over() == 1.0 and again.level_found == 1.0
+    assert (emu.register("goal_position"), emu.register(effort_reg)) == (SECURE_POS, top_effort(protocol))
+    clock.advance(1.0)
+    assert emu.grip_force_n == pytest.approx(secured)  # not loosened
+    mid = round(HOLD_POS + 0.2 * (SECURE_POS - HOLD_POS))
+    again.release()
+    again.close()
+
+    looser = DynamixelGripper(make_settings(emu), metrics)
+    looser.connect()  # found open (goal 1500, below the hold position), torque on
+    assert looser.take_over() == 0.0
+    assert (emu.register("goal_position"), emu.register(effort_reg)) == (HOLD_POS, 300)
+    looser.tighten(0.2)
+    looser.close()
+    partway = DynamixelGripper(make_settings(emu), metrics)
+    partway.connect()
+    assert partway.take_over() == pytest.approx(0.2, abs=0.01)
+    assert emu.register("goal_position") == mid
+    partway.close()
+
+
 def test_hold_force_is_capped_by_the_effort_setting(emu, metrics, clock, protocol):
     g = DynamixelGripper(make_settings(emu, hold_pwm=150), metrics)
     g.connect()
