@@ -497,14 +497,25 @@ class Daemon:
         except SensorError as exc:
             log.error("sensor: cannot set it up again after the reconnect: %s", exc)
 
-    def _set_up_sensor(self) -> bool:
+    def _set_up_sensor(self, start_up: bool = False) -> bool:
         """Send the configured rate and, with ``tare: bias_command``, the bias (at start-up and after a reconnect);
-        True when a bias was sent (the sensor zeroes itself for ``sensor.bias_timeout_s``)."""
+        True when a bias was sent (the sensor zeroes itself for ``sensor.bias_timeout_s``).
+
+        Not at a start-up that found the jaw gripping (``Gripper.gripping_found``: slipd restarted mid-grasp, its
+        sensor's controller still powered and zeroed from before): a bias then would take the held object's load for
+        the zero, and the detector would see no contact for as long as that grasp lasts."""
         from slipd.io.pts import CMD_BIAS, rate_command
 
         cfg = self.cfg.sensor
         self.sensor.send_command(rate_command(cfg.rate_hz))
+        if cfg.tare == "startup" and start_up and getattr(self.gripper, "gripping_found", False):
+            log.warning("sensor: the jaw grips already (slipd restarted mid-grasp?): tare: startup averages the held "
+                        "load into its zero; tare: bias_command keeps the sensor's zero from before")
         if cfg.tare != "bias_command":
+            return False
+        if start_up and getattr(self.gripper, "gripping_found", False):
+            log.warning("sensor: the jaw grips already (slipd restarted mid-grasp?): no bias sent, the sensor's zero "
+                        "from before stands")
             return False
         self.sensor.send_command(CMD_BIAS)
         return True
@@ -835,7 +846,7 @@ class Daemon:
             low_latency=cfg.low_latency,
         )
         await self.sensor.start()
-        if self._set_up_sensor():
+        if self._set_up_sensor(start_up=True):
             # The frames while the sensor zeroes itself are neither zeroed nor its steady output: not decided on (no
             # alarm, no grip command from them), as after a reconnect; the first frame after it restarts the history.
             self._bias_until = time.monotonic() + cfg.bias_timeout_s

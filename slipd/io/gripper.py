@@ -146,6 +146,9 @@ class Gripper(ABC):
     last_tighten_monotonic: float | None = None  # when the last tighten command left for the device
     level_found: float = 0.0
     """The grip level ``take_over`` found in place and kept (0: the hold setting): the grasp's level so far."""
+    gripping_found: bool = False
+    """``take_over`` found the jaw gripping already (torque on, the goal at or past the hold position): slipd restarted
+    mid-grasp, so the sensor's zero from before must stand (``slipd.daemon.loop.Daemon._set_up_sensor``)."""
 
     @abstractmethod
     def connect(self) -> None:
@@ -442,10 +445,12 @@ class DynamixelGripper(Gripper):
         with self._lock:
             position, effort, level = s.hold_position, s.hold_pwm, 0.0
             found, self._found = self._found, None
+            self.gripping_found = False
             if found is not None:
                 goal, got = found
                 span = s.secure_position - s.hold_position or 1
                 beyond = min(1.0, (goal - s.hold_position) / span)  # > 0: closed further than the hold position
+                self.gripping_found = beyond >= 0.0
                 if beyond > 0.0:
                     position = s.hold_position + round(beyond * span)
                     level = beyond

@@ -458,6 +458,46 @@ def test_frames_while_the_sensor_zeroes_itself_at_start_up_are_not_decided_on(ba
     assert seen["post"] and daemon.reaction.post is None
 
 
+def test_a_restart_that_finds_the_jaw_gripping_keeps_the_sensors_zero(base_cfg) -> None:
+    """slipd restarted mid-grasp (``Gripper.take_over`` found the jaw gripping): the start-up bias is not sent, so
+    the held object's load is not taken for the zero and the contact stays visible to the detector. A start that found
+    the jaw open zeroes the sensor as before (here under the same load, which then reads as no contact)."""
+
+    class Grip:
+        def __init__(self, gripping: bool) -> None:
+            self.gripping_found = gripping
+
+        def close(self) -> None:
+            pass
+
+    cfg = override(base_cfg, {"sensor.tare": "bias_command", "sensor.bias_timeout_s": 0.5, "arm.enabled": False,
+                              "reaction.actions": ["tighten_gripper"], "reaction.on_failsafe": "log_only"})
+    from slipd.recording import Recording
+
+    force = np.random.default_rng(0).normal(0.0, 0.01, (5000, 9, 3)).astype(np.float32)
+    force[:, :, 2] += 1.5  # a still grasp from the first frame, 1.5 N on every pillar
+    held = Recording(t_us=np.arange(5000) * 1000, force=force, disp=np.zeros_like(force))
+    for gripping in (True, False):
+        sensor = EmulatedPapillArray(held, loop=True)  # streams on its own thread, which also obeys the commands
+        daemon = Daemon(override(cfg, {"sensor.port": sensor.port}), Ensemble.load(cfg.model.manifest),
+                        metrics=Metrics(), gripper=Grip(gripping))  # type: ignore[arg-type]
+
+        async def main(daemon: Daemon, sensor: EmulatedPapillArray) -> None:
+            task = asyncio.create_task(daemon.run())
+            sensor.start()
+            await until(lambda: daemon.live and daemon.stats.decisions > 20, what="live")
+            daemon.stop()
+            await task
+
+        try:
+            asyncio.run(main(daemon, sensor))
+        finally:
+            daemon.close()
+            sensor.close()
+        assert (("bias", None) in sensor.commands) is not gripping, sensor.commands
+        assert daemon._grasp_held is gripping
+
+
 def test_a_gripper_call_that_hangs_is_a_gripper_fault(base_cfg, monkeypatch) -> None:
     """A call stuck in the vendor library (the status poll, or a grip command it queues behind) never returned, so
     the gripper stayed 'ok' for good with the grip frozen; past GRIPPER_HANG_S it is a gripper fault (one fail-safe),

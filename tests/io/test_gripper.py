@@ -227,7 +227,7 @@ def test_a_restart_mid_grasp_keeps_the_tighter_grip_it_finds(emu, metrics, clock
     effort_reg = "goal_pwm" if protocol == 2.0 else "torque_limit"
     first = DynamixelGripper(make_settings(emu), metrics)
     first.connect()
-    assert first.take_over() == 0.0  # torque was off: a fresh start holds
+    assert first.take_over() == 0.0 and not first.gripping_found  # torque was off: a fresh start holds
     assert (emu.register("goal_position"), emu.register(effort_reg)) == (HOLD_POS, 300)
     first.tighten()
     clock.advance(1.0)
@@ -236,7 +236,7 @@ def test_a_restart_mid_grasp_keeps_the_tighter_grip_it_finds(emu, metrics, clock
 
     again = DynamixelGripper(make_settings(emu), metrics)
     again.connect()
-    assert again.take_over() == 1.0 and again.level_found == 1.0
+    assert again.take_over() == 1.0 and again.level_found == 1.0 and again.gripping_found
     assert (emu.register("goal_position"), emu.register(effort_reg)) == (SECURE_POS, top_effort(protocol))
     clock.advance(1.0)
     assert emu.grip_force_n == pytest.approx(secured)  # not loosened
@@ -246,13 +246,13 @@ def test_a_restart_mid_grasp_keeps_the_tighter_grip_it_finds(emu, metrics, clock
 
     looser = DynamixelGripper(make_settings(emu), metrics)
     looser.connect()  # found open (goal 1500, below the hold position), torque on
-    assert looser.take_over() == 0.0
+    assert looser.take_over() == 0.0 and not looser.gripping_found
     assert (emu.register("goal_position"), emu.register(effort_reg)) == (HOLD_POS, 300)
     looser.tighten(0.2)
     looser.close()
     partway = DynamixelGripper(make_settings(emu), metrics)
     partway.connect()
-    assert partway.take_over() == pytest.approx(0.2, abs=0.01)
+    assert partway.take_over() == pytest.approx(0.2, abs=0.01) and partway.gripping_found
     assert emu.register("goal_position") == mid
     partway.close()
 
