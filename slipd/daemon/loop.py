@@ -850,7 +850,10 @@ class Daemon:
             # The frames while the sensor zeroes itself are neither zeroed nor its steady output: not decided on (no
             # alarm, no grip command from them), as after a reconnect; the first frame after it restarts the history.
             self._bias_until = time.monotonic() + cfg.bias_timeout_s
-            await asyncio.sleep(cfg.bias_timeout_s)
+            # A stop meanwhile ends the wait (up to 30 s, beyond systemd's TimeoutStopSec, which then killed slipd
+            # before it closed the devices).
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), cfg.bias_timeout_s)
         # Everything built so far (modules, the model, the devices) lives as long as the daemon: out of the
         # collector's sight, so a full collection scans only what the loop allocates since (it stalled the
         # loop for ~20 ms at the worst, tools/bench_daemon.py).

@@ -498,6 +498,31 @@ def test_a_restart_that_finds_the_jaw_gripping_keeps_the_sensors_zero(base_cfg) 
         assert daemon._grasp_held is gripping
 
 
+def test_a_stop_during_the_start_up_bias_wait_ends_it(base_cfg) -> None:
+    """SIGTERM while the daemon waits for the sensor to zero itself (``sensor.bias_timeout_s``, up to 30 s): run ends
+    at once, where it once slept the wait out past systemd's 10 s TimeoutStopSec (killed before the devices closed)."""
+    cfg = override(base_cfg, {"sensor.tare": "bias_command", "sensor.bias_timeout_s": 20.0, "arm.enabled": False,
+                              "reaction.actions": ["tighten_gripper"], "reaction.on_failsafe": "log_only"})
+    sensor = EmulatedPapillArray()
+    daemon = Daemon(override(cfg, {"sensor.port": sensor.port}), Ensemble.load(cfg.model.manifest), metrics=Metrics())
+    took: list[float] = []
+
+    async def main() -> None:
+        task = asyncio.create_task(daemon.run())
+        await until(lambda: daemon._bias_until is not None, what="the bias wait")
+        t0 = time.monotonic()
+        daemon.stop()
+        await asyncio.wait_for(task, 10.0)
+        took.append(time.monotonic() - t0)
+
+    try:
+        asyncio.run(main())
+    finally:
+        daemon.close()
+        sensor.close()
+    assert took[0] < 2.0 and daemon.stats.decisions == 0
+
+
 def test_a_gripper_call_that_hangs_is_a_gripper_fault(base_cfg, monkeypatch) -> None:
     """A call stuck in the vendor library (the status poll, or a grip command it queues behind) never returned, so
     the gripper stayed 'ok' for good with the grip frozen; past GRIPPER_HANG_S it is a gripper fault (one fail-safe),
