@@ -305,30 +305,38 @@ def test_a_stream_that_stops_short_of_a_decision_is_a_stall_even_when_its_last_f
     assert cause is not None and cause[0] == "no_decisions", cause
 
 
+class _SilentServo:
+    """A gripper whose tighten fails (no status packet) until ``fail`` is cleared; counts its calls."""
+
+    def __init__(self) -> None:
+        self.fail, self.calls = True, 0
+
+    def tighten(self, level: float | None = None) -> None:
+        self.calls += 1
+        if self.fail:
+            raise RuntimeError("no status packet")
+
+
+class _RefusingArm:
+    """An arm whose controller refuses the stop until ``refuse`` is cleared; counts its calls."""
+
+    def __init__(self) -> None:
+        self.refuse, self.calls = True, 0
+
+    def stop(self, reason: str) -> object:
+        from slipd.io.arm import StopResult
+
+        self.calls += 1
+        return StopResult(not self.refuse, "stopl", reason, 0.0, 0.0, error="refused" if self.refuse else "")
+
+
 def test_the_health_polls_retry_an_owed_tighten_and_an_owed_arm_stop(base_cfg) -> None:
     """A tighten that failed in a silence shorter than the gripper's poll period is sent again on the next healthy
     poll (no 'healthy again' transition is ever seen); a stop the controller refused is sent again on every arm poll
     that reaches it, and a protective stop (the arm halted) clears it."""
     from concurrent.futures import Future
 
-    from slipd.io.arm import StopResult
-
-    class Grip:
-        def __init__(self) -> None:
-            self.fail, self.calls = True, 0
-
-        def tighten(self, level: float | None = None) -> None:
-            self.calls += 1
-            if self.fail:
-                raise RuntimeError("no status packet")
-
-    class Arm:
-        def __init__(self) -> None:
-            self.refuse, self.calls = True, 0
-
-        def stop(self, reason: str) -> StopResult:
-            self.calls += 1
-            return StopResult(not self.refuse, "stopl", reason, 0.0, 0.0, error="refused" if self.refuse else "")
+    Grip, Arm = _SilentServo, _RefusingArm
 
     def done(value: object) -> Future[object]:
         f: Future[object] = Future()
@@ -371,23 +379,7 @@ def test_a_tighten_owed_to_a_grasp_that_let_go_is_not_sent_to_the_next(base_cfg)
     an owed arm stop survives the release."""
     from concurrent.futures import Future
 
-    from slipd.io.arm import StopResult
-
-    class Grip:
-        def __init__(self) -> None:
-            self.fail, self.calls = True, 0
-
-        def tighten(self, level: float | None = None) -> None:
-            self.calls += 1
-            if self.fail:
-                raise RuntimeError("no status packet")
-
-    class Arm:
-        calls = 0
-
-        def stop(self, reason: str) -> StopResult:
-            self.calls += 1
-            return StopResult(False, "stopl", reason, 0.0, 0.0, error="refused")
+    Grip, Arm = _SilentServo, _RefusingArm
 
     done: Future[object] = Future()
     done.set_result(SimpleNamespace(healthy=True, hardware_error=0, hardware_errors=()))
