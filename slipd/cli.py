@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -124,9 +125,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
         if problems:  # as check-config and run refuse it
             _err("\n".join(problems))
             return EXIT_CONFIG
-    if args.json and not Path(args.json).resolve().parent.is_dir():
-        _err(f"slipd replay: --json {args.json}: its folder does not exist")  # before the output, not after it
-        return EXIT_USAGE
+    if args.json:  # checked before the output, not after it
+        out_path = Path(args.json).resolve()
+        target = out_path if out_path.exists() else out_path.parent
+        problem = ("its folder does not exist" if not out_path.parent.is_dir() else "is a folder" if out_path.is_dir()
+                   else "cannot be written" if not os.access(target, os.W_OK) else None)
+        if problem:
+            _err(f"slipd replay: --json {args.json}: {problem}")
+            return EXIT_USAGE
     try:
         rec = Recording.load(args.recording)
     except RecordingError as exc:
@@ -150,6 +156,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
     onset = rec.onset_index()
     if onset is not None:
         print(f"  labelled onset at sample {onset}  t={(int(rec.t_us[onset]) - t0) / 1e6:.3f} s")
+    bad, blind = nonfinite_runs(rec)
+    if bad:
+        # The live daemon is blind on such a run (the sensor_nonfinite fail-safe) where the replay only holds values.
+        at = "" if blind is None else f"; the daemon would fail safe (sensor_nonfinite) at t={(blind - t0) / 1e6:.3f} s"
+        print(f"  {bad} sample(s) not finite{at}")
     if args.json:
         # Each decision with its contact state (issue 16: the slip map, friction estimate, contact risk, grip, load).
         decisions: list[dict[str, Any]] = [
@@ -162,6 +173,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
             "alarms": [d.index for d in alarms],
             "decisions": decisions,
         }
+        if bad:
+            out["nonfinite_samples"] = bad
+            out["failsafe_t_us"] = blind
         if finger:
             out["sensors"] = rec.sensors
             out["alarm_sensors"] = [d.sensor for d in alarms]
@@ -173,8 +187,33 @@ def cmd_replay(args: argparse.Namespace) -> int:
             for entry, d in zip(decisions, dets):
                 v = float(est[min(d.index, len(est) - 1), d.sensor])
                 entry["controller_friction"] = None if v != v else round(v, 4)  # NaN: it reported none
-        Path(args.json).write_text(json.dumps(out, indent=1))
+        try:
+            Path(args.json).write_text(json.dumps(out, indent=1))
+        except OSError as exc:
+            _err(f"slipd replay: --json {args.json}: cannot write ({exc.strerror or exc})")
+            return EXIT_RUNTIME
+    if bad == len(rec) and len(rec):
+        _err(f"slipd replay: {args.recording}: no finite sample: nothing was decided on")
+        return EXIT_RUNTIME
     return EXIT_OK
+
+
+def nonfinite_runs(rec: Any) -> tuple[int, int | None]:
+    """Samples of ``rec`` with a non-finite force (any sensor), and the t_us at which a run of them first outlasts
+    what the daemon bridges (``NONFINITE_BRIDGE_S``: there it goes blind and fails safe), or None."""
+    import numpy as np
+
+    from slipd.daemon.loop import NONFINITE_BRIDGE_S
+
+    force = np.asarray(rec.force)
+    bad = ~np.isfinite(force.reshape(len(force), -1)).all(axis=1)
+    bridge = max(1, round(NONFINITE_BRIDGE_S * rec.rate_hz))
+    run = 0
+    for k in np.flatnonzero(bad).tolist() if bad.any() else ():
+        run = run + 1 if k and bad[k - 1] else 1
+        if run > bridge:
+            return int(bad.sum()), int(rec.t_us[k])
+    return int(bad.sum()), None
 
 
 # ---------------------------------------------------------------------------------------------- models
@@ -206,13 +245,26 @@ def cmd_sim(args: argparse.Namespace) -> int:
     except ImportError as exc:
         _err(f"slipd sim needs the simulator's extra: pip install 'slipd[sim]' ({exc})")
         return EXIT_USAGE
+    from slipd.config import ConfigError
+    from slipd.sim.scene import SceneError
+
     for given, default, what in ((args.scene, DEFAULT_SCENE, "--scene"), (args.config, DEFAULT_CONFIG, "--config")):
         path = Path(given) if given else default
         if not path.is_file():
             # The defaults live in a source checkout (config/); an installed package has none.
             _err(f"slipd sim: {what} {path}: file not found (run from a slipd checkout, or pass {what})")
             return EXIT_USAGE
-    return main_sim(args)
+    if args.duration is not None and not args.duration > 0:
+        _err(f"slipd sim: --duration {args.duration}: must be > 0 seconds")
+        return EXIT_USAGE
+    try:
+        return main_sim(args)
+    except ConfigError as exc:
+        _err(exc)
+        return EXIT_CONFIG
+    except SceneError as exc:
+        _err(f"slipd sim: {exc}")
+        return EXIT_USAGE
 
 
 def cmd_version(args: argparse.Namespace) -> int:

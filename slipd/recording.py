@@ -355,7 +355,7 @@ def read_sdk_csv(path: str | Path) -> Recording:
     path = Path(path)
     meta: dict[str, Any] = {}
     try:
-        with open(path, newline="", encoding="utf-8") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a file re-saved by a spreadsheet has a BOM
             lines = fh.readlines()
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read ({exc.strerror or exc})") from None
@@ -404,6 +404,12 @@ def read_sdk_csv(path: str | Path) -> Recording:
     while ns < MAX_SENSORS and all(f"S{ns}_P{p}_{q}{a}" in index
                                    for p in range(N_PILLARS) for q in "DF" for a in _AXES):
         ns += 1
+    partial = [f"S{ns}_P{p}_{q}{a}" for p in range(N_PILLARS) for q in "DF" for a in _AXES] if ns < MAX_SENSORS else []
+    if any(c in index for c in partial):
+        # A finger's block with columns missing: reading the file as one finger fewer would drop that finger silently.
+        gone = [c for c in partial if c not in index]
+        raise RecordingError(f"{path}: sensor S{ns} has {len(partial) - len(gone)} of its {len(partial)} columns; "
+                             f"missing {gone[:4]}{'...' if len(gone) > 4 else ''}")
 
     def values(q: str) -> np.ndarray:
         per = [np.stack([np.stack([col(f"S{s}_P{p}_{q}{a}") for a in _AXES], -1) for p in range(N_PILLARS)], 1)

@@ -258,7 +258,9 @@ def test_replay_on_metadata_the_decision_path_cannot_follow_prints_one_line(tmp_
     a --json into a folder that does not exist: each raised a traceback (the last after the output was printed)."""
     from slipd.cli import main
 
-    cases = {"short.npz": (_rec(10), {"tare_samples": [20, 300]}, "empty tare stretch [20, 300)"),
+    cases = {"short.npz": (_rec(10), {"tare_samples": [20, 300]}, "[20, 300] is not a stretch of its 10 samples"),
+             "long.npz": (_rec(200), {"tare_samples": [20, 5000]}, "[20, 5000] is not a stretch of its 200 samples"),
+             "neg.npz": (_rec(200), {"tare_samples": [-30, -1]}, "[-30, -1] is not a stretch of its 200 samples"),
              "stretch.npz": (_rec(200), {"tare_samples": 5}, "meta tare_samples: 5, expected [start, stop]"),
              "offset.npz": (_rec(200), {"tare_offset": [1, 2, 3]}, "meta tare_offset: shape [3], expected [9, 3]")}
     for name, (rec, meta, part) in cases.items():
@@ -272,6 +274,63 @@ def test_replay_on_metadata_the_decision_path_cannot_follow_prints_one_line(tmp_
     assert main(["replay", str(tmp_path / "ok.npz"), "--json", str(tmp_path / "nowhere" / "o.json")]) == 2
     out = capsys.readouterr()
     assert out.out == "" and "its folder does not exist" in out.err
+
+
+def test_replay_refuses_what_the_daemon_would_not_decide_on_alike(tmp_path, capsys) -> None:
+    """A recording at another rate than the model's (by its timestamps or its meta), a two-sensor CSV missing some of a
+    finger's columns, a --json path that is a folder: one line each, where replay decided on them and exited 0 (a
+    100 Hz log went through the 1 kHz model and missed its slip; the finger with missing columns was dropped)."""
+    from slipd.cli import main
+    from slipd.models import SAMPLE_RECORDING
+
+    sample = Recording.load(SAMPLE_RECORDING)
+    slow = Recording.load(SAMPLE_RECORDING)
+    slow.t_us = slow.t_us * 10
+    slow.save(tmp_path / "r100.npz")
+    stated = Recording.load(SAMPLE_RECORDING)
+    stated.meta["rate_hz"] = 500
+    stated.save(tmp_path / "meta500.npz")
+    two = Recording(t_us=sample.t_us, force=np.stack([sample.force] * 2, 1), disp=np.stack([sample.disp] * 2, 1))
+    write_sdk_csv(two, tmp_path / "two.csv")
+    lines = (tmp_path / "two.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    keep = [i for i, h in enumerate(header) if not (h.startswith("S1_") and "_D" in h)]
+    (tmp_path / "partial.csv").write_text("\n".join(",".join(r.split(",")[i] for i in keep) for r in lines) + "\n")
+    cases = {"r100.npz": "sampled at 100.0 Hz by its timestamps", "meta500.npz": "sampled at 500 Hz by meta rate_hz",
+             "partial.csv": "sensor S1 has 27 of its 54 columns"}
+    for name, part in cases.items():
+        assert main(["replay", str(tmp_path / name)]) == 1
+        out = capsys.readouterr()
+        assert out.out == "" and out.err.count("\n") == 1 and part in out.err, out.err
+    assert main(["replay", str(SAMPLE_RECORDING), "--json", str(tmp_path)]) == 2
+    assert "is a folder" in capsys.readouterr().err
+    bom = tmp_path / "bom.csv"  # a spreadsheet's re-save puts a byte order mark before the header
+    write_sdk_csv(sample, tmp_path / "plain.csv")
+    bom.write_text("\ufeff" + (tmp_path / "plain.csv").read_text(), encoding="utf-8")
+    assert np.array_equal(read_sdk_csv(bom).force, read_sdk_csv(tmp_path / "plain.csv").force)
+
+
+def test_replay_says_where_the_daemon_would_go_blind_on_non_finite_samples(tmp_path, capsys) -> None:
+    """Non-finite samples are held over by the features in replay, but the daemon fails safe once a run of them
+    outlasts its bridge (5 ms): replay says so (printed and in the JSON), and a recording with no finite sample at all
+    exits 1 (it printed a clean 'no alarm')."""
+    import json
+
+    from slipd.cli import main
+    from slipd.models import SAMPLE_RECORDING
+
+    rec = Recording.load(SAMPLE_RECORDING)
+    rec.force[1000:] = np.inf
+    rec.save(tmp_path / "inf.npz")
+    assert main(["replay", str(tmp_path / "inf.npz"), "--json", str(tmp_path / "o.json")]) == 0
+    t0 = int(rec.t_us[0])
+    assert f"fail safe (sensor_nonfinite) at t={(int(rec.t_us[1005]) - t0) / 1e6:.3f} s" in capsys.readouterr().out
+    out = json.loads((tmp_path / "o.json").read_text())
+    assert out["nonfinite_samples"] == len(rec) - 1000 and out["failsafe_t_us"] == int(rec.t_us[1005])
+    rec.force[:] = np.nan
+    rec.save(tmp_path / "nan.npz")
+    assert main(["replay", str(tmp_path / "nan.npz")]) == 1
+    assert "no finite sample" in capsys.readouterr().err
 
 
 def test_the_rate_of_a_recording_with_repeated_timestamps_is_the_sensors() -> None:

@@ -30,6 +30,22 @@ if TYPE_CHECKING:
     from slipd.detect.ensemble import Ensemble
 
 
+RATE_TOLERANCE = 0.02
+"""How far a recording's sample rate may sit from the model's (timestamps of a real log jitter)."""
+
+
+def check_rate(rec: Recording, ensemble: Ensemble) -> None:
+    """Refuse a recording at another sample rate than the model's (ValueError): the daemon refuses such a sensor rate,
+    and the model's windows and median would span another time (a 100 Hz log replayed as 1 kHz misses its slip)."""
+    want = float(ensemble.feature_spec.rate_hz)
+    stated = rec.meta.get("rate_hz")
+    for what, got in (("its timestamps", rec.rate_hz if len(rec) >= 2 else want), ("meta rate_hz", stated)):
+        if got is None:
+            continue
+        if not isinstance(got, (int, float)) or not abs(float(got) - want) <= RATE_TOLERANCE * want:
+            raise ValueError(f"sampled at {got!r} Hz by {what}, but the model decides on {want:g} Hz samples")
+
+
 def detector_for(rec: Recording, ensemble: Ensemble, cfg: SlipdConfig | None = None) -> SlipDetector:
     """The detector the daemon would build for this recording (see the module docstring for the tare)."""
     n = rec.sensors
@@ -45,12 +61,15 @@ def detector_for(rec: Recording, ensemble: Ensemble, cfg: SlipdConfig | None = N
     if not (integral and len(stretch) == 2):
         raise ValueError(f"meta tare_samples: {stretch!r}, expected [start, stop] sample indices")
     a, b = stretch
+    if (a, b) != (0, 0) and not 0 <= a < b <= len(rec):
+        raise ValueError(f"meta tare_samples: [{a}, {b}] is not a stretch of its {len(rec)} samples")
     if a == 0:
         return build_detector(None, ensemble, tare_samples=int(b), sensors=n)
     return build_detector(None, ensemble, offset=tare_offset(rec.force, int(a), int(b)), sensors=n)
 
 
 def replay(rec: Recording, ensemble: Ensemble, cfg: SlipdConfig | None = None) -> list[Detection]:
-    """Every decision the daemon makes on ``rec``."""
+    """Every decision the daemon makes on ``rec`` (ValueError: a recording at another rate than the model's)."""
+    check_rate(rec, ensemble)
     ensemble.reset()
     return run_recording(detector_for(rec, ensemble, cfg), rec.force, rec.t_us, rec.disp)

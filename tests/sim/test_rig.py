@@ -42,3 +42,20 @@ def test_without_reaction_the_object_slips_further(runs) -> None:
     assert off.alarm_s is not None  # it still detects: only the reaction is off
     assert off.stop_reached_s is None and off.tighten_reached_s is None
     assert off.translation_mm > on.translation_mm + 2.0, (on.lines(), off.lines())
+
+
+def test_slipd_sim_turns_a_broken_config_scene_or_duration_into_one_line(tmp_path, capsys) -> None:
+    """A config error exits 3 and a scene error or a duration that is not positive exits 2, one line each (they were
+    tracebacks, exit 1); nothing runs."""
+    from slipd.cli import main
+
+    bad_cfg = tmp_path / "sim.yaml"
+    bad_cfg.write_text(CONFIG.read_text().replace("rate_hz: 1000", "rate_hz: 7", 1))
+    bad_scene = tmp_path / "scene.yaml"
+    bad_scene.write_text("name: nothing\n")
+    cases = [(["--config", str(bad_cfg)], 3, "sensor.rate_hz"), (["--scene", str(bad_scene)], 2, "family: required"),
+             (["--duration", "-1"], 2, "--duration -1.0: must be > 0")]
+    for extra, code, part in cases:
+        assert main(["sim", "--plot", "", *extra]) == code
+        out = capsys.readouterr()
+        assert out.out == "" and part in out.err, out.err
