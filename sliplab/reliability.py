@@ -187,7 +187,8 @@ FAULTS: tuple[Fault, ...] = (
           "(log line)",
           ("tests/io/test_gripper.py::test_a_restart_mid_grasp_keeps_the_tighter_grip_it_finds",
            R + "test_a_graded_tighten_never_goes_below_the_grip_found_at_start_up",
-           L + "test_a_restart_that_finds_the_jaw_gripping_keeps_the_sensors_zero")),
+           L + "test_a_restart_that_finds_the_jaw_gripping_keeps_the_sensors_zero",
+           L + "test_the_daemons_start_up_keeps_a_grip_it_secured_before_a_restart")),
     Fault("The object leaves the jaw while a tighten is owed (the servo silent during the alarm)",
           "No finger in contact: the grasp has ended and what was owed to it is dropped, also a tighten in flight "
           "that fails later; an owed arm stop stays owed (was: the owed tighten went out when the servo answered, "

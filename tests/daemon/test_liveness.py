@@ -515,6 +515,31 @@ def test_a_stop_during_the_start_up_bias_wait_ends_it(base_cfg) -> None:
     assert took[0] < 2.0 and daemon.stats.decisions == 0
 
 
+def test_the_daemons_start_up_keeps_a_grip_it_secured_before_a_restart(base_cfg) -> None:
+    """The devices as ``slipd run`` builds them (real dynamixel-sdk, the emulated MX-28 keeping its registers across
+    the two processes' connections): after a secure and a restart the servo still has the secure goal and effort, the
+    gripper says it found the jaw gripping, and the new daemon's reaction starts the grasp at level 1."""
+    cfg = override(base_cfg, {"arm.enabled": False, "reaction.actions": ["tighten_gripper"],
+                              "reaction.on_failsafe": "log_only", "reaction.graded": True})
+    with EmulatedMX28() as servo:
+        cfg = override(cfg, {"gripper.port": servo.port})
+        _, gripper = build_devices(cfg, Metrics())
+        assert gripper is not None and not gripper.gripping_found  # a fresh servo: torque was off
+        assert servo.register("goal_position") == cfg.gripper.hold_position
+        gripper.tighten()
+        gripper.close()  # slipd ends (torque_off_on_close is off): the servo holds on
+        _, gripper = build_devices(cfg, Metrics())
+        assert gripper is not None
+        try:
+            assert gripper.gripping_found and gripper.level_found == 1.0
+            assert servo.register("goal_position") == cfg.gripper.secure_position
+            assert servo.register("goal_pwm") == cfg.gripper.secure_pwm
+            daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics(), gripper=gripper)
+            assert daemon.reaction._grasp_level == 1.0
+        finally:
+            gripper.close()
+
+
 def test_a_gripper_call_that_hangs_is_a_gripper_fault(base_cfg, monkeypatch) -> None:
     """A call stuck in the vendor library (the status poll, or a grip command it queues behind) never returned, so
     the gripper stayed 'ok' for good with the grip frozen; past GRIPPER_HANG_S it is a gripper fault (one fail-safe),
