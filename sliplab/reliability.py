@@ -330,6 +330,25 @@ FAULTS: tuple[Fault, ...] = (
           ("tests/daemon/test_recorder.py::test_crash_mid_write_leaves_no_valid_looking_file",
            "tests/daemon/test_recorder.py::test_slow_disk_drops_recordings_instead_of_queueing_without_bound",
            "tests/daemon/test_recorder.py::test_a_failed_write_leaves_no_staging_file_and_the_size_bound_still_holds")),
+    Fault("A hung disk at shutdown, the state directory removed, the clock behind after a reboot",
+          "close keeps to one deadline for all pending writes (was: per write, then an unbounded join: past systemd's "
+          "stop timeout); a removed directory comes back with mode 0750 (was: 0755); the size bound deletes an "
+          "earlier run's recordings before this run's (was: by name, i.e. wall-clock time, deleting the new ones)",
+          "(recorder log)",
+          ("tests/daemon/test_recorder.py::test_close_keeps_to_its_timeout_whatever_is_pending",
+           "tests/daemon/test_recorder.py::test_a_state_directory_removed_while_running_comes_back_with_its_mode",
+           "tests/daemon/test_recorder.py::test_the_size_bound_deletes_an_earlier_runs_recordings_before_this_ones")),
+    Fault("A break in the stream (controller restart, reconnect) inside a recording's window; an alarm held past a "
+          "short `recorder.seconds_after`",
+          "The recording ends at the break and the next starts after it; a lost sensor's fail-safe still holds the "
+          "seconds before the loss (was: both streams glued, t_us backwards, unreadable, every decision lost); an "
+          "alarm still up when its recording ends starts no new one until it falls (was: with seconds_after 0 one "
+          "recording per alarm decision, the onset's deleted by the size bound). The decisions' JSON is built on the "
+          "recorder's thread (was: up to 0.3 s on the loop's for a long two-finger episode)",
+          "(recorder log)",
+          ("tests/daemon/test_recorder.py::test_a_break_in_the_stream_ends_the_recording_and_the_next_starts_after_it",
+           "tests/daemon/test_recorder.py::test_a_lost_sensor_records_what_led_to_it_and_a_later_alarm_starts_after_the_break",
+           "tests/daemon/test_recorder.py::test_an_alarm_still_up_when_a_short_recording_ends_starts_no_new_one")),
     Fault("A glitch or a tare drift in free air (the contact gate)",
           "One finite -1e6 N moves the free-air baseline by at most 0.001 N (was: 2000 N, the gate open for good, the "
           "model running in free air); a restart on the same tare keeps the drift the baseline followed (was: zeroed, "

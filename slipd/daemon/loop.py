@@ -525,6 +525,8 @@ class Daemon:
         is due once it has its samples again (tare, window) plus the stall timeout. ``retare``: the sensor zeroed
         itself (its bias)."""
         self.detector.restart(retare)
+        if self.recorder is not None:
+            self.recorder.restart()  # no recording glues the streams either side of the break
         self.stats.restarts += 1
         self._prev_sample = None
         self._expect_decision(time.monotonic())

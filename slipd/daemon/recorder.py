@@ -25,8 +25,12 @@ stays high past that bound (a latched alarm) starts no further recording until i
 latched alarm is one recording, holding its onset, not a new file every ``seconds_after``.
 
 Size bound: after every write the oldest recordings are deleted until all of them together fit
-``max_total_mb`` (MiB). The newest recording is always kept, even alone above the bound. As each episode
-is one recording, the one that holds an onset is never pushed out by later files of its own episode.
+``max_total_mb`` (MiB): an earlier run's first (by name), then this run's in the order it wrote them (names carry
+the wall-clock time, which a reboot may set back). The newest recording is always kept, even alone above the bound.
+As each episode is one recording, the one that holds an onset is never pushed out by later files of its own episode.
+
+Breaks: the daemon calls ``restart`` when the stream breaks (counter discontinuity, reconnect, bias); a recording
+then ends with the frames it has, and the next one starts after the break, so no file glues two streams.
 """
 
 from __future__ import annotations
@@ -75,13 +79,26 @@ def _rounded(values: list[float]) -> list[float | None]:
 
 @dataclass
 class _Snapshot:
-    """One stretch to write, copied out of the rings."""
+    """One stretch to write, copied out of the rings. The decisions stay arrays here: their JSON form (lists, rounded,
+    nine pillars each) is built on the worker thread, as it took up to a third of a second on the loop's for a long
+    two-finger episode."""
 
     name: str
     t_us: np.ndarray
     force: np.ndarray
     disp: np.ndarray
     meta: dict[str, Any]
+    decisions: tuple[np.ndarray, ...] = ()
+    """t_us, p_slip, alarm, sensor, pillar_slip [n, 9], contact_risk, friction of each decision in the stretch."""
+
+
+def _decisions_meta(dt: np.ndarray, dp: np.ndarray, da: np.ndarray, ds: np.ndarray, dpill: np.ndarray,
+                    drisk: np.ndarray, dfric: np.ndarray) -> dict[str, list[Any]]:
+    """``meta["decisions"]`` of a recording (JSON-ready)."""
+    return {"t_us": dt.tolist(), "p_slip": [round(float(p), 6) for p in dp], "alarm": da.tolist(),
+            "sensor": ds.tolist(),
+            "pillar_slip": [None if math.isnan(row[0]) else _rounded(row) for row in dpill.tolist()],
+            "contact_risk": _rounded(drisk.tolist()), "friction": _rounded(dfric.tolist())}
 
 
 class Recorder:
@@ -152,6 +169,9 @@ class Recorder:
         self._alarm_up = np.zeros(self.sensors, bool)
         self._latched = np.zeros(self.sensors, bool)
         self._trigger: dict[str, Any] = {}
+        self._break = self._dbreak = 0
+        """Frames (decisions) seen when the stream last broke (``restart``): a recording started after frames came
+        since then begins there, as the frames before it are another stream's (their t_us may even run backwards)."""
         self._seq = 0
         self.max_pending = max_pending
         self._futures: list[Future[list[Path]]] = []
@@ -226,6 +246,15 @@ class Recorder:
         if self._pending_end is not None and self.frames_seen >= self._pending_end:
             self._dump()
 
+    def restart(self) -> None:
+        """The stream broke (a counter discontinuity, a reconnect, the sensor's bias): a running recording ends with the
+        frames it has (the next push writes it, or a fail-safe now names itself in it), and a later one starts after
+        the break. Recordings that glued both streams had t_us running backwards (unreadable) and lost every
+        decision."""
+        if self._pending_end is not None:
+            self._pending_end = min(self._pending_end, self.frames_seen)
+        self._break, self._dbreak = self.frames_seen, self.decisions_seen
+
     def push_decision(self, t_us: int, p_slip: float, alarm: bool, sensor: int = 0,
                       contact: ContactState | None = None) -> None:
         """Add one model decision (of ``sensor``, with its contact state where it has one); an alarm starts a
@@ -274,25 +303,35 @@ class Recorder:
         self._limit = self.frames_seen + self.max_episode
         self._copied = max(0, self.frames_seen - self.before)
         self._dcopied = max(0, self.decisions_seen - len(self._dt))
+        if self._break < self.frames_seen:  # frames came since the last break: the stretch starts after it
+            self._copied = max(self._copied, self._break)
+            self._dcopied = max(self._dcopied, self._dbreak)
         self._chunks, self._dchunks = [], []
         if self.after == 0 or not wait_after:
             self._dump()
         return True
 
     def close(self, timeout: float | None = 30.0) -> None:
-        """Write a recording still in progress (shorter ``after``), wait for writes, stop the worker."""
+        """Write a recording still in progress (shorter ``after``), wait for writes, stop the worker: within
+        ``timeout`` in all (a hung disk must not keep the daemon past systemd's stop timeout)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
         if self._pending_end is not None:
             self._dump()
         self.wait(timeout)
         if self._own_worker:
-            self.worker.close(wait=True)
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            if not self.worker.close(wait=True, timeout=left):
+                log.warning("recorder: writes still pending at close: given up after %s s", timeout)
 
     def wait(self, timeout: float | None = 30.0) -> list[Path]:
-        """Block until the queued writes are done; returns every file written so far."""
+        """Block until the queued writes are done (``timeout`` for all of them together); returns every file written
+        so far."""
+        deadline = None if timeout is None else time.monotonic() + timeout
         for fut in list(self._futures):
             # A failed write is already logged and counted by the worker; a timeout leaves it queued.
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
             with contextlib.suppress(Exception):
-                fut.result(timeout=timeout)
+                fut.result(timeout=left)
         self._futures = [f for f in self._futures if not f.done()]
         with self._lock:
             return list(self.written)
@@ -316,8 +355,10 @@ class Recorder:
 
     def _dump(self) -> None:
         trig, self._trigger = self._trigger, {}
-        if self._pending_end is not None and self.frames_seen >= self._limit:
-            self._latched |= self._alarm_up  # bounded: a latched alarm starts no new recording until it falls
+        # An alarm still up when its recording ends (at max_episode_s, or a seconds_after shorter than the decisions'
+        # spacing) starts no new recording until it falls: with seconds_after 0 every alarm decision of one episode
+        # wrote a recording of its own, and the size bound then deleted the one that held the onset.
+        self._latched |= self._alarm_up
         self._pending_end = None
         self._spill()
         chunks, dchunks, self._chunks, self._dchunks = self._chunks, self._dchunks, [], []
@@ -341,10 +382,6 @@ class Recorder:
             seconds_before=self.seconds_before,
             seconds_after=self.seconds_after,
             trigger=trig,
-            decisions={"t_us": dt.tolist(), "p_slip": [round(float(p), 6) for p in dp], "alarm": da.tolist(),
-                       "sensor": ds.tolist(),
-                       "pillar_slip": [None if math.isnan(row[0]) else _rounded(row) for row in dpill.tolist()],
-                       "contact_risk": _rounded(drisk.tolist()), "friction": _rounded(dfric.tolist())},
             sensors=self.sensors,
         )
         if len(t):
@@ -352,7 +389,7 @@ class Recorder:
         self._seq += 1
         stamp = datetime.fromtimestamp(trig.get("wall_time", time.time()), tz=timezone.utc)
         name = f"{PREFIX}{stamp:%Y%m%dT%H%M%S.%fZ}-{os.getpid()}-{self._seq:04d}"
-        snap = _Snapshot(name, t, force, disp, meta)
+        snap = _Snapshot(name, t, force, disp, meta, (dt, dp, da, ds, dpill, drisk, dfric))
         self._futures.append(self.worker.submit(self._write_logged, snap))
 
     # ------------------------------------------------------------------ worker side
@@ -394,6 +431,10 @@ class Recorder:
     def _write(self, snap: _Snapshot, paths: list[Path]) -> None:
         """Write ``snap`` in every format, appending each finished file to ``paths`` (a failure leaves the ones
         before it there)."""
+        if snap.decisions:
+            snap.meta["decisions"] = _decisions_meta(*snap.decisions)
+        if not self.directory.is_dir():
+            self._prepare_directory()  # removed while running: back with its mode (0750), not the default
         rec = Recording(t_us=snap.t_us, force=snap.force, disp=snap.disp, meta=snap.meta)
         for fmt in self.formats:
             final = self.directory / f"{snap.name}.{fmt}"
@@ -421,7 +462,15 @@ class Recorder:
     def _enforce_bound(self, keep: str) -> None:
         groups = self.recordings()
         total = sum(_size(p) for files in groups.values() for p in files)
-        for stem, files in groups.items():
+        # Oldest first: another process's recordings (a run before a restart) by name, then this one's in the order
+        # it wrote them. Names carry the wall-clock time, which after a reboot with the clock behind (no RTC, NTP not
+        # synced yet) sorted every new recording before the stale ones, and the bound deleted the new ones.
+        with self._lock:
+            mine = list(dict.fromkeys(p.stem for p in self.written))
+        own = set(mine)
+        order = [stem for stem in groups if stem not in own] + [stem for stem in mine if stem in groups]
+        for stem in order:
+            files = groups[stem]
             if total <= self.max_total_bytes:
                 break
             if stem == keep:

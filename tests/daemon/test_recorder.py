@@ -413,3 +413,137 @@ def test_a_latched_alarm_on_one_finger_is_one_recording_whatever_the_other_says(
             rec.push_decision(1000 * i, 0.9, i >= 1000, sensor=1)  # finger 1 alarms from 1 s on, without a break
     rec.close()
     assert len(list_recordings(tmp_path)) == 1
+
+
+def test_an_alarm_still_up_when_a_short_recording_ends_starts_no_new_one(tmp_path):
+    """``seconds_after`` 0 (allowed), or shorter than the decisions' spacing: the recording ends before the next alarm
+    decision, and each one started a recording of its own (200 files for a 2 s alarm; the size bound then deleted
+    the onset's). The alarm still up at the end latches: one recording until it falls."""
+    for after in (0.0, 0.005):
+        rec = Recorder(tmp_path / str(after), RATE, seconds_before=0.1, seconds_after=after, max_pending=64)
+        feed(rec, 0, 3000, alarm_at=set(range(509, 2500, 10)), every=10)  # one alarm episode of 2 s
+        feed(rec, 3000, 3300, alarm_at={3209}, every=10)  # after it fell, a new alarm records again
+        rec.close()
+        trig = [Recording.load(f).meta["trigger"]["t_us"] for f in list_recordings(tmp_path / str(after))]
+        assert trig == [509_000, 3_209_000], (after, trig)
+
+
+def test_a_break_in_the_stream_ends_the_recording_and_the_next_starts_after_it(tmp_path):
+    """A sensor controller that restarts (its clock back at 0; the daemon restarts the detector and tells the recorder)
+    must not give a recording that glues both streams: t_us ran backwards (unreadable) and every decision was lost. A
+    recording running at the break ends with its frames; one triggered after it starts at the break."""
+    rec = Recorder(tmp_path, RATE, seconds_before=2.0, seconds_after=1.0)
+    t0 = 3_600_000_000  # an hour of sensor uptime
+    f = np.ones((9, 3), np.float32)
+    for i in range(3000):
+        rec.push_frame(t0 + 1000 * i, f, f)
+        if i % 10 == 9:
+            rec.push_decision(t0 + 1000 * i, 0.9 if i == 2899 else 0.1, i == 2899)
+    rec.restart()  # 100 ms into the first recording's second after
+    for i in range(2000):
+        rec.push_frame(1000 * i, f, f)
+        if i % 10 == 9:
+            rec.push_decision(1000 * i, 0.9 if i == 499 else 0.1, i == 499)
+        rec.settle()
+    rec.close()
+    first, second = (Recording.load(p) for p in rec.written)
+    assert first.t_us[-1] == t0 + 2_999_000 and first.meta["decisions"]["alarm"].count(True) == 1
+    assert second.t_us[0] == 0 and second.t_us[-1] == 1_499_000  # from the break to the alarm's second after
+    assert second.meta["decisions"]["alarm"].count(True) == 1 and second.meta["events"]["alarm"] == 0.499
+
+
+def test_close_keeps_to_its_timeout_whatever_is_pending(tmp_path):
+    """A hung disk: close(timeout) returns within its timeout (it waited that long per pending write, then joined the
+    worker without a bound), so Daemon.close is not held past systemd's stop timeout."""
+    import threading
+    import time
+
+    from slipd.daemon import recorder as recorder_mod
+
+    gate = threading.Event()
+    real = recorder_mod.Recorder._write
+
+    def slow(self, snap, paths):
+        gate.wait(10)
+        real(self, snap, paths)
+
+    rec = Recorder(tmp_path, RATE, seconds_before=0.01, seconds_after=0.01, max_pending=8)
+    rec._write = slow.__get__(rec)  # type: ignore[method-assign]
+    feed(rec, 0, 200, alarm_at={20, 60, 100})
+    t = time.monotonic()
+    rec.close(timeout=0.5)
+    assert time.monotonic() - t < 2.0
+    gate.set()
+
+
+def test_a_state_directory_removed_while_running_comes_back_with_its_mode(tmp_path):
+    import shutil
+
+    rec = Recorder(tmp_path / "rec", RATE, seconds_before=0.05, seconds_after=0.05)
+    shutil.rmtree(tmp_path / "rec")
+    feed(rec, 0, 200, alarm_at={100})
+    rec.close()
+    assert len(list_recordings(tmp_path / "rec")) == 1 and rec.failures == 0
+    assert stat.S_IMODE((tmp_path / "rec").stat().st_mode) == DIR_MODE
+
+
+def test_the_size_bound_deletes_an_earlier_runs_recordings_before_this_ones(tmp_path):
+    """After a reboot with the clock behind (no RTC, NTP not yet synced), this run's recordings are named earlier than
+    the last run's: ordered by name, the bound deleted the new ones and kept the stale ones."""
+    import time
+
+    one = Recorder(tmp_path / "probe", RATE, seconds_before=0.2, seconds_after=0.1)
+    feed(one, 0, 400, alarm_at={250})
+    one.close()
+    size = one.total_bytes()
+    before = Recorder(tmp_path / "rec", RATE, seconds_before=0.2, seconds_after=0.1, max_pending=16)
+    feed(before, 0, 1300, alarm_at={400, 800, 1200})
+    before.close()
+    stale = {p.stem for p in before.written}
+    real = time.time
+    try:
+        time.time = lambda: real() - 86400.0  # type: ignore[assignment]  # the clock a day behind
+        after = Recorder(tmp_path / "rec", RATE, seconds_before=0.2, seconds_after=0.1,
+                         max_total_mb=3.5 * size / 2**20, max_pending=16)
+        feed(after, 0, 1300, alarm_at={400, 800, 1200})
+        after.close()
+    finally:
+        time.time = real  # type: ignore[assignment]
+    left = {Path(p).stem for p in list_recordings(tmp_path / "rec")}
+    assert {p.stem for p in after.written} <= left and len(left & stale) <= 1, (left, stale)
+
+
+def test_a_lost_sensor_records_what_led_to_it_and_a_later_alarm_starts_after_the_break(tmp_path):
+    """The daemon tells the recorder of every break (``Daemon._restart``): the fail-safe of a lost sensor still writes
+    the seconds before the loss (the break cuts only what comes after it), and once frames flow again a recording
+    starts at the break."""
+    from conftest import ROOT
+
+    from slipd.config import load_config, override
+    from slipd.daemon.loop import Daemon
+    from slipd.detect.ensemble import Ensemble
+    from slipd.metrics import Metrics
+    from slipd.models import packaged
+
+    cfg = override(load_config(ROOT / "config" / "sim.yaml"), {
+        "model.manifest": str(packaged("slip_ensemble_int8")), "model.detector": "onnx", "sensor.tare": "startup",
+        "arm.enabled": False, "reaction.actions": ["tighten_gripper"], "reaction.on_failsafe": "log_only"})
+    daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics())
+    daemon.recorder = Recorder(tmp_path, RATE, seconds_before=0.5, seconds_after=0.1)
+    n = 800
+    force = np.random.default_rng(0).normal(0, 0.01, (n, 1, 9, 3)).astype(np.float32)
+    t_us = np.arange(n, dtype=np.int64) * 1000 + 3_600_000_000
+    for k in range(0, n, 10):
+        daemon._on_block(t_us[k : k + 10], force[k : k + 10], np.zeros_like(force[k : k + 10]))
+    daemon._on_disconnect("unplugged")
+    daemon.recorder.wait()
+    (lost,) = (Recording.load(f) for f in list_recordings(tmp_path))
+    np.testing.assert_array_equal(lost.t_us, t_us[n - 500 :])
+    back = np.arange(300, dtype=np.int64) * 1000  # the controller's clock starts again at 0
+    for k in range(0, 300, 10):
+        daemon._on_block(back[k : k + 10], force[k : k + 10], np.zeros_like(force[k : k + 10]))
+    daemon.recorder.trigger(int(back[-1]), "alarm", sensor=0)
+    daemon._on_block(back[:100] + 300_000, force[:100], np.zeros_like(force[:100]))
+    daemon.recorder.close()
+    newest = Recording.load(sorted(list_recordings(tmp_path))[-1])
+    assert newest.t_us[0] == 0 and (np.diff(newest.t_us) > 0).all()
