@@ -179,8 +179,9 @@ FAULTS: tuple[Fault, ...] = (
           "(exit status)",
           ("tests/io/test_gripper.py::test_connect_refuses_settings_beyond_the_servos_own_limits",)),
     Fault("slipd restarts (systemd after a crash, a person) while the jaw holds an object it secured",
-          "The start-up grip keeps the tighter goal and effort it finds in place (torque on, position mode), and a "
-          "graded tighten never goes below that level; with the jaw found gripping no start-up bias is sent (the "
+          "The start-up grip keeps the goal and effort it finds while the jaw presses on an object (torque on, "
+          "position mode, the goal at or past the hold position, loaded >= 5 %; an empty jaw gets the hold setting), "
+          "and a graded tighten never goes below that level; with the jaw found gripping no start-up bias is sent (the "
           "sensor's zero from before stands; tare: startup logs that its zero holds the load) (was: the hold setting "
           "went out at start-up, loosening the secured grasp as slipd came back, and the bias took the held load for "
           "the zero: no contact seen for the rest of the grasp)",
@@ -188,7 +189,8 @@ FAULTS: tuple[Fault, ...] = (
           ("tests/io/test_gripper.py::test_a_restart_mid_grasp_keeps_the_tighter_grip_it_finds",
            R + "test_a_graded_tighten_never_goes_below_the_grip_found_at_start_up",
            L + "test_a_restart_that_finds_the_jaw_gripping_keeps_the_sensors_zero",
-           L + "test_the_daemons_start_up_keeps_a_grip_it_secured_before_a_restart")),
+           L + "test_the_daemons_start_up_keeps_a_grip_it_secured_before_a_restart",
+           "tests/io/test_gripper.py::test_a_restart_keeps_a_grip_controls_low_effort_and_an_empty_jaw_gets_the_hold")),
     Fault("The object leaves the jaw while a tighten is owed (the servo silent during the alarm)",
           "No finger in contact: the grasp has ended and what was owed to it is dropped, also a tighten in flight "
           "that fails later; an owed arm stop stays owed (was: the owed tighten went out when the servo answered, "

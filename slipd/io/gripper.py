@@ -66,6 +66,9 @@ V1_GOAL_BLOCK = 30  # goal position(30) + moving speed(32) + torque limit(34): o
 V1_STATUS_BLOCK = (24, 46 - 24 + 1)  # torque enable .. moving
 POSITION_MODE = 3
 PWM_MAX = 885
+GRIP_FOUND_LOAD_PCT = 5.0
+"""A servo found at start-up loaded this much (% of its maximum torque) in the closing direction presses on an object
+(2 N of the rig's 40 N jaw); an empty jaw at rest reads about 0."""
 TORQUE_LIMIT_MAX = 1023
 MX28_MODELS = {29: "MX-28 (Protocol 1.0)", 30: "MX-28 (Protocol 2.0)"}
 
@@ -147,8 +150,10 @@ class Gripper(ABC):
     level_found: float = 0.0
     """The grip level ``take_over`` found in place and kept (0: the hold setting): the grasp's level so far."""
     gripping_found: bool = False
-    """``take_over`` found the jaw gripping already (torque on, the goal at or past the hold position): slipd restarted
-    mid-grasp, so the sensor's zero from before must stand (``slipd.daemon.loop.Daemon._set_up_sensor``)."""
+    """``take_over`` found the jaw pressing on an object (torque on, the goal at or past the hold position, loaded):
+    slipd restarted mid-grasp, so the sensor's zero from before must stand
+    (``slipd.daemon.loop.Daemon._set_up_sensor``). An empty jaw left at the hold setting by a clean exit is no grip:
+    the next start zeroes the sensor as usual."""
 
     @abstractmethod
     def connect(self) -> None:
@@ -436,11 +441,13 @@ class DynamixelGripper(Gripper):
             self._command(s.hold_position, s.hold_pwm)
 
     def take_over(self) -> float:
-        """At start-up, after ``connect``: the hold setting, or the tighter grip the servo had when connect found its
-        torque on (slipd restarted, by systemd or a person, while it held an object it had secured): a goal further
-        closed than the hold position (up to the secure one) and a higher effort stand. Setting the hold then would
-        loosen a grasp that needed the secure force, and the object could fall out as slipd came back. Returns the
-        level kept, 0 (hold) .. 1 (secure), for the reaction (a graded tighten never goes below it)."""
+        """At start-up, after ``connect``: the hold setting, unless connect found the jaw gripping an object (torque on,
+        the goal at or past the hold position, loaded at least ``GRIP_FOUND_LOAD_PCT`` in the closing direction: slipd
+        restarted, by systemd or a person, while it held the object). Then goal (up to the secure position) and effort
+        stay as found: setting the hold loosened a grasp that had needed the secure force, and raising a grip control's
+        lower effort to the hold setting squeezed the object to its force limit. ``gripping_found`` says so (the
+        sensor's zero from before must then stand). An empty jaw gets the hold setting. Returns the level kept, 0
+        (hold) .. 1 (secure), for the reaction (a graded tighten never goes below it)."""
         s = self.settings
         with self._lock:
             position, effort, level = s.hold_position, s.hold_pwm, 0.0
@@ -449,17 +456,17 @@ class DynamixelGripper(Gripper):
             if found is not None:
                 goal, got = found
                 span = s.secure_position - s.hold_position or 1
-                beyond = min(1.0, (goal - s.hold_position) / span)  # > 0: closed further than the hold position
-                self.gripping_found = beyond >= 0.0
-                if beyond > 0.0:
-                    position = s.hold_position + round(beyond * span)
-                    level = beyond
-                if got > s.hold_pwm:
+                beyond = (goal - s.hold_position) / span  # >= 0: at or past the hold position
+                load = self.read_status().load if beyond >= 0.0 else 0.0
+                if load >= GRIP_FOUND_LOAD_PCT:  # pressing on an object: its grip stands
+                    self.gripping_found = True
+                    position = s.hold_position + round(min(1.0, beyond) * span)
                     effort = min(got, max(s.secure_pwm, s.hold_pwm))
-                    level = max(level, min(1.0, (effort - s.hold_pwm) / max(1, s.secure_pwm - s.hold_pwm)))
-                if level > 0.0:
-                    log.warning("%s: the servo already grips tighter than the hold setting (goal %d, effort %d): kept "
-                                "(slipd restarted mid-grasp?), level %.2f", self.device, goal, got, level)
+                    spread = s.secure_pwm - s.hold_pwm
+                    by_effort = (effort - s.hold_pwm) / spread if spread else 0.0
+                    level = max(0.0, min(1.0, max(beyond, by_effort)))
+                    log.warning("%s: found gripping (goal %d, effort %d, load %.1f %%): kept as it is (slipd "
+                                "restarted mid-grasp?), level %.2f", self.device, goal, got, load, level)
             self._command(position, effort)
             self.level_found = level
             return level

@@ -527,6 +527,7 @@ def test_the_daemons_start_up_keeps_a_grip_it_secured_before_a_restart(base_cfg)
         assert gripper is not None and not gripper.gripping_found  # a fresh servo: torque was off
         assert servo.register("goal_position") == cfg.gripper.hold_position
         gripper.tighten()
+        time.sleep(0.5)  # the jaw closes on the object (the emulated servo runs on the real clock)
         gripper.close()  # slipd ends (torque_off_on_close is off): the servo holds on
         _, gripper = build_devices(cfg, Metrics())
         assert gripper is not None

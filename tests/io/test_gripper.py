@@ -257,6 +257,42 @@ def test_a_restart_mid_grasp_keeps_the_tighter_grip_it_finds(emu, metrics, clock
     partway.close()
 
 
+def test_a_restart_keeps_a_grip_controls_low_effort_and_an_empty_jaw_gets_the_hold(protocol, clock, metrics):
+    """Two restarts a helper's end-to-end probe caught: under grip control the jaw grips with the goal at the secure
+    position and a low effort; the restart kept the goal but raised the effort to the hold setting (the rig's is full
+    effort), squeezing the object to its force limit. And a clean exit leaves an empty jaw at the hold setting with
+    torque on: the next start took that for a grip and skipped the sensor's bias."""
+    effort_reg = "goal_pwm" if protocol == 2.0 else "torque_limit"
+    full = top_effort(protocol)
+    with EmulatedMX28(protocol=protocol, jaw=JawParams(initial_position=2000.0), clock=clock) as emu:
+        g = DynamixelGripper(make_settings(emu, hold_pwm=full, secure_pwm=full), metrics)
+        g.connect()
+        g.take_over()
+        g._command(SECURE_POS, full // 4)  # as grip_force leaves it: the goal past the object, a quarter effort
+        clock.advance(1.0)
+        held = emu.grip_force_n
+        g.close()
+        again = DynamixelGripper(make_settings(emu, hold_pwm=full, secure_pwm=full), metrics)
+        again.connect()
+        again.take_over()
+        assert again.gripping_found and emu.register(effort_reg) == full // 4
+        clock.advance(1.0)
+        assert emu.grip_force_n == pytest.approx(held)  # not squeezed
+        again.close()
+    with EmulatedMX28(protocol=protocol, jaw=JawParams(initial_position=2000.0, contact_position=None),
+                      clock=clock) as emu:
+        g = DynamixelGripper(make_settings(emu), metrics)
+        g.connect()
+        g.take_over()
+        clock.advance(1.0)
+        g.close()  # a clean exit: torque on, the goal at the hold position, nothing in the jaw
+        again = DynamixelGripper(make_settings(emu, hold_pwm=250), metrics)
+        again.connect()
+        assert again.take_over() == 0.0 and not again.gripping_found
+        assert emu.register(effort_reg) == 250  # the hold setting as configured now
+        again.close()
+
+
 def test_hold_force_is_capped_by_the_effort_setting(emu, metrics, clock, protocol):
     g = DynamixelGripper(make_settings(emu, hold_pwm=150), metrics)
     g.connect()
