@@ -330,9 +330,8 @@ def test_each_decision_keeps_its_contact_state_through_a_long_episode(tmp_path):
         assert mu == (None if s.friction is None else pytest.approx(s.friction, abs=1e-4))
 
 
-def test_a_fail_safe_writes_what_led_to_it_at_once(tmp_path):
-    """Going blind (a stalled or lost sensor, a non-finite burst, an overdue decision) records the seconds before
-    the fault straight away: no frame may follow it to complete a stretch after it."""
+def _daemon(recorder: Recorder):
+    """The daemon of the simulated rig's config with the shipped model, fed by hand, recording into ``recorder``."""
     from conftest import ROOT
 
     from slipd.config import load_config, override
@@ -345,7 +344,14 @@ def test_a_fail_safe_writes_what_led_to_it_at_once(tmp_path):
         "model.manifest": str(packaged("slip_ensemble_int8")), "model.detector": "onnx", "sensor.tare": "startup",
         "arm.enabled": False, "reaction.actions": ["tighten_gripper"], "reaction.on_failsafe": "log_only"})
     daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics())
-    daemon.recorder = Recorder(tmp_path, RATE, seconds_before=0.5, seconds_after=1.0)
+    daemon.recorder = recorder
+    return daemon
+
+
+def test_a_fail_safe_writes_what_led_to_it_at_once(tmp_path):
+    """Going blind (a stalled or lost sensor, a non-finite burst, an overdue decision) records the seconds before
+    the fault straight away: no frame may follow it to complete a stretch after it."""
+    daemon = _daemon(Recorder(tmp_path, RATE, seconds_before=0.5, seconds_after=1.0))
     n = 800
     rng = np.random.default_rng(0)
     force = rng.normal(0, 0.01, (n, 1, 9, 3)).astype(np.float32)
@@ -517,19 +523,7 @@ def test_a_lost_sensor_records_what_led_to_it_and_a_later_alarm_starts_after_the
     """The daemon tells the recorder of every break (``Daemon._restart``): the fail-safe of a lost sensor still writes
     the seconds before the loss (the break cuts only what comes after it), and once frames flow again a recording
     starts at the break."""
-    from conftest import ROOT
-
-    from slipd.config import load_config, override
-    from slipd.daemon.loop import Daemon
-    from slipd.detect.ensemble import Ensemble
-    from slipd.metrics import Metrics
-    from slipd.models import packaged
-
-    cfg = override(load_config(ROOT / "config" / "sim.yaml"), {
-        "model.manifest": str(packaged("slip_ensemble_int8")), "model.detector": "onnx", "sensor.tare": "startup",
-        "arm.enabled": False, "reaction.actions": ["tighten_gripper"], "reaction.on_failsafe": "log_only"})
-    daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics())
-    daemon.recorder = Recorder(tmp_path, RATE, seconds_before=0.5, seconds_after=0.1)
+    daemon = _daemon(Recorder(tmp_path, RATE, seconds_before=0.5, seconds_after=0.1))
     n = 800
     force = np.random.default_rng(0).normal(0, 0.01, (n, 1, 9, 3)).astype(np.float32)
     t_us = np.arange(n, dtype=np.int64) * 1000 + 3_600_000_000
