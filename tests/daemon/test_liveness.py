@@ -475,8 +475,11 @@ def test_a_restart_that_finds_the_jaw_gripping_keeps_the_sensors_zero(base_cfg) 
                         metrics=Metrics(), gripper=Grip(gripping))  # type: ignore[arg-type]
 
         async def main(daemon: Daemon, sensor: EmulatedPapillArray) -> None:
-            task = asyncio.create_task(daemon.run())
             sensor.start()
+            # Streaming before the daemon opens the port: a bias that comes before the controller's first sample
+            # has nothing to zero (the emulator, like the controller, takes the sample at hand).
+            await until(lambda: sensor.frames_written > 10, what="the sensor streaming")
+            task = asyncio.create_task(daemon.run())
             await until(lambda: daemon.live and daemon.stats.decisions > 20, what="live")
             daemon.stop()
             await task
