@@ -209,7 +209,7 @@ def nonfinite_runs(rec: Any) -> tuple[int, int | None]:
     bad = ~np.isfinite(force.reshape(len(force), -1)).all(axis=1)
     bridge = max(1, round(NONFINITE_BRIDGE_S * rec.rate_hz))
     run = 0
-    for k in np.flatnonzero(bad).tolist() if bad.any() else ():
+    for k in np.flatnonzero(bad).tolist():
         run = run + 1 if k and bad[k - 1] else 1
         if run > bridge:
             return int(bad.sum()), int(rec.t_us[k])

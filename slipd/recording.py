@@ -254,10 +254,13 @@ def sdk_csv_columns(sensors: int = 1) -> list[str]:
     return cols
 
 
+def _pillar_columns(sn: str) -> list[str]:
+    """A sensor's pillar displacement and force columns, the ones a recording needs (pillar-major, D then F)."""
+    return [f"{sn}_P{p}_{q}{a}" for p in range(N_PILLARS) for q in "DF" for a in _AXES]
+
+
 def _sensor_columns(sn: str) -> list[str]:
-    cols = []
-    for p in range(N_PILLARS):
-        cols += [f"{sn}_P{p}_D{a}" for a in _AXES] + [f"{sn}_P{p}_F{a}" for a in _AXES]
+    cols = _pillar_columns(sn)
     cols += [f"{sn}_GG_F{a}" for a in _AXES] + [f"{sn}_GG_T{a}" for a in _AXES]
     cols += [f"{sn}_isSDActive", f"{sn}_isRefLoad"]
     for p in range(N_PILLARS):
@@ -379,7 +382,7 @@ def read_sdk_csv(path: str | Path) -> Recording:
     except csv.Error as exc:
         raise RecordingError(f"{path}: not CSV ({_one_line(exc)})") from None
     index = {name: i for i, name in enumerate(header)}
-    needed = ["T_us"] + [f"S0_P{p}_{q}{a}" for p in range(N_PILLARS) for q in "DF" for a in _AXES]
+    needed = ["T_us", *_pillar_columns("S0")]
     missing = [c for c in needed if c not in index]
     if missing:
         raise RecordingError(f"{path}: missing SDK column(s) {missing[:4]}{'...' if len(missing) > 4 else ''}")
@@ -401,10 +404,9 @@ def read_sdk_csv(path: str | Path) -> Recording:
         k = int(np.argmin(np.isfinite(t)))
         raise RecordingError(f"{path}:{rows[k][0]}: T_us: missing or not finite (sample {k})")
     ns = 1
-    while ns < MAX_SENSORS and all(f"S{ns}_P{p}_{q}{a}" in index
-                                   for p in range(N_PILLARS) for q in "DF" for a in _AXES):
+    while ns < MAX_SENSORS and all(c in index for c in _pillar_columns(f"S{ns}")):
         ns += 1
-    partial = [f"S{ns}_P{p}_{q}{a}" for p in range(N_PILLARS) for q in "DF" for a in _AXES] if ns < MAX_SENSORS else []
+    partial = _pillar_columns(f"S{ns}") if ns < MAX_SENSORS else []
     if any(c in index for c in partial):
         # A finger's block with columns missing: reading the file as one finger fewer would drop that finger silently.
         gone = [c for c in partial if c not in index]

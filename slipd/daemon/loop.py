@@ -508,12 +508,13 @@ class Daemon:
 
         cfg = self.cfg.sensor
         self.sensor.send_command(rate_command(cfg.rate_hz))
-        if cfg.tare == "startup" and start_up and getattr(self.gripper, "gripping_found", False):
+        mid_grasp = start_up and getattr(self.gripper, "gripping_found", False)
+        if cfg.tare == "startup" and mid_grasp:
             log.warning("sensor: the jaw grips already (slipd restarted mid-grasp?): tare: startup averages the held "
                         "load into its zero; tare: bias_command keeps the sensor's zero from before")
         if cfg.tare != "bias_command":
             return False
-        if start_up and getattr(self.gripper, "gripping_found", False):
+        if mid_grasp:
             log.warning("sensor: the jaw grips already (slipd restarted mid-grasp?): no bias sent, the sensor's zero "
                         "from before stands")
             return False

@@ -167,7 +167,6 @@ class Gripper(ABC):
         """At start-up: grip at the hold setting, unless the device already grips tighter (slipd restarted mid-grasp),
         which stands. Returns the level kept, 0 (hold) .. 1 (secure). Without a way to read the grip: ``hold``."""
         self.hold()
-        self.level_found = 0.0
         return 0.0
 
     @abstractmethod
