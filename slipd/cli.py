@@ -148,6 +148,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
     alarms = [d for d in dets if d.rising_edge]
     t0 = int(rec.t_us[0]) if len(rec) else 0
     print(f"{args.recording}: {len(rec)} samples, {len(dets)} decisions, {len(alarms)} alarm(s)")
+    # The daemon's recordings name the model that decided them. Replaying with another one is how models are
+    # compared, but its decisions are then not the ones the robot saw: say so, rather than let them pass for those.
+    recorded_sha = rec.meta.get("model_sha256")
+    recorded_sha = recorded_sha if isinstance(recorded_sha, str) else None
+    if recorded_sha is not None and recorded_sha != ensemble.manifest.sha256:
+        print(f"  recorded with model sha256 {recorded_sha[:16]}, replayed with {ensemble.manifest.sha256[:16]} "
+              f"({model}): these are not the decisions the daemon made")
     finger = rec.sensors > 1
     for d in alarms:
         on = f" on sensor {d.sensor}" if finger else ""
@@ -170,6 +177,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         out: dict[str, Any] = {
             "recording": str(args.recording),
             "model": str(model),
+            "model_sha256": ensemble.manifest.sha256,
+            "recorded_model_sha256": recorded_sha,
             "alarms": [d.index for d in alarms],
             "decisions": decisions,
         }

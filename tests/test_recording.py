@@ -339,3 +339,24 @@ def test_the_rate_of_a_recording_with_repeated_timestamps_is_the_sensors() -> No
     rec = _rec(10)
     rec.t_us[:] = 5000
     assert rec.rate_hz == 1000.0
+
+
+def test_replay_says_when_the_recording_was_decided_by_another_model(tmp_path, capsys) -> None:
+    """The daemon's recordings carry the sha256 of the model that decided them; a replay with another model printed
+    its decisions as if they were the robot's. Now it says so (printed and in the JSON); the same model: nothing."""
+    import json
+
+    from slipd import models
+    from slipd.cli import main
+    from slipd.detect.manifest import read_manifest
+
+    shipped = read_manifest(models.packaged(models.DEFAULT_MODEL)).sha256
+    for name, sha in (("other.npz", "0" * 64), ("same.npz", shipped)):
+        rec = Recording.load(models.SAMPLE_RECORDING)
+        rec.meta["model_sha256"] = sha
+        rec.save(tmp_path / name)
+        assert main(["replay", str(tmp_path / name), "--json", str(tmp_path / "o.json")]) == 0
+        said = "recorded with model sha256 0000000000000000" in capsys.readouterr().out
+        assert said == (sha != shipped)
+        out = json.loads((tmp_path / "o.json").read_text())
+        assert out["recorded_model_sha256"] == sha and out["model_sha256"] == shipped
