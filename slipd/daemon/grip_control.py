@@ -154,7 +154,7 @@ class GripController:
         self._t: float | None = None
         self._low_since: float | None = None
         self._high_since: float | None = None
-        self._full_since: float | None = None  # slipping with the grip at the force limit since
+        self._full_since: float | None = None  # an alarm at the force limit since
         self._slipping = False
         self._slip_end: float | None = None
         self._steady_n, self._steady_since = 0.0, math.inf

@@ -557,5 +557,7 @@ def test_a_hold_counts_from_the_last_hand_over_not_from_the_read_after_a_pause(e
         await s.stop()
 
     asyncio.run(main())
-    assert len(starts) > 20
+    # Holds that begin: 40-59 in runs alone, 12 once in a busy `make test` (the count depends on how reads fall);
+    # a few suffice to check where each counts from, and none would leave the check below empty.
+    assert len(starts) >= 5
     assert all(since == last < now for last, now, since in starts), starts[:3]
