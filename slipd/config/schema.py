@@ -339,8 +339,8 @@ class ReactionConfig(_Section):
         "lasted grip_stop_after_s)"
     )
     grip_stop_after_s: float = Field(
-        0.15, ge=0.0, le=60.0, description="grip_control: how long the risk must stay at grip_stop_risk, or the alarm "
-        "last with the grip at grip_max_force_n, before the arm stops (the grip had its chance to catch the slip)"
+        0.15, ge=0.0, le=60.0, description="grip_control: how long the risk must stay at grip_stop_risk before the "
+        "arm stops (the grip had its chance to catch the slip)"
     )
     grip_update_hz: float = Field(
         62.0, gt=0.0, le=1000.0, description="grip_control: most grip commands per second (the servo's update rate)"

@@ -48,12 +48,11 @@ whole and the alarm's ratio is no sample (the catch still answers the alarm). Wi
 the target does not relax below the grip that ended the last slip.
 
 The arm is stopped (once per grasp) for a twist (where set), when the risk stayed at ``stop_risk`` for
-``stop_after_s`` (the grip had its chance to catch the slip), or at the force limit: the requirement exceeds the
-limit (the object needs more than it may take; a contact that slides at the limit shows it too), or the detector's
-alarm (any slip while no friction is known) lasted ``stop_after_s`` with the grip there. Commands go to the gripper's
-worker thread at most ``update_hz`` times a second (the MX-28 refreshes at about 62 Hz), and only when the previous
-one has finished: a slow servo gets the newest target, never a queue. Fail safe as the reaction: a grip command that
-fails stops the arm (``Reaction.failsafe``).
+``stop_after_s`` (the grip had its chance to catch the slip), or at the force limit: the object needs more than it
+may take, or it still slips with the grip there. Commands go to the gripper's worker thread at most ``update_hz``
+times a second (the MX-28 refreshes at about 62 Hz), and only when the previous one has finished: a slow servo gets
+the newest target, never a queue. Fail safe as the reaction: a grip command that fails stops the arm
+(``Reaction.failsafe``).
 """
 from __future__ import annotations
 
@@ -154,7 +153,6 @@ class GripController:
         self._t: float | None = None
         self._low_since: float | None = None
         self._high_since: float | None = None
-        self._full_since: float | None = None  # an alarm at the force limit since
         self._slipping = False
         self._slip_end: float | None = None
         self._steady_n, self._steady_since = 0.0, math.inf
@@ -289,21 +287,9 @@ class GripController:
         if not math.isfinite(target):
             return  # a NaN never reaches the servo; the last command stands
         self.target = target
-        # At the limit: the object needs more than it may take, or it still slips with the grip there. The forces
-        # say both: a contact that slides at grip g carries more than mu * g, so it needs more than g / margin, and
-        # its requirement (at least that, the estimate erring low) passes the limit once g / margin does. A slip
-        # the forces cannot show (no friction known yet) or the detector's alarm counts once it has lasted
-        # ``stop_after_s`` with the grip at the limit: the slip states lag the grip that ended the slip, and a risk
-        # still at ``raise_risk`` with the requirement within the limit stopped lifts the grip held (the rig's
-        # thermos flask, at 40 N with 38 N required; reports/grip_control.md).
-        slides = alarm or (slipping and mu is None)
-        if slides and target >= s.max_force_n - 1e-9 and grip >= LIMIT_REACHED * s.max_force_n:
-            self._full_since = now if self._full_since is None else self._full_since
-        else:
-            self._full_since = None
+        # At the limit: the object needs more than it may take, or it still slips with the grip there.
         at_limit = target >= s.max_force_n - 1e-9 and (
-            required > s.max_force_n
-            or (self._full_since is not None and now - self._full_since >= s.stop_after_s))
+            required > s.max_force_n or (slipping and grip >= LIMIT_REACHED * s.max_force_n))
         if state.risk >= s.stop_risk:
             self._high_since = now if self._high_since is None else self._high_since
         else:
