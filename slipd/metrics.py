@@ -37,6 +37,9 @@ class Metrics:
             "slipd_dropped_frames", "Frames missing according to the packet counter", registry=r
         )
         self.reconnects = Counter("slipd_reconnects", "Sensor reconnections", ["device"], registry=r)
+        self.rezeros = Counter(
+            "slipd_sensor_rezeros", "Software zeros in free air after a bias the sensor took under a grasp", registry=r
+        )
         self.nonfinite = Counter(
             "slipd_nonfinite_values",
             "Non-finite or impossible (beyond twice the range) sensor values replaced or clipped",

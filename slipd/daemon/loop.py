@@ -58,6 +58,7 @@ import numpy as np
 from slipd.daemon.devices import close_quietly
 from slipd.daemon.grip_control import GripControlSettings
 from slipd.daemon.reaction import Reaction
+from slipd.daemon.rezero import LoadedZero
 from slipd.daemon.worker import DeviceWorker
 from slipd.detect.build import build_detector
 from slipd.detect.contact import grasp_state
@@ -248,6 +249,9 @@ class Daemon:
         self._nonfinite_seen = 0
         self._last_t_us: int | None = None  # sensor time of the latest frame handled (a fail-safe recording's end)
         self._bias_until: float | None = None  # after a reconnect: frames until then are the sensor zeroing itself
+        # A bias sent on a reconnect mid-grasp took the grasp's load for the zero: zeroed again in software once the
+        # jaw lets go (slipd.daemon.rezero). The heuristic detectors keep their own offsets: not for them.
+        self._loaded_zero = LoadedZero(ns, cfg.sensor.rate_hz) if hasattr(self.detector, "set_offset") else None
         streams = getattr(self.detector, "feature_streams", None)
         feats = getattr(self.detector, "features", None)  # the ensemble's pipeline; the heuristics have none
         self._feature_streams = list(streams) if streams is not None else [feats] if feats is not None else []
@@ -360,6 +364,8 @@ class Daemon:
             self._on_grasp(grasp)
         if dets:
             self._track_grasp()
+        if self._loaded_zero is not None and self._loaded_zero.armed:
+            self._rezero(force)
         if rec is not None:
             if recorded < k:
                 rec.push_frames(stamps[recorded:], force[recorded:], disp[recorded:])
@@ -386,6 +392,18 @@ class Daemon:
             self._grasp_held = held
             if not held:
                 self.reaction.released()
+
+    def _rezero(self, force: np.ndarray) -> None:
+        """After a bias taken under a grasp: the free air's mean becomes the zero once the jaw has let go."""
+        assert self._loaded_zero is not None
+        offset = self._loaded_zero.push(force, np.asarray(self.detector.offset), self._grasp_held)  # type: ignore[attr-defined]
+        if offset is None:
+            return
+        self.detector.set_offset(offset if self.sensors > 1 else offset[0])  # type: ignore[attr-defined]
+        self._restart(retare=True)  # the history cut with the old zero is another stream's
+        self.metrics.rezeros.inc()
+        log.warning("sensor: zeroed again in software after the release (the bias after the reconnect was taken under "
+                    "a grasp; normal force offsets %s N)", np.round(offset[..., 2], 2).tolist())
 
     def _on_grasp(self, dets: list[Detection]) -> None:
         """One decision's contact states, one per sensor, to the grip controller (``policy: grip_control``): a gripper
@@ -494,6 +512,13 @@ class Daemon:
         try:
             if self._set_up_sensor():
                 self._bias_until = time.monotonic() + self.cfg.sensor.bias_timeout_s
+                if self._loaded_zero is not None and self._grasp_held:
+                    # In contact when the sensor went: the bias takes the grasp's load. (Not disarmed by a bias in
+                    # free air: a zero already taken under the grasp reads that grasp as no contact, so a second
+                    # power cycle before the release looks like one in free air and zeroes the same load again.)
+                    log.warning("sensor: zeroed under a grasp (power-cycled mid-grasp?): zeroing again in software "
+                                "once the jaw lets go")
+                    self._loaded_zero.arm([0.0 if c is None else c.grip_n for c in self._latest_contact])
         except SensorError as exc:
             log.error("sensor: cannot set it up again after the reconnect: %s", exc)
 

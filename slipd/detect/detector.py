@@ -236,6 +236,12 @@ class Detector:
         """The tare offset in use ([9, 3])."""
         return self.features._offset.reshape(9, 3).copy()
 
+    def set_offset(self, offset: np.ndarray) -> None:
+        """A tare offset ([9, 3]) from the next sample on: the daemon's software zero after a bias taken under a
+        grasp (``slipd.daemon.rezero``). The history cut with the old offset is another stream's: restart after it."""
+        self.features.set_offset(offset)
+        self.contact.set_offset(self.features._offset.reshape(9, 3))
+
     def restart(self, retare: bool = False) -> None:
         """After a reconnect or a counter discontinuity: forget the feature history and GRU states. ``retare``: the
         sensor was zeroed again (a start-up tare is taken again; the contact gate's free-air baseline starts at 0)."""

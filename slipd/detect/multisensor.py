@@ -61,6 +61,11 @@ class MultiDetector:
         """Samples still to push until the next decision (the same for every sensor)."""
         return min(d.samples_to_decision() for d in self.detectors)
 
+    def set_offset(self, offset: np.ndarray) -> None:
+        """Each sensor's tare offset ([S, 9, 3]) from the next sample on (``Detector.set_offset``)."""
+        for d, o in zip(self.detectors, np.asarray(offset).reshape(self.sensors, 9, 3), strict=True):
+            d.set_offset(o)
+
     def restart(self, retare: bool = False) -> None:
         """Forget every sensor's history and state (reconnect, counter discontinuity)."""
         for d in self.detectors:

@@ -85,10 +85,11 @@ async def until(pred: Callable[[], bool], timeout: float = 5.0, what: str = "con
 Scenario = Callable[[Daemon, EmulatedDevices, URControllerProcess], Awaitable[None]]
 
 
-def run_live(controller: URControllerProcess, cfg, scenario: Scenario, *, stream: bool = True,
+def run_live(controller: URControllerProcess, cfg, scenario: Scenario, *, stream: bool = True, source: Any = None,
              **overrides) -> tuple[Daemon, EmulatedDevices]:
-    """Start fresh sensor and servo emulators, the devices and the daemon; run ``scenario``; shut down."""
-    dev = EmulatedDevices(quiet_hold(), ur=False)
+    """Start fresh sensor and servo emulators, the devices and the daemon; run ``scenario``; shut down. ``source``:
+    the sensor's samples (default: a quiet hold, looped)."""
+    dev = EmulatedDevices(quiet_hold() if source is None else source, ur=False)
     dev.sensor.loop = True  # stream for as long as the scenario needs
     cfg = override(cfg, {**dev.overrides(), "arm.enabled": True, "arm.host": HOST, **overrides})
     metrics = Metrics()
@@ -171,6 +172,49 @@ def test_a_power_cycled_sensor_is_zeroed_again_after_the_reconnect(controller, b
     assert seen["live_after_s"] >= 0.4  # nothing decided while the sensor zeroed itself
     assert seen["decisions_after"] > 0 and d.stats.failsafes == 1  # one episode, one fail-safe
     assert np.abs(dev.sensor._bias_force).max() > 1.0  # zeroed again (the quiet hold presses 1.5 N per pillar)
+
+
+def test_a_sensor_zeroed_under_a_grasp_is_zeroed_again_in_software_once_the_jaw_lets_go(controller, base_cfg) -> None:
+    """The bias after a power cycle mid-grasp takes the held load for the zero (the test above). Once the jaw lets go,
+    the free air is the zero again, with no blind spell and no fail-safe; before, every later grasp read low by the
+    old load until a restart."""
+    load = {"fz": 1.5}
+    rng = np.random.default_rng(5)
+
+    def sample(i: int) -> tuple[np.ndarray, np.ndarray]:
+        f = rng.normal(0.0, 0.01, (9, 3)).astype(np.float32)
+        f[:, 2] += load["fz"]
+        return f, np.zeros((9, 3), np.float32)
+
+    seen: dict[str, Any] = {}
+
+    async def scenario(d: Daemon, dev: EmulatedDevices, ur: URControllerProcess) -> None:
+        await until(lambda: d.stats.decisions > 0, what="first decisions")
+        dev.sensor.unplug()
+        await until(lambda: not d.live, what="blind after the loss")
+        await asyncio.sleep(0.2)
+        dev.sensor.replug()  # a power cycle mid-grasp: the bias takes the held 1.5 N per pillar
+        await until(lambda: [k for k, _ in dev.sensor.commands].count("bias") == 2, what="the bias again")
+        await until(lambda: d.live, timeout=5.0, what="live again")
+        seen["offset_held"] = float(np.abs(d.detector.offset[:, 2]).max())
+        failsafes = d.stats.failsafes
+        load["fz"] = 0.0  # the jaw lets go
+        await until(lambda: d.detector.offset[:, 2].max() < -1.4, timeout=5.0, what="zeroed again in free air")
+        load["fz"] = 2.0  # the next grasp
+        await until(lambda: (c := d.detector.contact.latest) is not None and c.grip_n > 15.0, timeout=3.0,
+                    what="the next grasp read at its force")
+        await asyncio.sleep(0.2)
+        seen["grip"] = d.detector.contact.latest.grip_n
+        seen["failsafes"] = d.stats.failsafes - failsafes
+        seen["live"] = d.live
+
+    d, dev = run_live(controller, base_cfg, scenario, source=sample,
+                      **{"sensor.tare": "bias_command", "sensor.bias_timeout_s": 0.5})
+    assert np.abs(dev.sensor._bias_force[0, :, 2] - 1.5).max() < 0.1  # the bias took the grasp's load
+    assert seen["offset_held"] == 0.0  # no software zero while the grasp went on
+    assert abs(seen["grip"] - 18.0) < 0.5  # 9 pillars x 2 N, not 9 x 0.5 N
+    assert seen["failsafes"] == 0 and seen["live"]
+    assert metric(d.metrics, "slipd_sensor_rezeros_total") == 1
 
 
 def test_sensor_unplug_fails_safe_then_reconnects_and_restarts_the_detector(controller, base_cfg) -> None:
