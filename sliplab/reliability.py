@@ -105,8 +105,8 @@ FAULTS: tuple[Fault, ...] = (
           "Armed at the reconnect when a finger was in contact as the sensor went; once no finger is in contact and "
           "every pillar has stayed still for 0.3 s with a finger's normal force at least half its grip at the loss "
           "below the zero (the jaw let go), that free air becomes the zero in software (`slipd.daemon.rezero`): "
-          "no blind spell, no fail-safe, logged when armed and when done; a grip that only eased is not taken for "
-          "the free air",
+          "no blind spell, no fail-safe, logged when armed and when done; a grip that only eased, or a jaw still "
+          "opening, is not taken for the free air; any later bias drops the software zero (the sensor zeroed itself)",
           "`slipd_sensor_rezeros_total`",
           (F + "test_a_sensor_zeroed_under_a_grasp_is_zeroed_again_in_software_once_the_jaw_lets_go",
            "tests/daemon/test_rezero.py::test_a_grip_that_only_eased_and_a_grasp_in_contact_are_not_the_free_air")),

@@ -250,8 +250,11 @@ class Daemon:
         self._last_t_us: int | None = None  # sensor time of the latest frame handled (a fail-safe recording's end)
         self._bias_until: float | None = None  # after a reconnect: frames until then are the sensor zeroing itself
         # A bias sent on a reconnect mid-grasp took the grasp's load for the zero: zeroed again in software once the
-        # jaw lets go (slipd.daemon.rezero). The heuristic detectors keep their own offsets: not for them.
+        # jaw lets go (slipd.daemon.rezero). The heuristic detectors' front ends keep the offset they were built with:
+        # not for them (a warning at such a reconnect says so).
         self._loaded_zero = LoadedZero(ns, cfg.sensor.rate_hz) if hasattr(self.detector, "set_offset") else None
+        self._built_offset = np.array(getattr(self.detector, "offset", 0.0), np.float32)
+        """The offset the detector was built with (zero with ``tare: bias_command``): a later bias restores it."""
         streams = getattr(self.detector, "feature_streams", None)
         feats = getattr(self.detector, "features", None)  # the ensemble's pipeline; the heuristics have none
         self._feature_streams = list(streams) if streams is not None else [feats] if feats is not None else []
@@ -512,13 +515,21 @@ class Daemon:
         try:
             if self._set_up_sensor():
                 self._bias_until = time.monotonic() + self.cfg.sensor.bias_timeout_s
-                if self._loaded_zero is not None and self._grasp_held:
+                if self._loaded_zero is not None:
+                    # The sensor zeroed itself: a software zero from an earlier bias would now count twice.
+                    self.detector.set_offset(self._built_offset)  # type: ignore[attr-defined]
+                if self._grasp_held:
                     # In contact when the sensor went: the bias takes the grasp's load. (Not disarmed by a bias in
                     # free air: a zero already taken under the grasp reads that grasp as no contact, so a second
                     # power cycle before the release looks like one in free air and zeroes the same load again.)
-                    log.warning("sensor: zeroed under a grasp (power-cycled mid-grasp?): zeroing again in software "
-                                "once the jaw lets go")
-                    self._loaded_zero.arm([0.0 if c is None else c.grip_n for c in self._latest_contact])
+                    if self._loaded_zero is None:
+                        log.warning("sensor: zeroed under a grasp (power-cycled mid-grasp?); detector %s cannot zero "
+                                    "again in software: later grasps read low by the held load until slipd restarts",
+                                    self.cfg.model.detector)
+                    else:
+                        log.warning("sensor: zeroed under a grasp (power-cycled mid-grasp?): zeroing again in "
+                                    "software once the jaw lets go")
+                        self._loaded_zero.arm([0.0 if c is None else c.grip_n for c in self._latest_contact])
         except SensorError as exc:
             log.error("sensor: cannot set it up again after the reconnect: %s", exc)
 

@@ -12,7 +12,12 @@ So after such a reconnect ``LoadedZero`` watches the raw frames: once no finger 
 stayed steady for ``STEADY_S`` with some finger's summed normal force below its zero by at least ``RELEASE_SHARE``
 of the grip it read when the sensor went (the load the bias took has gone, not merely eased), the mean of that
 stretch becomes the tare offset, the same subtraction a start-up tare makes (``Detector.set_offset``). Nothing is
-held back, so the daemon is not blind for it.
+held back, so the daemon is not blind for it. Any later bias zeroes the sensor itself, so the daemon drops the
+software zero then (``Daemon._on_reconnect``).
+
+Limit: steadiness is judged against the stretch's first chunk within ``STEADY_N``, so a release slower than about
+0.17 N/s per pillar (a jaw opening over ten seconds) can pass for still while load remains, and leaves part of the
+error; a gripper lets go within a fraction of a second.
 """
 
 from __future__ import annotations
@@ -26,7 +31,11 @@ from slipd.geometry import N_PILLARS
 STEADY_S = 0.3
 """The free air must stay still this long (a jaw opening, an object pulled out, settle within ~0.1 s)."""
 STEADY_N = 0.05
-"""Every pillar's block mean within this of the stretch's mean (sensor noise about 0.01 N): still, not moving."""
+"""Every pillar's force (each axis, as a ``CHUNK`` mean) within this of the stretch's first chunk (sensor noise about
+0.01 N): still, not moving."""
+CHUNK = 10
+"""Frames per steadiness check, whatever the blocks' sizes (a block after a stall may hold hundreds of frames: each
+chunk is judged); a mean of ten keeps the sensor's noise well inside ``STEADY_N``."""
 RELEASE_SHARE = 0.5
 """A finger reads released once its summed normal force is this share of its grip at the loss below the zero: a
 grip that only eased (the object still held, lighter) must not become the zero."""
@@ -43,6 +52,9 @@ class LoadedZero:
         self.armed = False
         self._below = np.full(self.sensors, BELOW_N)
         self._sum = np.zeros((self.sensors, N_PILLARS, 3), np.float64)
+        self._first = np.zeros((self.sensors, N_PILLARS, 3), np.float64)
+        self._chunk_sum = np.zeros((self.sensors, N_PILLARS, 3), np.float64)
+        self._chunk_n = 0
         self._n = 0
 
     def arm(self, grips: Sequence[float]) -> None:
@@ -50,11 +62,11 @@ class LoadedZero:
         air."""
         self._below = np.maximum(BELOW_N, RELEASE_SHARE * np.nan_to_num(np.asarray(grips, np.float64)))
         self.armed = True
-        self._n = 0
+        self._n = self._chunk_n = 0
 
     def disarm(self) -> None:
         self.armed = False
-        self._n = 0
+        self._n = self._chunk_n = 0
 
     def push(self, force: np.ndarray, offset: np.ndarray, in_contact: bool) -> np.ndarray | None:
         """One block of raw forces ([k, S, 9, 3]) with the offset in use ([S, 9, 3] or [9, 3]); ``in_contact``: some
@@ -62,16 +74,27 @@ class LoadedZero:
         if not self.armed:
             return None
         x = np.asarray(force, np.float64).reshape(-1, self.sensors, N_PILLARS, 3)
-        if in_contact or len(x) == 0 or not np.isfinite(x).all():
-            self._n = 0  # a grasp, or a value the pipeline would bridge: the stretch starts again
+        if in_contact or not np.isfinite(x).all():
+            self._n = self._chunk_n = 0  # a grasp, or a value the pipeline would bridge: the stretch starts again
             return None
-        block = x.mean(axis=0)
-        if self._n and np.abs(block[..., 2] - self._sum[..., 2] / self._n).max() > STEADY_N:
-            self._n = 0  # moving: a new stretch from this block
-        if self._n == 0:
-            self._sum[:] = 0.0
-        self._sum += x.sum(axis=0)
-        self._n += len(x)
+        i = 0
+        while i < len(x):  # whole chunks of CHUNK frames, whatever the blocks' sizes
+            take = min(CHUNK - self._chunk_n, len(x) - i)
+            self._chunk_sum += x[i : i + take].sum(axis=0)
+            self._chunk_n += take
+            i += take
+            if self._chunk_n < CHUNK:
+                break
+            mean = self._chunk_sum / CHUNK
+            self._chunk_sum[:] = 0.0
+            self._chunk_n = 0
+            if self._n and np.abs(mean - self._first).max() > STEADY_N:
+                self._n = 0  # moving: a new stretch from this chunk
+            if self._n == 0:
+                self._first[:] = mean
+                self._sum[:] = 0.0
+            self._sum += mean * CHUNK
+            self._n += CHUNK
         if self._n < self.need:
             return None
         mean = self._sum / self._n

@@ -197,6 +197,7 @@ def test_a_sensor_zeroed_under_a_grasp_is_zeroed_again_in_software_once_the_jaw_
         await until(lambda: [k for k, _ in dev.sensor.commands].count("bias") == 2, what="the bias again")
         await until(lambda: d.live, timeout=5.0, what="live again")
         seen["offset_held"] = float(np.abs(d.detector.offset[:, 2]).max())
+        seen["bias_held"] = dev.sensor._bias_force[0, :, 2].copy()
         failsafes = d.stats.failsafes
         load["fz"] = 0.0  # the jaw lets go
         await until(lambda: d.detector.offset[:, 2].max() < -1.4, timeout=5.0, what="zeroed again in free air")
@@ -207,13 +208,25 @@ def test_a_sensor_zeroed_under_a_grasp_is_zeroed_again_in_software_once_the_jaw_
         seen["grip"] = d.detector.contact.latest.grip_n
         seen["failsafes"] = d.stats.failsafes - failsafes
         seen["live"] = d.live
+        # Released, then a power cycle in free air: the sensor's own bias is the zero again, the software one goes.
+        load["fz"] = 0.0
+        await asyncio.sleep(0.3)
+        dev.sensor.unplug()
+        await until(lambda: not d.live, what="blind after the second loss")
+        dev.sensor.replug()
+        await until(lambda: [k for k, _ in dev.sensor.commands].count("bias") == 3, what="the third bias")
+        await until(lambda: d.live, timeout=5.0, what="live after the third bias")
+        await asyncio.sleep(0.2)
+        seen["offset_after"] = float(np.abs(d.detector.offset).max())
+        seen["free_air"] = d.detector.contact.latest.grip_n
 
-    d, dev = run_live(controller, base_cfg, scenario, source=sample,
+    d, _ = run_live(controller, base_cfg, scenario, source=sample,
                       **{"sensor.tare": "bias_command", "sensor.bias_timeout_s": 0.5})
-    assert np.abs(dev.sensor._bias_force[0, :, 2] - 1.5).max() < 0.1  # the bias took the grasp's load
+    assert np.abs(seen["bias_held"] - 1.5).max() < 0.1  # the bias took the grasp's load
     assert seen["offset_held"] == 0.0  # no software zero while the grasp went on
     assert abs(seen["grip"] - 18.0) < 0.5  # 9 pillars x 2 N, not 9 x 0.5 N
     assert seen["failsafes"] == 0 and seen["live"]
+    assert seen["offset_after"] == 0.0 and seen["free_air"] == 0.0  # not 9 x 1.5 N of phantom grasp
     assert metric(d.metrics, "slipd_sensor_rezeros_total") == 1
 
 

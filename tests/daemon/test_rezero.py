@@ -10,14 +10,15 @@ RATE = 1000
 ZERO = np.zeros((1, 9, 3))
 
 
-def _blocks(fz: float, seconds: float, *, seed: int = 0, shear: float = 0.0, block: int = 5) -> list[np.ndarray]:
+def _blocks(fz: float, seconds: float, *, seed: int = 0, shear: float = 0.0, block: float = 5) -> list[np.ndarray]:
     """Raw frames as the sensor sends them after the bias, in blocks of ``block``: every pillar at ``fz`` (N)."""
     rng = np.random.default_rng(seed)
     n = round(seconds * RATE)
     x = rng.normal(0.0, 0.01, (n, 1, 9, 3))
     x[..., 2] += fz
     x[..., 0] += shear
-    return [x[i : i + block] for i in range(0, n, block)]
+    step = int(block)
+    return [x[i : i + step] for i in range(0, n, step)]
 
 
 def _feed(z: LoadedZero, blocks: list[np.ndarray], in_contact: bool = False) -> np.ndarray | None:
@@ -50,13 +51,27 @@ def test_a_grip_that_only_eased_and_a_grasp_in_contact_are_not_the_free_air() ->
     assert _feed(z, _blocks(-1.5, 0.5)) is not None
 
 
-def test_a_moving_or_broken_signal_is_not_the_free_air() -> None:
+def _ramp(start: float, end: float, seconds: float, block: int = 5) -> list[np.ndarray]:
+    x = np.concatenate(_blocks(0.0, seconds, seed=2, block=seconds * RATE))
+    x[..., 2] += np.linspace(start, end, len(x))[:, None, None]
+    return [x[i : i + block] for i in range(0, len(x), block)]
+
+
+def test_a_jaw_still_opening_is_not_the_free_air() -> None:
+    """A release over 1.5 s (1 N/s per pillar): the zero comes from the still air after it, not from the ramp."""
     z = LoadedZero(1, RATE)
     z.arm([13.5])
-    moving = _blocks(-1.5, 1.0)
-    for i, b in enumerate(moving):
-        b[..., 2] += 0.2 * (i % 2)  # a 0.2 N step every 5 ms: the jaw still moving
-    assert _feed(z, moving) is None
+    assert _feed(z, _ramp(0.0, -1.5, 1.5)) is None
+    offset = _feed(z, _blocks(-1.5, 0.5, seed=3))
+    assert offset is not None and np.abs(offset[..., 2] + 1.5).max() < 0.02
+    # One block of 400 frames (after a stall) holding a whole release: judged by its chunks, not taken whole.
+    z.arm([13.5])
+    assert _feed(z, _ramp(0.0, -3.0, 0.4, block=400)) is None and z.armed
+
+
+def test_a_broken_signal_is_not_the_free_air() -> None:
+    z = LoadedZero(1, RATE)
+    z.arm([13.5])
     broken = _blocks(-1.5, 1.0)
     for b in broken[::20]:
         b[0, 0, 4, 2] = np.nan  # a NaN every 0.1 s restarts the stretch

@@ -79,3 +79,16 @@ def test_a_nonfinite_window_is_refused_for_its_row_only() -> None:
     assert ens.refused_inputs == 1
     ens.reset_row(1)
     assert not ens.hidden_state(0)[:, 1].any() and np.array_equal(ens.hidden_state(0)[:, 0], h[:, 0])
+
+
+def test_each_finger_takes_its_own_software_zero() -> None:
+    """``set_offset`` ([S, 9, 3]): the daemon's free-air zero after a bias taken under a grasp (slipd.daemon.rezero)."""
+    from slipd.models import packaged
+
+    det = build_detector(None, Ensemble.load(packaged("slip_ensemble")), sensors=2)
+    zero = np.zeros((2, 9, 3), np.float32)
+    zero[0, :, 2], zero[1, :, 0] = -1.5, 0.3
+    det.set_offset(zero)
+    np.testing.assert_array_equal(det.offset, zero)
+    for d, z in zip(det.detectors, zero, strict=True):  # the contact state's stream too, where it cuts its own windows
+        np.testing.assert_array_equal(d.contact.features._offset.reshape(9, 3), z)
