@@ -367,8 +367,6 @@ class Daemon:
             self._on_grasp(grasp)
         if dets:
             self._track_grasp()
-        if self._loaded_zero is not None and self._loaded_zero.armed:
-            self._rezero(force)
         if rec is not None:
             if recorded < k:
                 rec.push_frames(stamps[recorded:], force[recorded:], disp[recorded:])
@@ -384,6 +382,8 @@ class Daemon:
             if bad != self._nonfinite_seen:  # counted once per block, not per sample
                 m.nonfinite.inc(bad - self._nonfinite_seen)
                 self._nonfinite_seen = bad
+        if self._loaded_zero is not None and self._loaded_zero.armed:
+            self._rezero(force)  # last: the block's frames and decisions all belong to the old zero's stream
 
     def _track_grasp(self) -> None:
         """A grasp ends when no finger is in contact any more (every sensor's latest contact state at or below the
