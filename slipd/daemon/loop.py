@@ -253,8 +253,6 @@ class Daemon:
         # jaw lets go (slipd.daemon.rezero). The heuristic detectors' front ends keep the offset they were built with:
         # not for them (a warning at such a reconnect says so).
         self._loaded_zero = LoadedZero(ns, cfg.sensor.rate_hz) if hasattr(self.detector, "set_offset") else None
-        self._built_offset = np.array(getattr(self.detector, "offset", 0.0), np.float32)
-        """The offset the detector was built with (zero with ``tare: bias_command``): a later bias restores it."""
         streams = getattr(self.detector, "feature_streams", None)
         feats = getattr(self.detector, "features", None)  # the ensemble's pipeline; the heuristics have none
         self._feature_streams = list(streams) if streams is not None else [feats] if feats is not None else []
@@ -516,8 +514,9 @@ class Daemon:
             if self._set_up_sensor():
                 self._bias_until = time.monotonic() + self.cfg.sensor.bias_timeout_s
                 if self._loaded_zero is not None:
-                    # The sensor zeroed itself: a software zero from an earlier bias would now count twice.
-                    self.detector.set_offset(self._built_offset)  # type: ignore[attr-defined]
+                    # The sensor zeroed itself (offset 0, as built for bias_command): a software zero from an earlier
+                    # bias would now count twice.
+                    self.detector.set_offset(np.zeros_like(self.detector.offset))  # type: ignore[attr-defined]
                 if self._grasp_held:
                     # In contact when the sensor went: the bias takes the grasp's load. (Not disarmed by a bias in
                     # free air: a zero already taken under the grasp reads that grasp as no contact, so a second

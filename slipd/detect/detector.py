@@ -237,8 +237,9 @@ class Detector:
         return self.features._offset.reshape(9, 3).copy()
 
     def set_offset(self, offset: np.ndarray) -> None:
-        """A tare offset ([9, 3]) from the next sample on: the daemon's software zero after a bias taken under a
-        grasp (``slipd.daemon.rezero``). The history cut with the old offset is another stream's: restart after it."""
+        """A tare offset ([9, 3]) from the next sample on, for the model's windows and the contact state alike: the
+        start-up tare's, or the daemon's software zero after a bias taken under a grasp (``slipd.daemon.rezero``; the
+        history cut with the old offset is another stream's: restart after it)."""
         self.features.set_offset(offset)
         self.contact.set_offset(self.features._offset.reshape(9, 3))
 
@@ -285,8 +286,7 @@ class Detector:
             # Offset known: replay the buffered samples through the pipeline so windows start at the first
             # sample, exactly as the batch path (training, evaluation) cuts them. Windows completed inside the
             # tare stretch step the model (state continuity) but only the last one is reported.
-            self.features.set_offset(tare_offset(self._tare_buf, 0, self.tare_samples))
-            self.contact.set_offset(self.features._offset.reshape(9, 3))
+            self.set_offset(tare_offset(self._tare_buf, 0, self.tare_samples))
             self._tared = True
             last = None
             for k in range(self.tare_samples):
