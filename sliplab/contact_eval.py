@@ -20,6 +20,11 @@ unloaded start. Two figures:
   as outside. Where a recording carries the PapillArray controller's own
   type-6 friction estimate (``Recording.friction_est``: an SDK log's ``S0_FrictionEst``), it is scored the same way
   at the same sample; the simulated sets carry none.
+* **silent stops**: every end of a pillar's slide in the truth (sliding for at least 0.1 s, then stuck for at least
+  0.5 s, in contact) that no pillar's forces show: every pillar's mean |Ft| and Fz over 0.2-0.5 s after the stop
+  within 2 % (and 0.01 N) of their means over the 0.1 s before. Until some force moves, the sensor reads what it
+  read during the slide, so no estimate from the forces can tell that pillar from one sliding steadily; the cases
+  scored there (truth: stuck) are counted apart, with how many of them the estimate called sliding.
 """
 
 from __future__ import annotations
@@ -46,6 +51,10 @@ SPEC = load_manifest(packaged(DEFAULT_MODEL), check_graph=False).spec
 """The shipped model's feature layout: its window, stride and median are what the daemon's contact state sees (the
 detector shares its filtered window with the contact stream, ``ContactStream.shares_window``)."""
 TOLERANCE = 0.15
+SLIDE_S, STUCK_S = 0.1, 0.5
+"""A stop counts when the pillar slid this long before it and stays stuck this long after it."""
+SILENT_SHARE, SILENT_FLOOR_N = 0.02, 0.01
+"""Forces within this share of their value (plus this floor: sensor noise) across a stop leave it silent."""
 
 
 def truth_friction(meta: dict[str, Any]) -> tuple[float, float] | None:
@@ -92,6 +101,49 @@ def phase_bounds(meta: dict[str, Any]) -> list[tuple[float, float, str]]:
     return out
 
 
+def silent_stops(force: np.ndarray, slip: np.ndarray, rate_hz: float) -> tuple[int, int, np.ndarray]:
+    """(stops, silent stops, mask [N, 9]) of a tared recording's slide ends (see the module's text): ``mask`` marks
+    each silent stop's stuck samples until some pillar's forces (a 20-sample mean) leave the band around their
+    values during the slide."""
+    n = len(force)
+    slide, stuck = round(SLIDE_S * rate_hz), round(STUCK_S * rate_hz)
+    lo, hi = round(0.2 * rate_hz), stuck
+    ft = np.hypot(force[:, :, 0], force[:, :, 1])
+    fz = force[:, :, 2]
+    k = 20
+    csum_t = np.concatenate([np.zeros((1, 9)), np.cumsum(ft, axis=0)])
+    csum_z = np.concatenate([np.zeros((1, 9)), np.cumsum(fz, axis=0)])
+    mask = np.zeros((n, 9), bool)
+    stops = silent = 0
+    for p in range(9):
+        s = slip[:, p].astype(np.int8)
+        ends = np.flatnonzero((s[:-1] == 1) & (s[1:] == 0)) + 1
+        for i in ends:
+            if i < slide or not s[i - slide : i].all():
+                continue
+            after = np.flatnonzero(s[i:])
+            run_end = i + (int(after[0]) if len(after) else n - i)
+            if run_end - i < stuck:
+                continue
+            if fz[i - slide : i, p].mean() <= 0.5:
+                continue
+            stops += 1
+            # Every pillar's forces, not only this one's: a stop that any pillar shows (one still stuck stops
+            # loading) is information a model could use.
+            t_b, z_b = ft[i - slide : i].mean(0), fz[i - slide : i].mean(0)
+            t_a, z_a = ft[i + lo : i + hi].mean(0), fz[i + lo : i + hi].mean(0)
+            tol_t, tol_z = SILENT_SHARE * np.abs(t_b) + SILENT_FLOOR_N, SILENT_SHARE * np.abs(z_b) + SILENT_FLOOR_N
+            if (np.abs(t_a - t_b) > tol_t).any() or (np.abs(z_a - z_b) > tol_z).any():
+                continue
+            silent += 1
+            j = np.arange(i + k, run_end)
+            mt = (csum_t[j] - csum_t[j - k]) / k
+            mz = (csum_z[j] - csum_z[j - k]) / k
+            moved = np.flatnonzero(((np.abs(mt - t_b) > tol_t) | (np.abs(mz - z_b) > tol_z)).any(axis=1))
+            mask[i : int(j[moved[0]]) if len(moved) else run_end, p] = True
+    return stops, silent, mask
+
+
 def score_recording(path: str, model: str | None = None) -> dict[str, Any]:
     """Stream one recording; per-pillar counts (per pillar and per timeline phase) and the friction estimate at
     gross slip."""
@@ -104,6 +156,11 @@ def score_recording(path: str, model: str | None = None) -> dict[str, Any]:
     at = ev["gross_slip"] + 0.2 if "gross_slip" in ev else (ev["onset"] + 0.5 if "onset" in ev else None)
     at_i = None if at is None else min(int(at * rec.rate_hz), len(rec) - 1)
     est = None
+    stops = silent = 0
+    hidden = np.zeros(2, np.int64)  # cases stuck at a slide's forces after a silent stop, and those called sliding
+    if rec.slip is not None:
+        tared = rec.force - stretch_offset(rec.force, meta.get("tare_samples", (0, 100)))
+        stops, silent, quiet = silent_stops(tared, rec.slip, rec.rate_hz)
     for j, st, fz in _states(rec, model):
         if rec.slip is not None:
             c = np.asarray(st.pillar_slip) >= 0.5
@@ -111,6 +168,8 @@ def score_recording(path: str, model: str | None = None) -> dict[str, Any]:
             pred, tr = c & fz_ok, rec.slip[j] & fz_ok
             case = np.stack([pred & tr, pred & ~tr, ~pred & tr], axis=1)  # tp, fp, fn per pillar
             counts += case
+            in_quiet = quiet[j] & fz_ok & ~tr
+            hidden += (int(in_quiet.sum()), int((in_quiet & pred).sum()))
             t = j / rec.rate_hz
             phases[next((op for a, b, op in bounds if a <= t < b), "other")] += case.sum(0)
         if at_i is not None and j <= at_i:
@@ -128,7 +187,8 @@ def score_recording(path: str, model: str | None = None) -> dict[str, Any]:
             "kind": meta.get("kind"), "counts": counts.tolist(), "friction": est,
             "phases": {k: v.tolist() for k, v in phases.items()},
             "mu_s": None if truth is None else truth[0], "mu_k": None if truth is None else truth[1],
-            "controller_friction": _controller_friction(rec, at_i)}
+            "controller_friction": _controller_friction(rec, at_i),
+            "stops": stops, "silent_stops": silent, "silent_cases": hidden.tolist()}
 
 
 def _controller_friction(rec: Recording, at: int | None) -> float | None:
@@ -196,10 +256,25 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
                      "per_family": {f: {"trials": len(v), "within_15pct": float(np.mean(v)),
                                         "median_rel_error": float(np.median(errs[f])) if errs[f] else None}
                                     for f, v in sorted(fam.items())}},
+        "silent_stops": _silent(rows),
         "controller_friction_recordings": sum(r["controller_friction"] is not None for r in rows),
         "controller_friction_within_15pct": _within([(r["controller_friction"], r["mu_k"]) for r in rows
                                                      if r["controller_friction"] is not None and r["mu_k"]]),
     }
+
+
+def _silent(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Silent stops pooled and per family, with the negative cases they leave and the estimate's false positives
+    among them (all against the pooled false positives)."""
+    def pool(rs: list[dict[str, Any]]) -> dict[str, int]:
+        cases = np.sum([r.get("silent_cases", [0, 0]) for r in rs], axis=0) if rs else np.zeros(2, np.int64)
+        return {"stops": sum(r.get("stops", 0) for r in rs), "silent": sum(r.get("silent_stops", 0) for r in rs),
+                "cases": int(cases[0]), "called_sliding": int(cases[1]),
+                "false_positives": int(np.sum([np.asarray(r["counts"])[:, 1].sum() for r in rs]))}
+    fams: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for r in rows:
+        fams[str(r["family"])].append(r)
+    return pool(rows) | {"per_family": {f: pool(rs) for f, rs in sorted(fams.items())}}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -247,6 +322,11 @@ def _print(title: str, s: dict[str, Any]) -> None:
         f"{f} {v['within_15pct']:.0%} of {v['trials']} (median error {v['median_rel_error']:+.1%})"
         if v["median_rel_error"] is not None else f"{f} {v['within_15pct']:.0%} of {v['trials']}"
         for f, v in fr["per_family"].items()))
+    sl = s["silent_stops"]
+    print(f"  slide ends (>= {SLIDE_S:g} s sliding, >= {STUCK_S:g} s stuck): {sl['stops']}, silent (forces within "
+          f"{SILENT_SHARE:.0%} across): {sl['silent']}; stuck cases at a slide's forces {sl['cases']}, called sliding "
+          f"{sl['called_sliding']} of the {sl['false_positives']} false positives; per family " + ", ".join(
+              f"{f} {v['silent']}/{v['stops']}" for f, v in sl["per_family"].items()))
     ctl = s["controller_friction_within_15pct"]
     print(f"  recordings with the controller's type-6 friction estimate: {s['controller_friction_recordings']}"
           + ("" if ctl is None else f"; its estimate within 15 % of mu_k on {ctl:.1%} of them"))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 from conftest import make_scene
 
 from slipd.models import DEFAULT_MODEL, packaged
@@ -26,8 +27,30 @@ def test_contact_scores_the_feature_estimate_and_a_models_detector(tmp_path: Pat
     for f in figures:
         assert 0.0 < f["f1"] <= 1.0 and len(f["f1_per_pillar"]) == 9
         assert set(f["per_phase"]) <= {"press", "hold", "move", "release", "other"} and f["per_phase"]
+    silent = json.loads(out.read_text())["robust"]["silent_stops"]
+    assert silent["silent"] <= silent["stops"] and silent["called_sliding"] <= silent["cases"]
     # The shipped graph has no per-pillar head, so the detector's slip map is the feature estimate: scored on the
     # daemon's filtering (the model's median), both paths agree (they differ only in the normal force that decides
     # which pillars count as in contact: filtered in one, the raw sample in the other; the same here, where the
     # median of 21 the command once used gave 0.970 against the daemon's 0.974).
     assert abs(figures[0]["f1"] - figures[1]["f1"]) < 1e-3
+
+
+def test_a_stop_that_no_force_shows_is_counted_as_silent_until_a_force_moves() -> None:
+    """Pillar 0 stops sliding at 1.0 s with every force unchanged: silent, and its stuck samples are marked until
+    pillar 1's shear drops at its own stop (2.0 s), which that stop shows (not silent)."""
+    from sliplab.contact_eval import silent_stops
+
+    n = 3000
+    force = np.zeros((n, 9, 3))
+    force[:, :, 2] = 2.0
+    force[:, :, 0] = 0.5
+    force[:, :2, 0] = 1.0
+    force[2000:, 1, 0] = 0.8
+    slip = np.zeros((n, 9), bool)
+    slip[500:1000, 0] = True
+    slip[500:2000, 1] = True
+    stops, silent, mask = silent_stops(force, slip, 1000.0)
+    assert (stops, silent) == (2, 1)
+    assert mask[1000:2000, 0].all() and not mask[:1000, 0].any() and not mask[2010:, 0].any()
+    assert not mask[:, 1:].any()
