@@ -22,7 +22,8 @@ unloaded start. Two figures:
   at the same sample; the simulated sets carry none.
 * **silent stops**: every end of a pillar's slide in the truth (sliding for at least 0.1 s, then stuck for at least
   0.5 s, in contact) that no pillar's forces show: every pillar's mean |Ft| and Fz over 0.2-0.5 s after the stop
-  within 2 % (and 0.01 N) of their means over the 0.1 s before. Until some force moves, the sensor reads what it
+  within 2 % (and 0.01 N) of their means over the 0.1 s before, and their standard deviations within 25 % (and
+  0.002 N) of theirs. Until some force moves, the sensor reads what it
   read during the slide, so no estimate from the forces can tell that pillar from one sliding steadily; the cases
   scored there (truth: stuck) are counted apart, with how many of them the estimate called sliding.
 """
@@ -55,6 +56,8 @@ SLIDE_S, STUCK_S = 0.1, 0.5
 """A stop counts when the pillar slid this long before it and stays stuck this long after it."""
 SILENT_SHARE, SILENT_FLOOR_N = 0.02, 0.01
 """Forces within this share of their value (plus this floor: sensor noise) across a stop leave it silent."""
+SILENT_SD_SHARE, SILENT_SD_FLOOR_N = 0.25, 0.002
+"""... and their standard deviations within this share (plus this floor)."""
 
 
 def truth_friction(meta: dict[str, Any]) -> tuple[float, float] | None:
@@ -130,10 +133,16 @@ def silent_stops(force: np.ndarray, slip: np.ndarray, rate_hz: float) -> tuple[i
             stops += 1
             # Every pillar's forces, not only this one's: a stop that any pillar shows (one still stuck stops
             # loading) is information a model could use.
-            t_b, z_b = ft[i - slide : i].mean(0), fz[i - slide : i].mean(0)
-            t_a, z_a = ft[i + lo : i + hi].mean(0), fz[i + lo : i + hi].mean(0)
+            before, after = slice(i - slide, i), slice(i + lo, i + hi)
+            t_b, z_b = ft[before].mean(0), fz[before].mean(0)
+            t_a, z_a = ft[after].mean(0), fz[after].mean(0)
             tol_t, tol_z = SILENT_SHARE * np.abs(t_b) + SILENT_FLOOR_N, SILENT_SHARE * np.abs(z_b) + SILENT_FLOOR_N
             if (np.abs(t_a - t_b) > tol_t).any() or (np.abs(z_a - z_b) > tol_z).any():
+                continue
+            # Nor a change in how the forces fluctuate (a stick-slip slide's chatter stopping).
+            sd_b = np.concatenate([ft[before].std(0), fz[before].std(0)])
+            sd_a = np.concatenate([ft[after].std(0), fz[after].std(0)])
+            if (np.abs(sd_a - sd_b) > SILENT_SD_SHARE * sd_b + SILENT_SD_FLOOR_N).any():
                 continue
             silent += 1
             j = np.arange(i + k, run_end)
@@ -324,7 +333,8 @@ def _print(title: str, s: dict[str, Any]) -> None:
         for f, v in fr["per_family"].items()))
     sl = s["silent_stops"]
     print(f"  slide ends (>= {SLIDE_S:g} s sliding, >= {STUCK_S:g} s stuck): {sl['stops']}, silent (forces within "
-          f"{SILENT_SHARE:.0%} across): {sl['silent']}; stuck cases at a slide's forces {sl['cases']}, called sliding "
+          f"{SILENT_SHARE:.0%}, spread within {SILENT_SD_SHARE:.0%}): {sl['silent']}; "
+          f"stuck cases at a slide's forces {sl['cases']}, called sliding "
           f"{sl['called_sliding']} of the {sl['false_positives']} false positives; per family " + ", ".join(
               f"{f} {v['silent']}/{v['stops']}" for f, v in sl["per_family"].items()))
     ctl = s["controller_friction_within_15pct"]

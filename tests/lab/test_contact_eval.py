@@ -38,7 +38,8 @@ def test_contact_scores_the_feature_estimate_and_a_models_detector(tmp_path: Pat
 
 def test_a_stop_that_no_force_shows_is_counted_as_silent_until_a_force_moves() -> None:
     """Pillar 0 stops sliding at 1.0 s with every force unchanged: silent, and its stuck samples are marked until
-    pillar 1's shear drops at its own stop (2.0 s), which that stop shows (not silent)."""
+    pillar 1's shear drops at its own stop (2.0 s), which that stop shows (not silent). Pillar 2 chatters while it
+    slides (a 100 Hz ripple with a steady mean) and goes quiet at its stop (1.5 s): not silent either."""
     from sliplab.contact_eval import silent_stops
 
     n = 3000
@@ -47,10 +48,12 @@ def test_a_stop_that_no_force_shows_is_counted_as_silent_until_a_force_moves() -
     force[:, :, 0] = 0.5
     force[:, :2, 0] = 1.0
     force[2000:, 1, 0] = 0.8
+    force[:1500, 2, 0] += 0.05 * np.sin(2 * np.pi * np.arange(1500) / 10)
     slip = np.zeros((n, 9), bool)
     slip[500:1000, 0] = True
     slip[500:2000, 1] = True
+    slip[500:1500, 2] = True
     stops, silent, mask = silent_stops(force, slip, 1000.0)
-    assert (stops, silent) == (2, 1)
+    assert (stops, silent) == (3, 1)
     assert mask[1000:2000, 0].all() and not mask[:1000, 0].any() and not mask[2010:, 0].any()
     assert not mask[:, 1:].any()
