@@ -158,6 +158,7 @@ def test_every_referenced_metric_exists_in_a_running_daemon(tmp_path):
         cfg["model"].update(manifest="slip_ensemble_int8", detector="onnx")  # the packaged model, by name
         cfg["sensor"]["port"] = sensor.port
         cfg["gripper"]["port"] = servo.port
+        cfg["gripper"]["packet_timeout_ms"] = 200  # the emulated servo is a thread of this busy process
         cfg["arm"]["enabled"] = False
         cfg["reaction"].update(actions=["tighten_gripper"], on_failsafe="log_only")  # no arm on this bench
         cfg["recorder"]["enabled"] = False
