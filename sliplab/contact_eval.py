@@ -58,6 +58,10 @@ SILENT_SHARE, SILENT_FLOOR_N = 0.02, 0.01
 """Forces within this share of their value (plus this floor: sensor noise) across a stop leave it silent."""
 SILENT_SD_SHARE, SILENT_SD_FLOOR_N = 0.25, 0.002
 """... and their standard deviations within this share (plus this floor)."""
+SETTLE_S = 0.2
+"""The forces after a stop are compared from this long after it (the tip's own settling) to ``STUCK_S``."""
+MEAN_N = 20
+"""Samples of the running mean that says when a silent stop's forces move at last."""
 
 
 def truth_friction(meta: dict[str, Any]) -> tuple[float, float] | None:
@@ -72,11 +76,11 @@ def truth_friction(meta: dict[str, Any]) -> tuple[float, float] | None:
 _MODEL: dict[str, Any] = {}
 
 
-def _states(rec: Recording, model: str | None) -> Any:
-    """(window end, ContactState, filtered normal forces [9]) of every decision: ``ContactStream`` alone (the
-    feature estimate), or with ``model`` the daemon's detector, whose contact state takes the model's own
-    per-pillar P(slip) where its graph has a per-pillar head (``slipd.detect.contact``)."""
-    offset = stretch_offset(rec.force, rec.meta.get("tare_samples", (0, 100)))
+def _states(rec: Recording, model: str | None, offset: np.ndarray) -> Any:
+    """(window end, ContactState, filtered normal forces [9]) of every decision, tared with ``offset`` (that of
+    the recording's unloaded start): ``ContactStream`` alone (the feature estimate), or with ``model`` the daemon's
+    detector, whose contact state takes the model's own per-pillar P(slip) where its graph has a per-pillar head
+    (``slipd.detect.contact``)."""
     if model is None:
         stream = ContactStream(SPEC, offset)
         for j, st in stream.push_many(rec.force):
@@ -109,11 +113,10 @@ def silent_stops(force: np.ndarray, slip: np.ndarray, rate_hz: float) -> tuple[i
     each silent stop's stuck samples until some pillar's forces (a 20-sample mean) leave the band around their
     values during the slide."""
     n = len(force)
-    slide, stuck = round(SLIDE_S * rate_hz), round(STUCK_S * rate_hz)
-    lo, hi = round(0.2 * rate_hz), stuck
+    slide, stuck, settle = round(SLIDE_S * rate_hz), round(STUCK_S * rate_hz), round(SETTLE_S * rate_hz)
     ft = np.hypot(force[:, :, 0], force[:, :, 1])
     fz = force[:, :, 2]
-    k = 20
+    k = MEAN_N
     csum_t = np.concatenate([np.zeros((1, 9)), np.cumsum(ft, axis=0)])
     csum_z = np.concatenate([np.zeros((1, 9)), np.cumsum(fz, axis=0)])
     mask = np.zeros((n, 9), bool)
@@ -124,8 +127,8 @@ def silent_stops(force: np.ndarray, slip: np.ndarray, rate_hz: float) -> tuple[i
         for i in ends:
             if i < slide or not s[i - slide : i].all():
                 continue
-            after = np.flatnonzero(s[i:])
-            run_end = i + (int(after[0]) if len(after) else n - i)
+            next_slip = np.flatnonzero(s[i:])
+            run_end = i + (int(next_slip[0]) if len(next_slip) else n - i)
             if run_end - i < stuck:
                 continue
             if fz[i - slide : i, p].mean() <= 0.5:
@@ -133,7 +136,7 @@ def silent_stops(force: np.ndarray, slip: np.ndarray, rate_hz: float) -> tuple[i
             stops += 1
             # Every pillar's forces, not only this one's: a stop that any pillar shows (one still stuck stops
             # loading) is information a model could use.
-            before, after = slice(i - slide, i), slice(i + lo, i + hi)
+            before, after = slice(i - slide, i), slice(i + settle, i + stuck)
             t_b, z_b = ft[before].mean(0), fz[before].mean(0)
             t_a, z_a = ft[after].mean(0), fz[after].mean(0)
             tol_t, tol_z = SILENT_SHARE * np.abs(t_b) + SILENT_FLOOR_N, SILENT_SHARE * np.abs(z_b) + SILENT_FLOOR_N
@@ -167,10 +170,10 @@ def score_recording(path: str, model: str | None = None) -> dict[str, Any]:
     est = None
     stops = silent = 0
     hidden = np.zeros(2, np.int64)  # cases stuck at a slide's forces after a silent stop, and those called sliding
+    offset = stretch_offset(rec.force, meta.get("tare_samples", (0, 100)))
     if rec.slip is not None:
-        tared = rec.force - stretch_offset(rec.force, meta.get("tare_samples", (0, 100)))
-        stops, silent, quiet = silent_stops(tared, rec.slip, rec.rate_hz)
-    for j, st, fz in _states(rec, model):
+        stops, silent, quiet = silent_stops(rec.force - offset, rec.slip, rec.rate_hz)
+    for j, st, fz in _states(rec, model, offset):
         if rec.slip is not None:
             c = np.asarray(st.pillar_slip) >= 0.5
             fz_ok = fz > 0.5
@@ -276,8 +279,8 @@ def _silent(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Silent stops pooled and per family, with the negative cases they leave and the estimate's false positives
     among them (all against the pooled false positives)."""
     def pool(rs: list[dict[str, Any]]) -> dict[str, int]:
-        cases = np.sum([r.get("silent_cases", [0, 0]) for r in rs], axis=0) if rs else np.zeros(2, np.int64)
-        return {"stops": sum(r.get("stops", 0) for r in rs), "silent": sum(r.get("silent_stops", 0) for r in rs),
+        cases = np.sum([r["silent_cases"] for r in rs], axis=0) if rs else np.zeros(2, np.int64)
+        return {"stops": sum(r["stops"] for r in rs), "silent": sum(r["silent_stops"] for r in rs),
                 "cases": int(cases[0]), "called_sliding": int(cases[1]),
                 "false_positives": int(np.sum([np.asarray(r["counts"])[:, 1].sum() for r in rs]))}
     fams: dict[str, list[dict[str, Any]]] = defaultdict(list)
