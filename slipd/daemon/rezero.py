@@ -62,11 +62,16 @@ class LoadedZero:
         air."""
         self._below = np.maximum(BELOW_N, RELEASE_SHARE * np.nan_to_num(np.asarray(grips, np.float64)))
         self.armed = True
-        self._n = self._chunk_n = 0
+        self._new_stretch()
 
     def disarm(self) -> None:
         self.armed = False
+        self._new_stretch()
+
+    def _new_stretch(self) -> None:
+        """Forget the still stretch so far, the part-filled chunk included (its frames came before the break)."""
         self._n = self._chunk_n = 0
+        self._chunk_sum[:] = 0.0
 
     def push(self, force: np.ndarray, offset: np.ndarray, in_contact: bool) -> np.ndarray | None:
         """One block of raw forces ([k, S, 9, 3]) with the offset in use ([S, 9, 3] or [9, 3]); ``in_contact``: some
@@ -75,7 +80,7 @@ class LoadedZero:
             return None
         x = np.asarray(force, np.float64).reshape(-1, self.sensors, N_PILLARS, 3)
         if in_contact or not np.isfinite(x).all():
-            self._n = self._chunk_n = 0  # a grasp, or a value the pipeline would bridge: the stretch starts again
+            self._new_stretch()  # a grasp, or a value the pipeline would bridge: the stretch starts again
             return None
         i = 0
         while i < len(x):  # whole chunks of CHUNK frames, whatever the blocks' sizes

@@ -99,3 +99,16 @@ def test_two_fingers_are_zeroed_together_from_the_one_that_shows_the_release() -
         offset = out if out is not None else offset
     assert offset is not None and offset.shape == (2, 9, 3)
     assert np.abs(offset[0, :, 2] + 1.5).max() < 0.02 and np.abs(offset[1, :, 2]).max() < 0.02
+
+
+def test_frames_before_a_grasp_do_not_enter_the_stretch_after_it() -> None:
+    """Five frames of a part-filled chunk, then a block in contact: the stretch that follows is its own frames
+    alone (the part-filled chunk's sum was kept across the break and shifted the zero by a few mN)."""
+    z = LoadedZero(1, RATE)
+    z.arm([10.0])
+    assert z.push(np.full((5, 1, 9, 3), 0.09), ZERO, False) is None
+    assert z.push(np.zeros((5, 1, 9, 3)), ZERO, True) is None
+    free = np.zeros((300, 1, 9, 3))
+    free[:, :, :, 2] = -0.7  # 6.3 N below the zero: released
+    offset = _feed(z, [free[i : i + 10] for i in range(0, 300, 10)])
+    assert offset is not None and np.allclose(offset, free[0], atol=1e-6)
