@@ -133,6 +133,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
         if problem:
             _err(f"slipd replay: --json {args.json}: {problem}")
             return EXIT_USAGE
+    if args.sample == (args.recording is not None):
+        _err("slipd replay: give a RECORDING or --sample (the packaged sample), not both")
+        return EXIT_USAGE
+    if args.sample:
+        args.recording = str(models.SAMPLE_RECORDING)
     try:
         rec = Recording.load(args.recording)
     except RecordingError as exc:
@@ -249,19 +254,21 @@ def cmd_models(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------------------------- sim
 def cmd_sim(args: argparse.Namespace) -> int:
     """The closed-loop simulated rig (needs the ``sim`` extra)."""
-    try:
-        from slipd.sim.rig import DEFAULT_CONFIG, DEFAULT_SCENE, main_sim
-    except ImportError as exc:
-        _err(f"slipd sim needs the simulator's extra: pip install 'slipd[sim]' ({exc})")
+    import importlib.util
+
+    # Checked before anything runs: the rig imports matplotlib only to draw its plot, at the end.
+    missing = [m for m in ("scipy", "matplotlib") if importlib.util.find_spec(m) is None]
+    if missing:
+        _err(f"slipd sim: install slipd[sim] (missing: {', '.join(missing)})")
         return EXIT_USAGE
     from slipd.config import ConfigError
+    from slipd.sim.rig import DEFAULT_CONFIG, DEFAULT_SCENE, main_sim
     from slipd.sim.scene import SceneError
 
     for given, default, what in ((args.scene, DEFAULT_SCENE, "--scene"), (args.config, DEFAULT_CONFIG, "--config")):
         path = Path(given) if given else default
         if not path.is_file():
-            # The defaults live in a source checkout (config/); an installed package has none.
-            _err(f"slipd sim: {what} {path}: file not found (run from a slipd checkout, or pass {what})")
+            _err(f"slipd sim: {what} {path}: file not found")
             return EXIT_USAGE
     if args.duration is not None and not args.duration > 0:
         _err(f"slipd sim: --duration {args.duration}: must be > 0 seconds")
@@ -298,7 +305,9 @@ def _parser() -> argparse.ArgumentParser:
     chk.add_argument("config", help="YAML configuration file")
 
     rep = add("replay", cmd_replay, "run a recording through the daemon's decision path offline and print alarms")
-    rep.add_argument("recording", help=".npz recording or Contactile SDK CSV log")
+    rep.add_argument("recording", nargs="?", default=None, help=".npz recording or Contactile SDK CSV log")
+    rep.add_argument("--sample", action="store_true",
+                     help="replay the packaged sample instead (a simulated lift that slips, 1.5 s)")
     rep.add_argument("--model", "-m", default=None,
                      help="packaged model name or manifest path (.json); default: the config's, else the shipped one")
     rep.add_argument("--config", "-c", default=None, help="optional YAML config (decision settings)")
@@ -307,8 +316,10 @@ def _parser() -> argparse.ArgumentParser:
     add("models", cmd_models, "list the packaged models (name, sha256, figures)")
 
     sim = add("sim", cmd_sim, "closed-loop simulated rig: physics + emulated devices + the daemon")
-    sim.add_argument("--scene", default=None, help="scene YAML (default: config/scenes/default.yaml)")
-    sim.add_argument("--config", "-c", default=None, help="daemon config for the rig (default: config/sim.yaml)")
+    sim.add_argument("--scene", default=None,
+                     help="scene YAML (default: the packaged thermos_flask_undergrip; others in config/scenes/)")
+    sim.add_argument("--config", "-c", default=None,
+                     help="daemon config for the rig (default: the packaged sim.yaml; config/sim.yaml in a checkout)")
     sim.add_argument("--duration", type=float, default=None, help="seconds to run (default: the scene's)")
     sim.add_argument("--plot", default="out/sim.png", help="where to write the plot ('' for none)")
     sim.add_argument("--no-reaction", action="store_true", help="detect but do not react (control run)")

@@ -253,6 +253,22 @@ def test_replay_with_an_unknown_model_name_exits_4_with_one_line(capsys) -> None
     assert code == 4 and err.startswith("slipd replay:") and err.count("\n") == 1, err
 
 
+def test_replay_sample_replays_the_packaged_recording_and_wants_it_or_a_file(tmp_path, capsys) -> None:
+    """`slipd replay --sample` needs no path: the packaged sample slips and the shipped model alarms on it. A file and
+    --sample together, or neither, is a usage error in one line."""
+    from slipd import models
+    from slipd.cli import main
+
+    assert main(["replay", "--sample"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"{models.SAMPLE_RECORDING}: 1500 samples") and "alarm at sample" in out, out
+    assert "labelled onset at sample 1038" in out, out
+    for argv in (["replay"], ["replay", "--sample", str(models.SAMPLE_RECORDING)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("slipd replay: give a RECORDING or --sample") and err.count("\n") == 1, err
+
+
 def test_replay_on_metadata_the_decision_path_cannot_follow_prints_one_line(tmp_path, capsys) -> None:
     """A tare stretch beyond the recording, a tare stretch that is no [start, stop], a tare offset of the wrong shape,
     a --json into a folder that does not exist: each raised a traceback (the last after the output was printed)."""

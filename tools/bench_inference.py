@@ -78,11 +78,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--extra", nargs="*", default=[], help="more manifests to time (fp16, int8 variants)")
     args = ap.parse_args(argv)
 
-    import onnxruntime as ort
     import torch
 
     from slipd.detect.ensemble import Ensemble, session_options
     from slipd.detect.manifest import onnx_path_of
+    from slipd.detect.ort import onnxruntime as ort
     from sliplab.model import load_reference_ensemble
 
     torch.set_num_threads(1)

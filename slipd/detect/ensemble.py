@@ -34,10 +34,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import onnxruntime as ort
 
 from slipd.detect.features import FeatureSpec
 from slipd.detect.manifest import Manifest, check_session_io, load_manifest, onnx_path_of, open_session
+from slipd.detect.ort import onnxruntime as ort
 
 
 class StepError(Exception):

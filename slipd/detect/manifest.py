@@ -255,7 +255,7 @@ def check_session_io(manifest: Manifest, session: Any, onnx_path: str | os.PathL
 
 def open_session(onnx_path: str | os.PathLike[str], options: Any = None) -> Any:
     """An onnxruntime CPU session; a file onnxruntime cannot parse raises ``ModelError``."""
-    import onnxruntime as ort  # imported here so that manifest-only tools start fast
+    from slipd.detect.ort import onnxruntime as ort  # imported here so that manifest-only tools start fast
 
     try:
         return ort.InferenceSession(str(onnx_path), sess_options=options, providers=["CPUExecutionProvider"])

@@ -37,12 +37,14 @@ import threading
 import time
 import urllib.request
 from dataclasses import asdict, dataclass
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
 
+from slipd.detect.manifest import read_manifest
 from slipd.geometry import CONTACT_THRESHOLD_N, OUTER
 from slipd.sim import effects as fx
 from slipd.sim.devices.mx28 import JawParams
@@ -50,9 +52,12 @@ from slipd.sim.harness import EmulatedDevices
 from slipd.sim.physics import DT_S, GripperStepper, ObjectParams, measured_disp, saturate, sensor_params
 from slipd.sim.scene import GripperScene, gripper_context, incipient_labels, load_scene
 
-ROOT = Path(__file__).resolve().parents[2]
-DEFAULT_SCENE = ROOT / "config" / "scenes" / "default.yaml"
-DEFAULT_CONFIG = ROOT / "config" / "sim.yaml"
+# Packaged with slipd (``slipd[sim]`` runs from any folder); a checkout's config/ links to the same files.
+_PACKAGE = Path(str(resources.files("slipd.sim")))
+SCENES = _PACKAGE / "scenes"
+DEFAULT_SCENE = SCENES / "thermos_flask_undergrip.yaml"
+"""The demo's scene: its incipient phase lasts long enough (about 90 ms) for the alarm to come inside it."""
+DEFAULT_CONFIG = _PACKAGE / "sim.yaml"
 
 GRASP_S = 0.8
 """The object enters the jaw here: the daemon has opened the sensor and tared on an unloaded stretch."""
@@ -99,24 +104,51 @@ class RigResult:
     """Fail-safe stops for a stalled sensor: the rig fell behind real time (a busy machine), so the run
     measured the fail-safe, not the detector."""
 
-    def lines(self) -> list[str]:
-        """Human-readable summary."""
+    def verdict(self) -> str:
+        """In words: when the alarm came relative to incipient and gross slip."""
+        if self.alarm_s is None:
+            return "no alarm" + (" although the object slipped" if self.onset_s is not None else "")
+        if self.onset_s is None:
+            return "alarm without any slip in the physics: a false alarm"
+        after = _ms(self.alarm_s - self.onset_s)
+        if self.alarm_s < self.onset_s:
+            return f"alarm {-after} ms before the labelled onset of incipient slip"
+        if self.gross_slip_s is None:
+            return f"alarm during incipient slip ({after} ms after it began); gross slip never came"
+        if self.alarm_s < self.gross_slip_s:
+            return (f"alarm during incipient slip ({after} ms after it began, "
+                    f"{_ms(self.gross_slip_s - self.alarm_s)} ms before gross slip)")
+        return (f"alarm after gross slip ({_ms(self.alarm_s - self.gross_slip_s)} ms after every pillar slipped): "
+                "too late to count as incipient-slip detection")
 
-        def t(v: float | None) -> str:
-            return "-" if v is None else f"{v:.3f} s"
+    def lines(self) -> list[str]:
+        """Human-readable summary: the events on one time line, in ms from the onset of incipient slip."""
+        zero = self.onset_s if self.onset_s is not None else self.lift_start_s
+        origin = "the onset of incipient slip" if self.onset_s is not None else "the start of the lift"
+
+        def t(v: float | None, never: str = "never") -> str:
+            return f"{never:>8}" if v is None else f"{_ms(v - zero):+6d} ms"
 
         return [
-            f"scene {self.scene}  (reaction {'on' if self.reaction else 'off'}, {self.frames} frames)",
-            f"  lift started          {t(self.lift_start_s)}",
-            f"  incipient slip (truth){t(self.onset_s):>10}   all pillars slipping {t(self.gross_slip_s)}"
-            f"   object moved 2 mm / 2 deg {t(self.gross_motion_s)}",
-            f"  daemon alarm          {t(self.alarm_s)}",
-            f"  stop reached UR       {t(self.stop_reached_s)}   tighten reached servo {t(self.tighten_reached_s)}",
-            f"  grasp secure          {t(self.secure_s)}",
-            f"  object motion         {self.translation_mm:.2f} mm, {self.rotation_deg:.2f} deg relative to the finger",
-            f"  dropped               {'YES' if self.dropped else 'no'}   (max grip {self.max_grip_n:.1f} N)",
+            f"scene {self.scene}  (reaction {'on' if self.reaction else 'off'}, {self.frames / 1000:.1f} s)",
+            f"  times in ms from {origin} ({zero:.3f} s into the run)",
+            f"  {t(self.lift_start_s)}  the arm starts lifting",
+            f"  {t(self.onset_s)}  incipient slip begins: some outer pillars slip, others still stick (truth)",
+            f"  {t(self.alarm_s, 'no alarm')}  the daemon's alarm",
+            f"  {t(self.stop_reached_s, 'no stop')}  the stop reaches the arm",
+            f"  {t(self.tighten_reached_s, 'no grip')}  the tighten reaches the gripper",
+            f"  {t(self.gross_slip_s)}  gross slip: every pillar in contact slips (truth)",
+            f"  {t(self.gross_motion_s)}  the object has moved 2 mm or 2 deg against the finger",
+            f"  {t(self.secure_s)}  the grasp is secure (object at rest against the finger)",
+            f"  => {self.verdict()}",
+            f"  object moved {self.translation_mm:.2f} mm and turned {self.rotation_deg:.2f} deg against the finger "
+            f"before it was secure; {'DROPPED' if self.dropped else 'not dropped'} (max grip {self.max_grip_n:.1f} N)",
         ] + ([f"  WARNING: {self.sensor_stalls} sensor stall(s): the rig fell behind real time; run it on a quieter "
               "machine"] if self.sensor_stalls else [])
+
+
+def _ms(seconds: float) -> int:
+    return round(seconds * 1000)
 
 
 def scene_physics(scene: GripperScene, seed: int, batch: int = 1
@@ -166,6 +198,10 @@ class RigPhysics:
         self.lift_at = self.grasp_index + round((scene.grip.close_s + scene.settle_s) / DT_S)
         self._prepare_measurement()
         self.fill_kg_s, self.fill_after_s, self.fill_to_kg = 0.0, 0.0, 0.0
+        self.daemon_p: list[tuple[float, float]] = []
+        """The daemon's P(slip) decisions (seconds from the timeline's start, p), filled in after the run."""
+        self.threshold: float | None = None
+        """The ensemble's alarm threshold (None: a heuristic detector ran)."""
 
     def grasp(self) -> None:
         """The object enters the jaw (hook for the rig's timeline)."""
@@ -363,9 +399,25 @@ def run_rig(
                     proc.kill()
         text = log_file.read_text()
         (out / "metrics.txt").write_text(metrics_text)
+        physics.daemon_p = _daemon_p_slip(out / "recordings", physics.timeline_start_s)
+        if (detector or base_cfg.model.detector) == "onnx":
+            physics.threshold = base_cfg.decision.threshold or read_manifest(base_cfg.model.manifest).threshold
         result = summarise(physics, scene_path, react, text, ur_state, writes, g.secure_position)
         result.policy = str((overrides or {}).get("reaction.policy", base_cfg.reaction.policy))
     return result, physics
+
+
+def _daemon_p_slip(folder: Path, offset_s: float) -> list[tuple[float, float]]:
+    """The daemon's own P(slip) decisions, (seconds from the timeline's start, p), from the recordings it wrote around
+    its alarms; empty when it wrote none (no alarm)."""
+    from slipd.recording import Recording
+
+    out: dict[float, float] = {}
+    for path in sorted(folder.glob("*.npz")):
+        dec = Recording.load(path).meta.get("decisions") or {}
+        for t_us, p in zip(dec.get("t_us", []), dec.get("p_slip", [])):
+            out[t_us / 1e6 - offset_s] = float(p)
+    return sorted(out.items())
 
 
 def _wait_ready(proc: subprocess.Popen, port: int, log_file: Path, timeout: float = 60.0) -> None:
@@ -458,47 +510,79 @@ def summarise(physics: RigPhysics, scene_path: Any, react: bool, daemon_log: str
     )
 
 
-def plot_run(physics: RigPhysics, result: RigResult, path: str | Path, daemon_p: list[tuple[float, float]] | None = None
-             ) -> Path:
-    """Force traces, grip, object motion and the events of one run, on one figure (PNG)."""
+def plot_run(physics: RigPhysics, result: RigResult, path: str | Path) -> Path:
+    """One run on one figure (PNG): the whole run on the left, the lift zoomed on the right (ms from the onset);
+    per-pillar shear force, grip, slipping pillars with the daemon's P(slip) and its threshold, object motion."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
     n = physics.steps
     t = np.arange(n) * DT_S
-    fig, ax = plt.subplots(4, 1, figsize=(10, 10), sharex=True)
-    for p in range(9):
-        ax[0].plot(t, physics.force[:n, p, 1], lw=0.8, label=f"P{p}")
-    ax[0].set_ylabel("fy (N)")
-    ax[0].legend(ncol=9, fontsize=7, loc="upper left")
-    ax[1].plot(t, physics.force[:n, :, 2].sum(1), label="total fz (N)")
-    ax[1].plot(t, physics.grip[:n], label="servo grip (N)")
-    ax[1].legend(fontsize=8)
-    ax[2].plot(t, physics.slip[:n].sum(1), drawstyle="steps-post", label="pillars slipping (truth)")
-    if daemon_p:
-        tp, pp = zip(*daemon_p)
-        ax2 = ax[2].twinx()
-        ax2.plot(tp, pp, "k.-", ms=3, lw=0.8, label="P(slip)")
-        ax2.axhline(0.5, color="k", ls=":", lw=0.8)
-        ax2.set_ylim(0, 1)
-    ax[2].set_ylabel("slipping pillars")
-    ax[2].legend(fontsize=8, loc="upper left")
     lift = physics.lift_index or 0
     mot = physics.motion[:n] - physics.motion[lift]
-    ax[3].plot(t, np.hypot(mot[:, 0], mot[:, 1]), label="object translation (mm)")
-    ax[3].plot(t, np.abs(mot[:, 2]), label="object rotation (deg)")
-    ax[3].set_ylabel("relative to finger")
-    ax[3].set_xlabel("time (s)")
-    ax[3].legend(fontsize=8)
-    for a in ax:
-        for val, style, _name in ((result.onset_s, "g--", "onset"), (result.alarm_s, "r-", "alarm"),
-                                 (result.secure_s, "b:", "secure"), (result.lift_start_s, "k:", "lift")):
-            if val is not None:
-                a.axvline(val, color=style[0], ls=style[1:], lw=1)
-    ax[0].set_title(" | ".join(result.lines()[0:1]) + f"   alarm {result.alarm_s}  onset {result.onset_s}")
-    fig.tight_layout()
+    zero = result.onset_s if result.onset_s is not None else result.lift_start_s
+    events = [(result.lift_start_s, "k", ":", "arm starts lifting"),
+              (result.onset_s, "g", "--", "incipient slip begins (truth)"),
+              (result.alarm_s, "r", "-", "daemon alarm"),
+              (result.gross_slip_s, "m", "-.", "gross slip: every pillar slips (truth)"),
+              (result.secure_s, "b", ":", "grasp secure")]
+    fig, ax = plt.subplots(4, 2, figsize=(15, 11), gridspec_kw={"width_ratios": [3, 2]})
+    end = max(v for v, *_ in events if v is not None)
+    lo, hi = zero - 0.12, max(end + 0.08, zero + 0.15)
+    for col, (scale, origin, xlabel) in enumerate(((1.0, 0.0, "time into the run (s)"),
+                                                   (1000.0, zero, "time from the onset of incipient slip (ms)"))):
+        x = (t - origin) * scale
+        a = ax[:, col]
+        for p in range(9):
+            a[0].plot(x, physics.force[:n, p, 1], lw=0.8, label=f"pillar {p}")
+        a[0].set_ylabel("shear force fy (N)")
+        a[1].plot(x, physics.force[:n, :, 2].sum(1), label="total normal force fz")
+        a[1].plot(x, physics.grip[:n], label="servo grip force")
+        a[1].set_ylabel("force (N)")
+        a[2].plot(x, physics.slip[:n].sum(1), drawstyle="steps-post", color="tab:orange",
+                  label="pillars slipping (truth)")
+        a[2].set_ylabel("slipping pillars (of 9)")
+        a[2].set_ylim(-0.3, 9.3)
+        pa = a[2].twinx()
+        if physics.daemon_p:
+            tp, pp = (np.asarray(v) for v in zip(*physics.daemon_p))
+            pa.plot((tp - origin) * scale, pp, "k.-", ms=3, lw=0.8, label="daemon's P(slip)")
+        if physics.threshold is not None:
+            pa.axhline(physics.threshold, color="k", ls=":", lw=0.8, label=f"alarm threshold {physics.threshold:g}")
+        pa.set_ylim(-0.03, 1.03)
+        pa.set_ylabel("P(slip)")
+        a[3].plot(x, np.hypot(mot[:, 0], mot[:, 1]), color="tab:blue", label="translation (mm)")
+        a[3].set_ylabel("object translation\nagainst the finger (mm)", color="tab:blue")
+        ra = a[3].twinx()
+        ra.plot(x, np.abs(mot[:, 2]), color="tab:red", label="rotation (deg)")
+        ra.set_ylabel("object rotation (deg)", color="tab:red")
+        a[3].set_xlabel(xlabel)
+        for k in range(4):
+            for val, color, style, _ in events:
+                if val is not None:
+                    a[k].axvline((val - origin) * scale, color=color, ls=style, lw=1.2)
+            if col == 1:
+                a[k].set_xlim((lo - zero) * 1000, (hi - zero) * 1000)
+            else:
+                a[k].set_xlim(0, t[-1] if n else 1)
+        if col == 1:
+            handles = a[2].get_legend_handles_labels()[0] + pa.get_legend_handles_labels()[0]
+            a[2].legend(handles=handles, fontsize=7, loc="upper left")
+            a[1].legend(fontsize=7, loc="upper left")
+        else:
+            a[0].legend(ncol=9, fontsize=6, loc="lower left", bbox_to_anchor=(0.0, 1.0), frameon=False,
+                        handlelength=1.2, columnspacing=0.8)
+    ax[0, 0].set_title("the whole run", loc="right", fontsize=9)
+    ax[0, 1].set_title("the lift, zoomed", loc="right", fontsize=9)
+    proxies = [Line2D([], [], color=c, ls=s_, lw=1.2) for _, c, s_, _ in events]
+    fig.legend(proxies, [lab for *_, lab in events], loc="upper center", ncol=5, fontsize=8,
+               bbox_to_anchor=(0.5, 0.955), frameon=False)
+    fig.suptitle(f"slipd sim: {result.scene} (reaction {'on' if result.reaction else 'off'}): {result.verdict()}",
+                 fontsize=11, y=0.985)
+    fig.tight_layout(rect=(0, 0, 1, 0.93))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)

@@ -283,7 +283,7 @@ def test_shipped_configs_are_valid():
     assert real.sensor.port == "/dev/ttyACM0" and real.gripper.enabled and real.arm.enabled
     sim = load_config(ROOT / "config" / "sim.yaml")
     assert sim.model.manifest == ROOT / "slipd" / "models" / "slip_ensemble.json"
-    assert sim.recorder.directory == ROOT / "out" / "sim-recordings"
+    assert sim.recorder.directory == Path("/tmp/slipd-sim-recordings")  # any folder: the package may be read-only
 
 
 def test_every_key_of_the_real_config_is_documented():

@@ -7,10 +7,8 @@ import numpy as np
 
 from slipd.sim.holding import holding_trial, least_holding_grip, lift_velocity
 from slipd.sim.physics import DT_S
-from slipd.sim.rig import LIFT_MM, ROOT
+from slipd.sim.rig import LIFT_MM, SCENES
 from slipd.sim.scene import load_scene
-
-SCENES = ROOT / "config" / "scenes"
 
 
 def test_the_lift_profile_travels_the_rigs_lift_within_its_speed_and_acceleration() -> None:

@@ -11,7 +11,7 @@ from conftest import ROOT
 
 from slipd.sim.rig import run_rig
 
-SCENE = ROOT / "config" / "scenes" / "default.yaml"
+SCENE = ROOT / "config" / "scenes" / "wooden_box_undergrip.yaml"
 CONFIG = ROOT / "config" / "sim.yaml"
 
 pytestmark = pytest.mark.skipif(not (ROOT / "slipd" / "models" / "slip_ensemble.json").exists(),
@@ -59,3 +59,16 @@ def test_slipd_sim_turns_a_broken_config_scene_or_duration_into_one_line(tmp_pat
         assert main(["sim", "--plot", "", *extra]) == code
         out = capsys.readouterr()
         assert out.out == "" and part in out.err, out.err
+
+
+def test_slipd_sim_without_the_sim_extra_exits_2_at_once_in_one_line(monkeypatch, capsys) -> None:
+    """The rig draws its plot with matplotlib at the end: without the extra, `slipd sim` ran the whole rig and then
+    died with a traceback. Now it stops before anything runs (None in sys.modules: the import fails)."""
+    import sys
+
+    from slipd.cli import main
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    assert main(["sim"]) == 2
+    out = capsys.readouterr()
+    assert out.out == "" and out.err == "slipd sim: install slipd[sim] (missing: matplotlib)\n", out.err

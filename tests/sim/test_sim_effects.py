@@ -114,7 +114,7 @@ def test_an_unlisted_effect_leaves_no_trace():
 
 
 def _grip(effects, grip_n=None):
-    d = load_scene(SCENES / "default.yaml").model_dump()
+    d = load_scene(SCENES / "wooden_box_undergrip.yaml").model_dump()
     d["effects"] = effects
     d["duration_s"] = 1.6
     if grip_n is not None:

@@ -21,7 +21,7 @@ def test_shipped_scene_files_load():
     names = {p.stem for p in SCENES.glob("*.yaml")}
     for obj in OBJECTS:
         assert {f"{obj}_undergrip", f"{obj}_offcentre"} <= names
-    assert "default" in names and any(n.startswith("hexapod") for n in names)
+    assert "thermos_flask_undergrip" in names and any(n.startswith("hexapod") for n in names)
     for p in SCENES.glob("*.yaml"):
         load_scene(p)
 
@@ -107,7 +107,7 @@ def test_label_rule():
 
 
 def test_gripper_scenes_lift_and_slip():
-    rec = generate(load_scene(SCENES / "default.yaml"))
+    rec = generate(load_scene(SCENES / "wooden_box_undergrip.yaml"))
     ev = rec.events
     assert rec.meta["family"] == "gripper" and rec.meta["kind"] == "slip"
     assert ev["motion_start"] < ev["onset"] <= ev["gross_slip"]
@@ -124,7 +124,7 @@ def test_gripper_scenes_lift_and_slip():
 
 
 def test_gripper_stop_trial_holds():
-    d = load_scene(SCENES / "default.yaml").model_dump()
+    d = load_scene(SCENES / "wooden_box_undergrip.yaml").model_dump()
     d.update(trial="stop", grip={"force_n": 30.0, "close_s": 0.3})
     rec = generate(parse_scene(d))
     assert rec.meta["kind"] == "stop" and not rec.label.any()
