@@ -55,7 +55,8 @@ lint: $(TEST_STAMP)
 # What a robot's computer gets from `pip install slipd`: build the wheel from the files git knows
 # (a copy, so stale build/ output or a local egg-info cannot leak into it), install it into a fresh
 # virtual environment WITHOUT extras, run the daemon's commands from outside the checkout (so
-# `import slipd` is the installed one), and check that none of the extras came along. The fresh venv gets
+# `import slipd` is the installed one), and check that none of the extras came along: `slipd sim` and
+# `import sliplab` must say in one line which extra they need, the docs the unit names must be installed. The fresh venv gets
 # no pip of its own: the dev venv's pip installs into it (`pip --python`), which saves bootstrapping one.
 wheel-test: $(TEST_STAMP)
 	rm -rf $(WHEEL_TEST) && mkdir -p $(WHEEL_TEST)/src
@@ -69,7 +70,11 @@ wheel-test: $(TEST_STAMP)
 	  venv/bin/slipd version && \
 	  venv/bin/slipd check-config $(CURDIR)/config/slipd.yaml && \
 	  venv/bin/slipd models && \
-	  venv/bin/slipd replay "$$(venv/bin/python -c 'from slipd.models import SAMPLE_RECORDING as s; print(s)')" && \
+	  venv/bin/slipd replay --sample && \
+	  test -f venv/share/doc/slipd/install.md && \
+	  { venv/bin/slipd sim 2>sim.err; test $$? -eq 2; } && test "$$(wc -l <sim.err)" -eq 1 && \
+	  grep -q "install slipd\[sim\]" sim.err && \
+	  { ! venv/bin/python -c "import sliplab" 2>lab.err; } && grep -q "needs the train extra" lab.err && \
 	  venv/bin/python -c "import slipd.cli, slipd.daemon.service, slipd.daemon.loop, slipd.detect.replay" && \
 	  venv/bin/python -c "import importlib.util as u; \
 	    extra = [m for m in ['torch', 'scipy', 'matplotlib', 'tqdm'] if u.find_spec(m) is not None]; \
