@@ -174,7 +174,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         at = "" if blind is None else f"; the daemon would fail safe (sensor_nonfinite) at t={(blind - t0) / 1e6:.3f} s"
         print(f"  {bad} sample(s) not finite{at}")
     if args.json:
-        # Each decision with its contact state (issue 16: the slip map, friction estimate, contact risk, grip, load).
+        # Each decision with its contact state (the slip map, friction estimate, contact risk, grip, load).
         decisions: list[dict[str, Any]] = [
             {"index": d.index, "t_us": d.t_us, "p_slip": d.p_slip, "alarm": d.alarm, "risk": d.risk,
              **(d.contact.to_dict() if d.contact is not None else {})} for d in dets

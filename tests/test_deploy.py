@@ -196,7 +196,7 @@ def test_every_referenced_metric_exists_in_a_running_daemon(tmp_path):
     names, values = _exposed(text)
     assert values["slipd_frames_received_total"] > 1000 and values['slipd_decisions_total{sensor="0"}'] > 0
     assert values["slipd_dropped_frames_total"] >= 5
-    # The stall is a fail-safe counted by reason: sensor_stall. Once in a clean-clone CI run (session 34, a loaded
+    # The stall is a fail-safe counted by reason: sensor_stall. Once in a clean-clone CI run (a loaded
     # 2-core machine) it was counted as no_decisions: the last frames before the stall were read, and stamped fresh,
     # late, so the decision's deadline passed first. The supervisor now names a stream that stopped short of the
     # decision a stall (test_liveness asserts that deterministically); this timing-bound test still accepts either.

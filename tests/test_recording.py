@@ -211,7 +211,7 @@ def test_replay_cli_on_broken_files_prints_one_line_and_exits_1(tmp_path) -> Non
 
 
 def test_the_controllers_friction_estimate_round_trips_and_replay_puts_it_beside_slipds(tmp_path) -> None:
-    """Issue 16: an SDK log's S<s>_FrictionEst (the PapillArray controller's type-6 estimate; -1 where it has none)
+    """An SDK log's S<s>_FrictionEst (the PapillArray controller's type-6 estimate; -1 where it has none)
     is kept as ``friction_est`` (NaN there), through npz and CSV, one and two sensors, and `slipd replay --json`
     reports it beside slipd's own estimate at each decision."""
     import json

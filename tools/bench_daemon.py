@@ -53,7 +53,7 @@ from slipd.recording import Recording
 ROOT = Path(__file__).resolve().parents[1]
 
 TARGET_P99_MS = 3.0
-TARGET_CPU = {1: 0.08, 2: 0.12}  # stride 10, of one core (issue 15)
+TARGET_CPU = {1: 0.08, 2: 0.12}  # stride 10, of one core: the daemon's CPU budget
 STRIDES = (40, 20, 10)
 IDLE_HZ = 100.0
 """The ``idle_loop`` baseline's wake-up rate: the daemon's decisions per second at stride 10."""
@@ -430,7 +430,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="with --baseline-tree: run the two trees at the same time, each on its own stream, and report "
                         "the difference per pair (robust to the machine's drift; the shares themselves read lower)")
     p.add_argument("--grip-control", action="store_true",
-                   help="issue 16: also the CPU share with reaction.policy grip_control (the controller holding the "
+                   help="also the CPU share with reaction.policy grip_control (the controller holding the "
                         "quiet grasp, updated on every decision), beside stop-and-secure's in the same run")
     p.add_argument("--cpu-runs", type=int, default=3,
                    help="CPU share: interleaved rounds of --seconds / cpu-runs each; the median is the figure")

@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--detectors", default="onnx",
                    help="comma list among onnx, deceleration, reference_pillar (each one a full set of runs)")
     p.add_argument("--policy", choices=("stop_and_secure", "grip_control"), default=None,
-                   help="issue 16: run grip_control beside stop_and_secure (plus the filling cup and the fragile "
+                   help="run grip_control beside stop_and_secure (plus the filling cup and the fragile "
                    "object) and write reports/grip_control.md")
     p.add_argument("--extras", default=",".join(EXTRA_NAMES),
                    help="with --policy: which extra scenes run beside the objects (comma list; '' none); with "
@@ -146,7 +146,7 @@ EXTRAS = (  # (scene, extra settings, fill (kg/s, s after lift start, final kg))
     ("paper_cup_fragile", {"reaction.grip_max_force_n": 8.0}, None),
 )
 EXTRA_NAMES = tuple(name for name, _, _ in EXTRAS)
-TARGETS = "issue 16's done-when"
+TARGETS = "grip_control's targets"
 
 
 HOLD_LIMIT_N = GRIP["reaction.grip_max_force_n"]

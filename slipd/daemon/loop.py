@@ -341,7 +341,7 @@ class Daemon:
                     self._note_offset()
                 rec.push_decision(det.t_us, det.p_slip, det.alarm, s, det.contact)
             if det.contact is not None:
-                # Issue 16: contact metrics and grip_control, apart from the hot path; the grip controller gets the
+                # Contact metrics and grip_control, apart from the hot path; the grip controller gets the
                 # grasp once per decision, when every sensor's state for it is in.
                 self._latest_contact[s] = det.contact
                 if grip:  # (under stop_and_secure the state is for the metrics alone)

@@ -9,7 +9,7 @@ The control loop calls ``push_frames`` for every block of sensor frames (``push_
 exactly the stretch [alarm - before, alarm + after). That stretch is copied once and handed to the
 recorder's own worker thread, which writes it as a ``slipd.recording.Recording`` (``.npz`` and/or the
 Contactile SDK CSV) with the decisions of the stretch in ``meta["decisions"]``: time, P(slip), alarm and sensor of
-each, and where the decision carried a contact state (issue 16) its nine pillars' P(slip), contact risk and friction
+each, and where the decision carried a contact state its nine pillars' P(slip), contact risk and friction
 estimate (None before the contact showed one, and for a decision without a contact state).
 
 Crash safety: each file is first written under a staging name (``*.part``, itself written through

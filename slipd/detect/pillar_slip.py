@@ -70,7 +70,7 @@ class PillarSlipParams:
     fall: float = 0.1
     """A pillar whose utilisation fell by this share over the window while its normal force rose (by more than
     ``rate_floor_n``) sticks: a sliding tip carries mu * Fz, so a tighter grip raises its tangential force with it
-    (issue 16: the grip that caught a slip must clear the slip state, or the hold rule below keeps it sliding). The
+    (the grip that caught a slip must clear the slip state, or the hold rule below keeps it sliding). The
     floor keeps the noise out: on a slippery object (mu 0.08, 0.12 N of shear per pillar) the filtered noise moves
     the ratio by 10 % and Fz by a few mN, and without it the pillars of a steady slide were cleared one by one until
     the hold rule let them all decay (transfer split recall 0.62 -> 0.78, per-pillar F1 0.757 -> 0.864; robust 0.555

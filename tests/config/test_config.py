@@ -564,7 +564,7 @@ def test_two_sensors_need_the_onnx_detector() -> None:
     from slipd.config import ConfigError, load_config, override
 
     cfg = load_config(ROOT / "config" / "slipd.yaml")
-    assert cfg.sensor.sensors == 1 and cfg.model.stride == 0  # the model's own stride by default (issue 15)
+    assert cfg.sensor.sensors == 1 and cfg.model.stride == 0  # the model's own stride by default
     assert override(cfg, {"sensor.sensors": 2}).sensor.sensors == 2
     with pytest.raises(ConfigError, match=r"model\.detector: deceleration reads one sensor"):
         override(cfg, {"sensor.sensors": 2, "model.detector": "deceleration", "sensor.tare": "bias_command"})

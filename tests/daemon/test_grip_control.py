@@ -1,5 +1,5 @@
 """grip_control: take over at the hold force, catch a slip, hold the friction margin, rate-limited, bounded,
-fail-safe (issue 16)."""
+fail-safe."""
 
 from __future__ import annotations
 
@@ -365,7 +365,7 @@ def test_an_estimate_the_contact_refuted_is_dropped() -> None:
 def test_a_slide_at_the_limit_stops_the_arm_even_where_the_friction_estimate_hides_it() -> None:
     """A slip flag at the force limit stops the arm, whatever the requirement says. The estimate can exceed the
     slide's own ratio (the highest of the grasp, taken near a static peak: 0.20 against a kinetic 0.16), and then
-    a slide at 39.6 N computes 37.3 N required, within the limit. Session 39 tried stopping at the limit only on the
+    a slide at 39.6 N computes 37.3 N required, within the limit. Stopping at the limit only on the
     requirement or a lasting alarm: this slide (risk 0.7, no alarm) then went on for good."""
     jaw = Jaw()
     c, stops, _ = _ctl(jaw, catch=2.0, margin=0.85, max_force_n=40.0, stop_after_s=0.15)

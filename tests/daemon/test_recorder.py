@@ -301,7 +301,7 @@ def test_slow_disk_drops_recordings_instead_of_queueing_without_bound(tmp_path):
 
 
 def test_each_decision_keeps_its_contact_state_through_a_long_episode(tmp_path):
-    """Issue 16: the slip map, contact risk and friction of every decision are in the recording, aligned with the
+    """The slip map, contact risk and friction of every decision are in the recording, aligned with the
     decision's time across the ring's spills; None where a decision had no contact state or no friction yet."""
     from slipd.detect.contact import ContactState
 

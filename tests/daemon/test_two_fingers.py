@@ -1,4 +1,4 @@
-"""Two sensorised fingers end to end (issue 15): the emulated controller streams two arrays in every PTSCOM
+"""Two sensorised fingers end to end: the emulated controller streams two arrays in every PTSCOM
 frame on a pty; the daemon (pyserial reader, shipped int8 ensemble, one model call for both fingers,
 dynamixel-sdk) decides per finger. Only finger 1 slips: the alarm fires, names sensor 1 and tightens the
 gripper; the recorder's recording holds both arrays and `slipd replay` reproduces the alarm from it."""
@@ -82,7 +82,7 @@ def test_only_finger_1_slips_alarm_names_sensor_1_recorder_and_replay_reproduce_
     offline_again = replay(dump, ens)
     again = [d for d in offline_again if d.rising_edge]
     assert [(d.index, d.sensor) for d in again] == offline
-    # Each decision's contact state is in the recording too (issue 16), as replay computes it from the same frames.
+    # Each decision's contact state is in the recording too, as replay computes it from the same frames.
     by_key = {(d.t_us, d.sensor): d.contact for d in offline_again}
     dec = dump.meta["decisions"]
     compared = 0

@@ -1,4 +1,4 @@
-"""The contact state: per-pillar slip, friction estimate and contact risk (issue 16)."""
+"""The contact state: per-pillar slip, friction estimate and contact risk."""
 
 from __future__ import annotations
 
@@ -162,7 +162,7 @@ def test_a_detector_on_all_nine_pillars_shares_its_filtered_window_with_the_cont
 
 
 def test_a_grip_that_caught_the_slip_clears_the_slip_state_and_keeps_the_friction() -> None:
-    """Issue 16: after the corners slid, the grip doubles with the load held: the corners' utilisation halves,
+    """After the corners slid, the grip doubles with the load held: the corners' utilisation halves,
     so they stick (no lingering slip state), and their sticking ratios never pull the friction estimate down."""
     mu = 0.5
     f = _loading(600, {0, 2, 6, 8}, mu=mu)

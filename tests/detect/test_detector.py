@@ -82,7 +82,7 @@ def test_replay_cli_prints_alarms(tiny_model_json, tmp_path, capsys) -> None:
     assert "2000 samples, 49 decisions" in out
     decisions = json.loads((tmp_path / "o.json").read_text())["decisions"]
     assert len(decisions) == 49
-    # Issue 16: every decision carries its contact state (slip map, friction estimate, contact risk, grip, load).
+    # Every decision carries its contact state (slip map, friction estimate, contact risk, grip, load).
     for d in decisions:
         assert len(d["pillar_slip"]) == 9 and 0.0 <= d["contact_risk"] <= 1.0 and "friction" in d
         assert "grip_n" in d and "load_n" in d and 0.0 <= d["risk"] <= 1.0  # (tared on this stretch: no grip)

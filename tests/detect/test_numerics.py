@@ -1,4 +1,4 @@
-"""Hard cases stay numerically sound (slipd issue 7): faults, saturation, long runs, resets, precision, extremes.
+"""Hard cases stay numerically sound: faults, saturation, long runs, resets, precision, extremes.
 
 Each test names in its docstring the naive behaviour it would catch. Documented policy under test
 (``slipd.detect.features`` and ``slipd.detect.ensemble``): a non-finite sample value is replaced by the channel's

@@ -1,6 +1,6 @@
 """The shipped detector stays quiet when nothing slips, for as long as a robot holds something.
 
-One hold of each type (issue 14): a still press (0.6-1.4 mm against a flat plate, unloaded start, then perfectly
+One hold of each type: a still press (0.6-1.4 mm against a flat plate, unloaded start, then perfectly
 still) for two minutes on the v2 sensor and one on v1, a shear hold (a move that stops at 30-90 % of the first
 pillar's stick limit, then held), a hold after a fast stop at 50-95 % of it, a hold after a release and regrasp, and
 free air (no contact). The shipped int8 model, run through the daemon's own decision path (``Detector`` at the

@@ -352,7 +352,7 @@ def test_block_decode_equals_frame_by_frame() -> None:
     assert np.array_equal(b.force, simple_frame(3).force) and np.array_equal(b.disp, simple_frame(3).disp)
 
 
-# ---------------------------------------------------------------------- two arrays (issue 15)
+# ---------------------------------------------------------------------- two arrays
 def two_sensor_frame(counter: int) -> Frame:
     f = simple_frame(counter)
     f.friction_est, f.target_grip_force = 0.5, 3.0

@@ -19,7 +19,7 @@ and off (reported in the type 6 block; the per-pillar slip state is INELIGIBLE /
 the 0.5 N contact threshold while it is on, 0 while off; the controller's own slip algorithm is not
 emulated).
 
-Faults for tests (issue 8): :meth:`inject_garbage`, :meth:`inject_truncated_frame`,
+Faults for tests: :meth:`inject_garbage`, :meth:`inject_truncated_frame`,
 :meth:`inject_bad_checksum`, :meth:`inject_wrong_length`, :meth:`jump_counter`, :meth:`stall`,
 :meth:`unplug` and :meth:`replug`. One-shot faults apply to the next frame produced.
 
