@@ -56,7 +56,8 @@ from slipd.sim.scene import GripperScene, gripper_context, incipient_labels, loa
 _PACKAGE = Path(str(resources.files("slipd.sim")))
 SCENES = _PACKAGE / "scenes"
 DEFAULT_SCENE = SCENES / "thermos_flask_undergrip.yaml"
-"""The demo's scene: its incipient phase lasts long enough (about 90 ms) for the alarm to come inside it."""
+"""The demo's scene: its incipient phase on the rig (32 ms without a reaction, ``slipd sim --no-reaction``) is long
+enough for the alarm to come inside it; the wooden box's (19 ms) is not."""
 DEFAULT_CONFIG = _PACKAGE / "sim.yaml"
 
 GRASP_S = 0.8
@@ -142,7 +143,8 @@ class RigResult:
             f"  {t(self.secure_s)}  the grasp is secure (object at rest against the finger)",
             f"  => {self.verdict()}",
             f"  object moved {self.translation_mm:.2f} mm and turned {self.rotation_deg:.2f} deg against the finger "
-            f"before it was secure; {'DROPPED' if self.dropped else 'not dropped'} (max grip {self.max_grip_n:.1f} N)",
+            f"{'before it was secure' if self.secure_s is not None else 'by the end of the run'}; "
+            f"{'DROPPED' if self.dropped else 'not dropped'} (max grip {self.max_grip_n:.1f} N)",
         ] + ([f"  WARNING: {self.sensor_stalls} sensor stall(s): the rig fell behind real time; run it on a quieter "
               "machine"] if self.sensor_stalls else [])
 
