@@ -40,9 +40,10 @@ held-out figures are then on unseen physics, beside the own-split figures of the
 
 Writes ``reports/tradeoff.md`` (the table, the knee: the cheapest point within 1 point of the best
 success rate) and ``reports/tradeoff.png`` (two panels: success against compute per decision, log scale,
-and success against detection delay, the median latency of the detected slips; the knee ringed; the
-held-out success as a hollow marker beside each point's own-split success), plus ``<cache>/tradeoff.json``
-with every figure.
+and success against detection delay, the median latency of the detected slips; the shipped point and the knee
+marked; the held-out success as a hollow marker beside each point's own-split success), plus
+``reports/tradeoff.json`` and ``<cache>/tradeoff.json`` with every figure. ``--plot-only`` redraws the plot from
+``reports/tradeoff.json``, or, where that is missing, from the table in ``reports/tradeoff.md``.
 """
 
 from __future__ import annotations
@@ -449,75 +450,114 @@ def place_labels(ax, items: list[tuple[float, float, str, str]], avoid: list[tup
         taken.append(bb)
 
 
+SHIPPED = "Z=5 int8 stride 10"
+"""The point the daemon runs (slipd/models/slip_ensemble_int8.json: 5 members, int8, a decision every 10 samples)."""
+
+
+def points_from_report(text: str) -> list[Point]:
+    """The ensemble group's points back from a written ``reports/tradeoff.md`` (for ``--plot-only`` where the
+    sweep's JSON is not at hand): the figures the plot needs, parsed from the table."""
+    rows = [line for line in text.splitlines() if line.startswith("| Z=")]
+    points = []
+    for line in rows:
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if len(cells) < 10 or "/" not in cells[5]:
+            continue  # the per-family table
+        name = cells[0]
+        words = name.split()
+        pt = Point(name, "ensemble", "", members=int(words[0][2:]),
+                   precision=next((w for w in words if w in ("fp16", "int8")), "fp32"),
+                   stride=int(words[words.index("stride") + 1]) if "stride" in words else 40)
+        lat = cells[5].split("/")[0].strip()
+        fig: dict = {"success": float(cells[1].rstrip(" %")) / 100,
+                     "latency_median_s": None if lat == "-" else float(lat) / 1000,
+                     "step_median_us": float(cells[6].split("/")[0]),
+                     "cpu_share": float(cells[8].rstrip(" %")) / 100,
+                     "speedup": None if cells[9] == "-" else float(cells[9])}
+        if len(cells) >= 13 and cells[10] != "-":
+            held_lat = cells[12]
+            fig["heldout"] = {"success": float(cells[10].split("/")[0].strip().rstrip(" %")) / 100,
+                              "latency_median_s": None if held_lat == "-" else float(held_lat) / 1000}
+        pt.figures = fig
+        points.append(pt)
+    return points
+
+
 def plot(points: list[Point], path: Path, own_label: str = "own split", heldout_label: str = "held-out") -> None:
-    """Two panels: success against compute per decision (log x) and against detection delay (median latency of
-    the detected slips). Filled markers: the own split; hollow squares: the held-out recordings, joined to their
-    point by a dotted line; the knee of each group ringed."""
+    """Two panels: success against compute per decision (log x, plain ticks) and against detection delay (median
+    latency of the detected slips). Marker shape: the stride; colour: the precision; label: the ensemble size Z.
+    Filled markers: the own split; hollow: the same point on the held-out recordings, joined by a dotted line. The
+    shipped point and the knee are marked and named in the legend."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.lines import Line2D
+    from matplotlib.ticker import FixedLocator, NullFormatter, NullLocator
 
-    fig, (ax_c, ax_d) = plt.subplots(1, 2, figsize=(14, 6.2), dpi=130)  # labels are measured at the saved dpi
-    colours = {"ensemble": "tab:blue", "retrained": "tab:orange"}
-    scored = [p for p in points if p.figures.get("success") is not None]
-    knees = {g: knee([p for p in scored if p.group == g])[1] for g in colours if any(p.group == g for p in scored)}
-    has_held = any(p.figures.get("heldout") for p in scored)
+    shapes = {40: "o", 20: "^", 10: "D"}
+    colours = {"fp32": "tab:blue", "fp16": "tab:orange", "int8": "tab:green"}
+    fig, (ax_c, ax_d) = plt.subplots(1, 2, figsize=(14, 6.8), dpi=130)  # labels are measured at the saved dpi
+    scored = [p for p in points if p.figures.get("success") is not None and p.group == "ensemble"]
+    knee_pt = knee(scored)[1] if scored else None
+    shipped = next((p for p in scored if p.name == SHIPPED), None)
     not_shown: list[str] = []
-    deferred = []  # labels are placed once the layout is final
+    deferred = []
     for ax, xkey, xscale in ((ax_c, "step_median_us", 1.0), (ax_d, "latency_median_s", 1000.0)):
         labels: list[tuple[float, float, str, str]] = []
         avoid: list[tuple[float, float]] = []
-        ys_all: list[float] = []
         xs_all: list[float] = []
-        for group, colour in colours.items():
-            gp = [p for p in scored if p.group == group]
-            for p in gp:
-                f = p.figures
-                y = 100 * f["success"]
-                x = None if f.get(xkey) is None else xscale * f[xkey]
-                h = f.get("heldout") or {}
-                hx = None
-                if h.get("success") is not None:
-                    hx = x if xkey == "step_median_us" else (
-                        None if h.get("latency_median_s") is None else xscale * h["latency_median_s"])
-                if x is None and ax is ax_d:
-                    not_shown.append(p.name)
-                if x is not None:
-                    ax.scatter([x], [y], s=46, color=colour, edgecolor="black", lw=0.4, zorder=3)
-                    labels.append((x, y, p.name, "black"))
-                    avoid.append((x, y))
-                    xs_all.append(x)
-                    ys_all.append(y)
-                    if p is knees.get(group):
-                        ax.scatter([x], [y], s=260, facecolor="none", edgecolor="crimson", lw=1.6, zorder=4)
-                if hx is not None:
-                    hy = 100 * h["success"]
-                    ax.scatter([hx], [hy], s=40, marker="s", facecolor="white", edgecolor=colour, lw=1.4, zorder=3)
-                    if xkey == "step_median_us":  # same x: a vertical link to its own-split point
-                        if x is not None:
-                            ax.plot([x, hx], [y, hy], ":", color=colour, lw=0.8, zorder=2)
-                    else:  # its own latency: labelled in grey instead of linked (links would cross)
-                        labels.append((hx, hy, p.name, "0.45"))
-                    avoid.append((hx, hy))
-                    xs_all.append(hx)
-                    ys_all.append(hy)
+        ys_all: list[float] = []
+        for p in scored:
+            f = p.figures
+            shape, colour = shapes.get(p.stride, "s"), colours.get(p.precision, "tab:gray")
+            y = 100 * f["success"]
+            x = None if f.get(xkey) is None else xscale * f[xkey]
+            h = f.get("heldout") or {}
+            hx = None
+            if h.get("success") is not None:
+                hx = x if xkey == "step_median_us" else (
+                    None if h.get("latency_median_s") is None else xscale * h["latency_median_s"])
+            if x is None:
+                not_shown.append(p.name)
+                continue
+            ax.scatter([x], [y], s=60, marker=shape, color=colour, edgecolor="black", lw=0.5, zorder=3)
+            labels.append((x, y, f"Z={p.members}", "black"))
+            avoid.append((x, y))
+            xs_all.append(x)
+            ys_all.append(y)
+            if p is shipped:
+                ax.scatter([x], [y], s=420, marker="*", facecolor="none", edgecolor="crimson", lw=1.4, zorder=4)
+            if p is knee_pt and p is not shipped:
+                ax.scatter([x], [y], s=300, facecolor="none", edgecolor="0.35", lw=1.2, ls="--", zorder=4)
+            if hx is not None:
+                hy = 100 * h["success"]
+                ax.scatter([hx], [hy], s=50, marker=shape, facecolor="white", edgecolor=colour, lw=1.3, zorder=3)
+                ax.plot([x, hx], [y, hy], ":", color=colour, lw=0.8, zorder=2)
+                avoid.append((hx, hy))
+                xs_all.append(hx)
+                ys_all.append(hy)
         if not xs_all:
             continue
         lo, hi = min(ys_all), max(ys_all)
-        ax.set_ylim(max(-2.0, lo - 0.12 * (hi - lo + 5)), min(hi + 0.25 * (hi - lo + 5), 115.0))  # room for labels
+        ax.set_ylim(max(-2.0, lo - 0.15 * (hi - lo + 5)), min(hi + 0.2 * (hi - lo + 5), 110.0))
         ax.set_yticks([t for t in ax.get_yticks() if t <= 100.0 + 1e-9])
         if xkey == "step_median_us":
             ax.set_xscale("log")
-            ax.set_xlim(min(xs_all) / 1.6, max(xs_all) * 1.6)
+            ax.set_xlim(min(xs_all) / 1.5, max(xs_all) * 1.5)
+            ticks = [t for t in (20, 30, 50, 70, 100, 150, 200, 300, 500, 700, 1000, 2000)
+                     if min(xs_all) / 1.5 <= t <= max(xs_all) * 1.5]
+            ax.xaxis.set_major_locator(FixedLocator(ticks))
+            ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+            ax.xaxis.set_minor_locator(NullLocator())
+            ax.xaxis.set_minor_formatter(NullFormatter())
         else:
             span = max(xs_all) - min(xs_all) + 10
-            ax.set_xlim(min(xs_all) - 0.25 * span, max(xs_all) + 0.25 * span)
+            ax.set_xlim(min(xs_all) - 0.15 * span, max(xs_all) + 0.15 * span)
         deferred.append((ax, labels, avoid))
-        ax.grid(alpha=0.3, which="both" if xkey == "step_median_us" else "major")
-    ax_c.set_xlabel("compute per decision: Ensemble.step median (us, one thread, B = 1; log scale)")
-    ax_d.set_xlabel("detection delay: median latency of the detected slips from the labelled onset (ms)")
+        ax.grid(alpha=0.3)
+    ax_c.set_xlabel("compute per decision: one step of the ensemble, median (us, one thread; log scale)")
+    ax_d.set_xlabel("detection delay: median time from the labelled onset of slip to the alarm (ms)")
     for ax in (ax_c, ax_d):
         ax.set_ylabel("success rate (%)")
     ax_c.set_title("success against compute")
@@ -525,21 +565,45 @@ def plot(points: list[Point], path: Path, own_label: str = "own split", heldout_
     if not_shown:
         ax_d.text(0.01, 0.01, "no detected slip, not shown: " + ", ".join(not_shown), transform=ax_d.transAxes,
                   fontsize=7, color="0.3", va="bottom")
-    handles = [Line2D([], [], marker="o", ls="", color=c, markeredgecolor="black", label=f"{g}: {own_label}")
-               for g, c in colours.items() if any(p.group == g for p in scored)]
-    if has_held:
-        handles.append(Line2D([], [], marker="s", ls="", markerfacecolor="white", markeredgecolor="0.3",
-                              label=f"same point: {heldout_label}"))
-    handles.append(Line2D([], [], marker="o", ls="", markersize=13, markerfacecolor="none",
-                          markeredgecolor="crimson", label="knee (cheapest CPU share within 1 point of the best)"))
-    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8.5, frameon=False)
-    fig.suptitle("slipd: what accuracy costs", fontsize=12)
-    fig.tight_layout(rect=(0, 0.06, 1, 0.97))
+    handles = [Line2D([], [], marker=m, ls="", color="0.6", markeredgecolor="black",
+                      label=f"stride {s}: a decision every {s} samples ({s} ms)") for s, m in shapes.items()]
+    handles += [Line2D([], [], marker="s", ls="", color=c, label=f"{prec} weights") for prec, c in colours.items()]
+    handles += [Line2D([], [], marker="o", ls="", color="0.6", markeredgecolor="black", label=f"filled: {own_label}"),
+                Line2D([], [], marker="o", ls=":", color="0.5", markerfacecolor="white",
+                       label=f"hollow: {heldout_label}")]
+    if shipped is not None:
+        handles.append(Line2D([], [], marker="*", ls="", markersize=16, markerfacecolor="none",
+                              markeredgecolor="crimson", label=f"shipped: {shipped.name}"))
+    if knee_pt is not None and knee_pt is not shipped:
+        handles.append(Line2D([], [], marker="o", ls="", markersize=14, markerfacecolor="none", markeredgecolor="0.35",
+                              label=f"knee: {knee_pt.name}, the cheapest within 1 point of the best"))
+    fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8, frameon=False)
+    fig.suptitle("slipd: what accuracy costs (Z = networks in the ensemble)", fontsize=12)
+    fig.tight_layout(rect=(0, 0.13, 1, 0.97))
     for ax, items, avoid in deferred:
         place_labels(ax, items, avoid)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=130)
     plt.close(fig)
+
+
+def plot_only(report: Path) -> int:
+    """Redraw the plot beside ``report`` from its JSON (written by every sweep), else from the report's table."""
+    data = report.with_suffix(".json")
+    if data.exists():
+        raw = json.loads(data.read_text())
+        points = [Point(**{k: v for k, v in p.items()}) for p in raw["points"]]
+        own, held = raw.get("own_label", "own split"), raw.get("heldout_label", "held-out")
+    else:
+        points = points_from_report(report.read_text())
+        own = "216 transfer test trials (online criterion)"
+        held = "held-out physics family (fold trained without it)"
+    if not points:
+        raise SystemExit(f"tradeoff: no points in {data if data.exists() else report}")
+    out = report.with_suffix(".png")
+    plot(points, out, own_label=own, heldout_label=held)
+    print(f"wrote {out} ({len(points)} points from {data if data.exists() else report})")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -571,10 +635,14 @@ def main(argv: list[str] | None = None) -> int:
                          "on it (offline criterion), per physics family")
     ap.add_argument("--heldout-limit", type=int, default=50,
                     help="held-out recordings used, spread over the physics families (0: all)")
+    ap.add_argument("--plot-only", action="store_true",
+                    help="only redraw the plot beside --report from its JSON (else from the report's table)")
     ap.add_argument("--lofo", nargs="+", default=[], metavar="FAMILY=RUN",
                     help="leave-one-family-out training runs: each --heldout family is run by the point built from "
                          "the fold trained without it (needs --heldout)")
     args = ap.parse_args(argv)
+    if args.plot_only:
+        return plot_only(args.report)
     folds: dict[str, Path] = {}
     need = max(p.members for p in sweep_points(args.threshold, False))  # the largest Z of the ensemble group
     for item in args.lofo:
@@ -642,15 +710,19 @@ def main(argv: list[str] | None = None) -> int:
     args.report.parent.mkdir(parents=True, exist_ok=True)
     args.report.write_text(report)
     crit = points[0].figures.get("criterion", "offline")
-    plot(points, args.report.with_suffix(".png"), own_label=f"{args.data.name} ({crit} criterion)",
-         heldout_label=(f"held-out family (fold trained without it), {args.heldout.name}" if args.lofo else
-                        f"{args.heldout.name} (offline criterion)") if args.heldout_paths else "held-out")
-    (args.cache / "tradeoff.json").write_text(json.dumps(
-        {"command": cmd, "torch_reference_us": None if torch_us is None else
-         {"median": float(np.median(torch_us)), "p99": float(np.percentile(torch_us, 99))},
-         "points": [asdict(p) for p in points]}, indent=1) + "\n")
+    own_label = f"{args.data.name} ({crit} criterion)"
+    heldout_label = (f"held-out family (fold trained without it), {args.heldout.name}" if args.lofo else
+                     f"{args.heldout.name} (offline criterion)") if args.heldout_paths else "held-out"
+    plot(points, args.report.with_suffix(".png"), own_label=own_label, heldout_label=heldout_label)
+    data = json.dumps({"command": cmd, "own_label": own_label, "heldout_label": heldout_label,
+                       "torch_reference_us": None if torch_us is None else
+                       {"median": float(np.median(torch_us)), "p99": float(np.percentile(torch_us, 99))},
+                       "points": [asdict(p) for p in points]}, indent=1) + "\n"
+    (args.cache / "tradeoff.json").write_text(data)
+    args.report.with_suffix(".json").write_text(data)  # beside the report: --plot-only redraws from it
     print(report)
-    print(f"wrote {args.report}, {args.report.with_suffix('.png')} and {args.cache / 'tradeoff.json'}")
+    print(f"wrote {args.report}, {args.report.with_suffix('.png')}, {args.report.with_suffix('.json')} and "
+          f"{args.cache / 'tradeoff.json'}")
     return 0
 
 
