@@ -130,17 +130,20 @@ class RigResult:
         def t(v: float | None, never: str = "never") -> str:
             return f"{never:>8}" if v is None else f"{_ms(v - zero):+6d} ms"
 
+        events = [(self.lift_start_s, "never", "the arm starts lifting"),
+                  (self.onset_s, "never", "incipient slip begins: some outer pillars slip, others still stick (truth)"),
+                  (self.alarm_s, "no alarm", "the daemon's alarm"),
+                  (self.stop_reached_s, "no stop", "the stop reaches the arm"),
+                  (self.tighten_reached_s, "no grip", "the tighten reaches the gripper"),
+                  (self.gross_slip_s, "never", "gross slip: every pillar in contact slips (truth)"),
+                  (self.gross_motion_s, "never", "the object has moved 2 mm or 2 deg against the finger"),
+                  (self.secure_s, "never", "the grasp is secure (object at rest against the finger)")]
+        # In time order; what never happened goes last.
+        events.sort(key=lambda e: (e[0] is None, e[0] or 0.0))
         return [
             f"scene {self.scene}  (reaction {'on' if self.reaction else 'off'}, {self.frames / 1000:.1f} s)",
             f"  times in ms from {origin} ({zero:.3f} s into the run)",
-            f"  {t(self.lift_start_s)}  the arm starts lifting",
-            f"  {t(self.onset_s)}  incipient slip begins: some outer pillars slip, others still stick (truth)",
-            f"  {t(self.alarm_s, 'no alarm')}  the daemon's alarm",
-            f"  {t(self.stop_reached_s, 'no stop')}  the stop reaches the arm",
-            f"  {t(self.tighten_reached_s, 'no grip')}  the tighten reaches the gripper",
-            f"  {t(self.gross_slip_s)}  gross slip: every pillar in contact slips (truth)",
-            f"  {t(self.gross_motion_s)}  the object has moved 2 mm or 2 deg against the finger",
-            f"  {t(self.secure_s)}  the grasp is secure (object at rest against the finger)",
+            *(f"  {t(v, never)}  {text}" for v, never, text in events),
             f"  => {self.verdict()}",
             f"  object moved {self.translation_mm:.2f} mm and turned {self.rotation_deg:.2f} deg against the finger "
             f"{'before it was secure' if self.secure_s is not None else 'by the end of the run'}; "
@@ -527,7 +530,7 @@ def plot_run(physics: RigPhysics, result: RigResult, path: str | Path) -> Path:
     mot = physics.motion[:n] - physics.motion[lift]
     zero = result.onset_s if result.onset_s is not None else result.lift_start_s
     events = [(result.lift_start_s, "k", ":", "arm starts lifting"),
-              (result.onset_s, "g", "--", "incipient slip begins (truth)"),
+              (result.onset_s, "g", "--", "incipient slip begins (truth: the method's label, outer pillars)"),
               (result.alarm_s, "r", "-", "daemon alarm"),
               (result.gross_slip_s, "m", "-.", "gross slip: every pillar slips (truth)"),
               (result.secure_s, "b", ":", "grasp secure")]
@@ -545,7 +548,7 @@ def plot_run(physics: RigPhysics, result: RigResult, path: str | Path) -> Path:
         a[1].plot(x, physics.grip[:n], label="servo grip force")
         a[1].set_ylabel("force (N)")
         a[2].plot(x, physics.slip[:n].sum(1), drawstyle="steps-post", color="tab:orange",
-                  label="pillars slipping (truth)")
+                  label="pillars slipping (truth, any pillar)")
         a[2].set_ylabel("slipping pillars (of 9)")
         a[2].set_ylim(-0.3, 9.3)
         pa = a[2].twinx()
@@ -580,7 +583,7 @@ def plot_run(physics: RigPhysics, result: RigResult, path: str | Path) -> Path:
     ax[0, 0].set_title("the whole run", loc="right", fontsize=9)
     ax[0, 1].set_title("the lift, zoomed", loc="right", fontsize=9)
     proxies = [Line2D([], [], color=c, ls=s_, lw=1.2) for _, c, s_, _ in events]
-    fig.legend(proxies, [lab for *_, lab in events], loc="upper center", ncol=5, fontsize=8,
+    fig.legend(proxies, [lab for *_, lab in events], loc="upper center", ncol=3, fontsize=8,
                bbox_to_anchor=(0.5, 0.955), frameon=False)
     fig.suptitle(f"slipd sim: {result.scene} (reaction {'on' if result.reaction else 'off'}): {result.verdict()}",
                  fontsize=11, y=0.985)

@@ -72,3 +72,21 @@ def test_slipd_sim_without_the_sim_extra_exits_2_at_once_in_one_line(monkeypatch
     assert main(["sim"]) == 2
     out = capsys.readouterr()
     assert out.out == "" and out.err == "slipd sim: install slipd[sim] (missing: matplotlib)\n", out.err
+
+
+def test_the_summary_puts_the_events_on_one_time_line_and_says_when_the_alarm_came() -> None:
+    from slipd.sim.rig import RigResult
+
+    def result(alarm: float | None, gross: float | None) -> RigResult:
+        return RigResult(scene="s", reaction=True, lift_start_s=1.3, onset_s=1.4, gross_slip_s=gross,
+                         gross_motion_s=None, alarm_s=alarm, stop_reached_s=None, tighten_reached_s=None,
+                         secure_s=None, translation_mm=0.0, rotation_deg=0.0, dropped=False, max_grip_n=40.0,
+                         frames=4000)
+
+    assert result(1.42, None).verdict() == "alarm during incipient slip (20 ms after it began); gross slip never came"
+    assert result(1.42, 1.45).verdict() == "alarm during incipient slip (20 ms after it began, 30 ms before gross slip)"
+    assert result(1.46, 1.45).verdict().startswith("alarm after gross slip (10 ms after every pillar slipped)")
+    assert result(None, 1.45).verdict() == "no alarm although the object slipped"
+    lines = result(1.46, 1.45).lines()
+    timed = [line.split("ms")[0].strip() for line in lines[2:] if line.strip().split(" ")[0].startswith(("+", "-"))]
+    assert timed == ["-100", "+0", "+50", "+60"], lines  # lift, onset, gross slip, alarm: in time order
