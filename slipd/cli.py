@@ -1,8 +1,8 @@
 """Command line: ``slipd run | sim | replay | check-config | models | version`` (also ``python -m slipd``).
 
-Every subcommand and every exit code lives here; the wings below raise typed errors
+Every subcommand and every exit code lives here; the packages below raise typed errors
 (``ConfigError``, ``ModelError``, ``RecordingError``, ``DeviceError``) and this module turns them into
-one line on stderr and an exit code. Each subcommand imports its wing only when it runs, so
+one line on stderr and an exit code. Each subcommand imports its package only when it runs, so
 ``slipd check-config`` stays fast and ``slipd run`` never imports the simulator, torch or matplotlib.
 
 Exit codes (docs/configuration.md):
