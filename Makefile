@@ -86,7 +86,7 @@ wheel-test: $(TEST_STAMP)
 # regenerates it and compares.
 sample: $(TEST_STAMP)
 	$(BIN)/python -c "from slipd.sim.scene import load_scene, parse_scene, generate; \
-	  sc = load_scene('config/scenes/hexapod_translation.yaml'); \
+	  sc = load_scene('slipd/sim/scenes/hexapod_translation.yaml'); \
 	  sc = parse_scene({**sc.model_dump(mode='json'), 'duration_s': 1.5}, 'sample'); \
 	  generate(sc, seed=0).save('slipd/models/sample_slip.npz')"
 
