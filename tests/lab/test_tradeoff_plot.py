@@ -102,3 +102,19 @@ def test_held_out_families_are_run_by_the_fold_trained_without_them(tmp_path, mo
     calls.clear()
     mod.heldout_accuracy(pt, paths, tag, workers=1)
     assert calls == [(["a1", "a2", "b1"], "own.json")]
+
+
+def test_plot_only_redraws_from_the_reports_table(tmp_path):
+    """Without the sweep's JSON, --plot-only reads the points back from the report's table: every ensemble point,
+    the shipped one among them, with the figures the plot needs."""
+    mod = _tradeoff()
+    report = tmp_path / "tradeoff.md"
+    report.write_text((ROOT / "reports" / "tradeoff.md").read_text())
+    points = mod.points_from_report(report.read_text())
+    names = [p.name for p in points]
+    assert len(names) == 9 and mod.SHIPPED in names, names
+    shipped = next(p for p in points if p.name == mod.SHIPPED)
+    assert (shipped.members, shipped.precision, shipped.stride) == (5, "int8", 10)
+    assert shipped.figures["step_median_us"] == 69 and shipped.figures["heldout"]["success"] == 0.99
+    assert mod.main(["--plot-only", "--report", str(report)]) == 0
+    assert (tmp_path / "tradeoff.png").stat().st_size > 10_000
