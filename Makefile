@@ -56,8 +56,9 @@ lint: $(TEST_STAMP)
 # (a copy, so stale build/ output or a local egg-info cannot leak into it), install it into a fresh
 # virtual environment WITHOUT extras, run the daemon's commands from outside the checkout (so
 # `import slipd` is the installed one), and check that none of the extras came along: `slipd sim` and
-# `import sliplab` must say in one line which extra they need, the docs the unit names must be installed. The fresh venv gets
-# no pip of its own: the dev venv's pip installs into it (`pip --python`), which saves bootstrapping one.
+# `import sliplab` must say in one line which extra they need, and the pages the systemd unit names must be
+# installed. The fresh venv gets no pip of its own: the dev venv's pip installs into it (`pip --python`),
+# which saves bootstrapping one.
 wheel-test: $(TEST_STAMP)
 	rm -rf $(WHEEL_TEST) && mkdir -p $(WHEEL_TEST)/src
 	git ls-files -z --cached --others --exclude-standard \

@@ -104,6 +104,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from slipd.detect.replay import replay
     from slipd.recording import Recording, RecordingError
 
+    if args.sample == (args.recording is not None):
+        _err("slipd replay: give a RECORDING or --sample (the packaged sample), not both")
+        return EXIT_USAGE
+    if args.sample:
+        args.recording = str(models.SAMPLE_RECORDING)
     cfg = None
     if args.config:
         try:
@@ -133,11 +138,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
         if problem:
             _err(f"slipd replay: --json {args.json}: {problem}")
             return EXIT_USAGE
-    if args.sample == (args.recording is not None):
-        _err("slipd replay: give a RECORDING or --sample (the packaged sample), not both")
-        return EXIT_USAGE
-    if args.sample:
-        args.recording = str(models.SAMPLE_RECORDING)
     try:
         rec = Recording.load(args.recording)
     except RecordingError as exc:
