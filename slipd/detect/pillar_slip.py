@@ -154,17 +154,16 @@ class PillarSlip:
             stick, decay = -p.step, -p.decay
             step = [stick if q < p.far else 0.0 if held and t else decay for q, t in zip(near, top_set)]
         lim, logit, thr = p.limit, self._logit, CONTACT_THRESHOLD_N
-        for i in range(N_PILLARS):
-            s = step[i]
-            if not contact[i]:
-                s = -p.step  # off the surface
-            else:
-                # Its utilisation fell while its normal force rose (``fall``): sticks.
-                x0, y0, z0 = first[i]
-                if util[i] < (1.0 - p.fall) * (math.hypot(x0, y0) / (z0 if z0 > thr else thr)) and \
-                        fz[i] > z0 + p.rate_floor_n:
-                    s = -p.step
-            logit[i] = min(lim, max(-lim, logit[i] + s))
+        keep, floor, stick = 1.0 - p.fall, p.rate_floor_n, -p.step
+        for i, ((x0, y0, z0), c, u, z, s) in enumerate(zip(first, contact, util, fz, step)):
+            if not c:
+                s = stick  # off the surface
+            elif u < keep * (math.hypot(x0, y0) / (z0 if z0 > thr else thr)) and z > z0 + floor:
+                s = stick  # its utilisation fell while its normal force rose (``fall``): sticks
+            # min(lim, max(-lim, logit + s)), without the two calls
+            v = logit[i] + s
+            v = v if v > -lim else -lim
+            logit[i] = v if v < lim else lim
         return self.probability_list()
 
     def probability_list(self) -> list[float]:
