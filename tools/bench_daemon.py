@@ -338,7 +338,8 @@ def hot_path_cost(model: Path, sensors: int, decisions: int = HOT_DECISIONS, sle
 STAGES: tuple[tuple[str, tuple[tuple[str, str, str], ...]], ...] = (
     ("decode", (("slipd.io.pts", "FrameDecoder", "feed_block"),)),
     ("freshness check", (("slipd.daemon.loop", "Daemon", "_check_samples"),)),
-    ("features", (("slipd.detect.detector", "Detector", "feature_windows"),)),
+    ("features", (("slipd.detect.detector", "Detector", "feature_windows"),
+                  ("slipd.detect.detector", "Detector", "derive_rows"))),
     ("step", (("slipd.detect.ensemble", "Ensemble", "step"), ("slipd.detect.ensemble", "Ensemble", "step_rows"))),
     ("decision", (("slipd.detect.detector", "Detector", "push_many"), ("slipd.detect.multisensor", "MultiDetector",
                   "push_many"), ("slipd.detect.detector", "Detector", "_decide"),

@@ -323,18 +323,22 @@ class Detector:
         self.index += len(force) - i
         for j, window, filtered, state in self.feature_windows(force[i:]):
             k = i + j
+            assert window is not None
             det = self._decide(window, force[k], int(t_us[k]), base + k)
             out.append((k, det.with_contact(self.contact_state(filtered, state))))
             self.step_seconds.append(self.last_step_s)
         return out
 
-    def feature_windows(self, force: np.ndarray
-                        ) -> list[tuple[int, np.ndarray, np.ndarray | None, ContactState | None]]:
+    def feature_windows(self, force: np.ndarray, derive: bool = True
+                        ) -> list[tuple[int, np.ndarray | None, np.ndarray | None, ContactState | None]]:
         """The feature stages on a block of tared-phase samples: ``(i, model window, filtered window, contact
         state)`` for each sample that ends a window (the model is not stepped here). A detector that shares its
         filtered window with the contact state returns that window (``contact_state`` turns it into the state
-        once the model has stepped); otherwise the contact stream's own state."""
+        once the model has stepped); otherwise the contact stream's own state. ``derive`` False: a shared detector
+        leaves the model window to the caller (None; ``derive_rows`` makes the windows of several sensors at once)."""
         if self._shared:
+            if not derive:
+                return [(j, None, w, None) for j, w in self.features.push_many(force)]
             return [(j, self._derive(w), w, None) for j, w in self.features.push_many(force)]
         contact = dict(self.contact.push_many(force))
         return [(j, w, None, contact.get(j)) for j, w in self.features.push_many(force)]
@@ -343,6 +347,13 @@ class Detector:
         """A shared filtered window [window * n_base] -> the model's window (stage 5b)."""
         spec = self.spec
         out: np.ndarray = spec.derive(filtered.reshape(spec.window, spec.n_base)).reshape(-1)
+        return out
+
+    def derive_rows(self, filtered: np.ndarray) -> np.ndarray:
+        """Shared filtered windows of several sensors [B, window * n_base] -> their model windows [B, input_size] in
+        one pass (stage 5b works sample by sample: the same values as ``_derive`` on each)."""
+        spec = self.spec
+        out: np.ndarray = spec.derive(filtered.reshape(-1, spec.n_base)).reshape(len(filtered), spec.input_size)
         return out
 
     def contact_state(self, filtered: np.ndarray | None, state: ContactState | None) -> ContactState | None:

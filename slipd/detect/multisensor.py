@@ -105,10 +105,13 @@ class MultiDetector:
             return out
         base = subs[0].index + 1 - i  # sample index of x[0]
         n0 = subs[0].features.samples_seen
+        # Detectors that share their filtered windows with the contact state (the shipped model's layout) derive the
+        # model windows of all sensors in one pass, straight into the model call's batch.
+        shared = all(d._shared for d in subs)
         wins = []
         for s, d in enumerate(subs):
             d.index += k - i
-            wins.append(d.feature_windows(x[i:, s]))
+            wins.append(d.feature_windows(x[i:, s], derive=not shared))
         # Same samples into every stream: the windows end on the same samples.
         for m, (j, _, _, _) in enumerate(wins[0]):
             kk = i + j
@@ -118,10 +121,12 @@ class MultiDetector:
             p = pm = ok = None
             step_s: float | None = None
             if active.any():
-                t0 = time.perf_counter()
-                p, pm, ok = self.ensemble.step_rows(
-                    np.stack([w[m][1] for w in wins]), subs[0].phase(n0 + j + 1), active
-                )
+                if shared:
+                    batch = subs[0].derive_rows(np.stack([w[m][2] for w in wins]))
+                else:
+                    batch = np.stack([w[m][1] for w in wins])
+                t0 = time.perf_counter()  # the model call alone (the inference metric)
+                p, pm, ok = self.ensemble.step_rows(batch, subs[0].phase(n0 + j + 1), active)
                 step_s = time.perf_counter() - t0
                 self.last_step_s = step_s
             for s, d in enumerate(subs):
