@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from typing import cast
 
 import numpy as np
 
@@ -122,9 +123,9 @@ class MultiDetector:
             step_s: float | None = None
             if active.any():
                 if shared:
-                    batch = subs[0].derive_rows(np.stack([w[m][2] for w in wins]))
+                    batch = subs[0].derive_rows(np.stack([cast(np.ndarray, w[m][2]) for w in wins]))
                 else:
-                    batch = np.stack([w[m][1] for w in wins])
+                    batch = np.stack([cast(np.ndarray, w[m][1]) for w in wins])
                 t0 = time.perf_counter()  # the model call alone (the inference metric)
                 p, pm, ok = self.ensemble.step_rows(batch, subs[0].phase(n0 + j + 1), active)
                 step_s = time.perf_counter() - t0
