@@ -713,7 +713,30 @@ class FrameDecoder:
         hub = p0 + found[TYPE_HUB][0]
         self._counter[m : m + n] = np.ndarray((n,), dtype="<u4", buffer=buf, offset=hub, strides=(stride,))
         self._t[m : m + n] = np.ndarray((n,), dtype="<u8", buffer=buf, offset=hub + 4, strides=(stride,))
-        recs = found[TYPE_PILLARS]
+        recs = found[TYPE_PILLARS][: self.sensors]
+        missing = False
+        step = recs[1] - recs[0] if len(recs) > 1 else 0
+        if len(recs) == self.sensors and min(recs) >= 0 and step >= 0 and \
+                all(recs[k] - recs[k - 1] == step for k in range(1, len(recs))):
+            # Every configured sensor's records the same distance apart (always, for one sensor): one view and one
+            # copy for all of them.
+            src = np.ndarray(
+                (n, self.sensors, N_PILLARS, 2, 3), dtype="<f4", buffer=buf, offset=p0 + recs[0] + 2,
+                strides=(stride, step, _PILLAR_REC, 12, 4),
+            )
+            np.copyto(self._vals[m : m + n], src.transpose(0, 1, 3, 2, 4))
+        else:
+            missing = self._emit_each(p0, recs, m, n, stride)
+        if missing:
+            self.missing_sensor += n
+        if self._frames_out is not None:
+            self._frames_out.extend(self._build(p0, found, m, n, stride))
+        self._n = m + n
+
+    def _emit_each(self, p0: int, recs: tuple[int, ...], m: int, n: int, stride: int) -> bool:
+        """``_emit``'s copy sensor by sensor (a sensor missing from the frames, records not evenly spaced); whether a
+        configured sensor was missing."""
+        buf = self._buf
         missing = False
         for k in range(self.sensors):
             dst = self._vals[m : m + n, k]  # [n, 2, 9, 3]
@@ -726,11 +749,7 @@ class FrameDecoder:
             else:
                 dst[...] = np.nan  # the configured finger is not in these frames: blind, not shifted
                 missing = True
-        if missing:
-            self.missing_sensor += n
-        if self._frames_out is not None:
-            self._frames_out.extend(self._build(p0, found, m, n, stride))
-        self._n = m + n
+        return missing
 
     def _grow(self, need: int) -> None:
         cap = max(need, 2 * self._cap, 64)
