@@ -114,7 +114,7 @@ class ContactGate:
 
     def touching(self, fz_tared: np.ndarray) -> bool | None:
         """Raw contact of one sample: some pillar above the baseline by the SDK threshold (None: no finite value)."""
-        rel = np.asarray(fz_tared, np.float64) - self._baseline
+        rel = np.subtract(fz_tared, self._baseline)  # in float64 (the baseline's type; float32 values convert exactly)
         top = float(np.fmax.reduce(rel))  # one pass; skips NaN pillars
         if not math.isfinite(top):  # rare: an infinite pillar (ignored, as a NaN one) or none finite
             finite = np.isfinite(rel)
@@ -386,22 +386,22 @@ class Detector:
             stream = self.windows % self.n_streams
             try:
                 result = self.ensemble.step(window, stream=stream)
-                p, pm, valid = result.p_slip, result.p_members, result.valid
+                p, valid = result.p_slip, result.valid
                 if valid:
                     self.set_pillars(result.p_pillars)
             except StepError:
-                p, pm, valid = float("nan"), None, False
+                p, valid = float("nan"), False
         else:
             x = np.zeros((self.rows, len(window)), np.float32)
             x[self.row] = window
             active = np.arange(self.rows) == self.row
-            ps, pms, ok = self.ensemble.step_rows(x, self.phase(self.features.samples_seen), active)
-            p, pm, valid = ps[self.row], pms[:, self.row], bool(ok[self.row])
+            ps, _, ok = self.ensemble.step_rows(x, self.phase(self.features.samples_seen), active)
+            p, valid = ps[self.row], bool(ok[self.row])
             rows = self.ensemble.pillar_rows
             if valid and rows is not None:
                 self.set_pillars(rows[self.row])
         self.last_step_s = time.perf_counter() - t0
-        return self._finish(float(p), pm, valid, t_us, index)
+        return self._finish(float(p), valid, t_us, index)
 
     def set_pillars(self, p_pillars: np.ndarray | None) -> None:
         """The model's per-pillar P(slip) on the window just stepped, for the contact state; None where the graph
@@ -457,7 +457,7 @@ class Detector:
         rise = load - before
         self.pressing = bool(rise > PRESS_MIN_N and rise > press_rise * before)
 
-    def _finish(self, p_slip: float, p_members: np.ndarray | None, valid: bool, t_us: int, index: int) -> Detection:
+    def _finish(self, p_slip: float, valid: bool, t_us: int, index: int) -> Detection:
         """The decision on a model step's output (``valid`` False: refused input or non-finite output)."""
         self.windows += 1
         if not valid:
@@ -465,7 +465,8 @@ class Detector:
             self.step_errors += 1
             return Detection(index, t_us, float("nan"), 0.0, bool(self.decision.alarm), False, valid=False,
                              sensor=self.sensor)
-        d = self.decision.update(float(p_slip), p_members, may_raise=not self.pressing)
+        # The members' agreement (``DecisionResult.members_alarming``) is evaluation's: a Detection does not carry it.
+        d = self.decision.update(float(p_slip), None, may_raise=not self.pressing)
         return Detection(index, t_us, float(p_slip), float(d.risk), bool(d.alarm), bool(d.rising_edge),
                          sensor=self.sensor)
 

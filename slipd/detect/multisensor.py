@@ -119,7 +119,7 @@ class MultiDetector:
             t, idx = int(t_us[kk]), base + kk
             gated = [d._gate(x[kk, s], t, idx) for s, d in enumerate(subs)]
             active = np.array([g is None for g in gated])
-            p = pm = ok = None
+            p = ok = None
             step_s: float | None = None
             if active.any():
                 if shared:
@@ -127,14 +127,14 @@ class MultiDetector:
                 else:
                     batch = np.stack([cast(np.ndarray, w[m][1]) for w in wins])
                 t0 = time.perf_counter()  # the model call alone (the inference metric)
-                p, pm, ok = self.ensemble.step_rows(batch, subs[0].phase(n0 + j + 1), active)
+                p, _, ok = self.ensemble.step_rows(batch, subs[0].phase(n0 + j + 1), active)
                 step_s = time.perf_counter() - t0
                 self.last_step_s = step_s
             for s, d in enumerate(subs):
                 det = gated[s]
                 if det is None:
-                    assert p is not None and pm is not None and ok is not None
-                    det = d._finish(float(p[s]), pm[:, s], bool(ok[s]), t, idx)
+                    assert p is not None and ok is not None
+                    det = d._finish(float(p[s]), bool(ok[s]), t, idx)
                     rows = self.ensemble.pillar_rows
                     d.set_pillars(rows[s] if bool(ok[s]) and rows is not None else None)
                     d.last_step_s = step_s
