@@ -385,8 +385,11 @@ def stage_breakdown(daemon: Any, dec: Any, chunks: list[bytes]) -> dict[str, flo
     for stage, targets in STAGES:
         for module, cls_name, attr in targets:
             cls = getattr(importlib.import_module(module), cls_name)
-            patched.append((cls, attr, cls.__dict__[attr]))
-            setattr(cls, attr, timed(cls.__dict__[attr], stage))
+            f = cls.__dict__.get(attr)
+            if f is None:  # another tree's slipd (``--baseline-tree``, PYTHONPATH) may not have it
+                continue
+            patched.append((cls, attr, f))
+            setattr(cls, attr, timed(f, stage))
     try:
         half = len(chunks) // 2
         for k in range(half):  # warm-up: the timers' own first calls
