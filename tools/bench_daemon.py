@@ -21,6 +21,13 @@ Per configuration (sensors x stride):
 ``slipd`` (e.g. ``git worktree add /tmp/base <commit>``), runs alternating on the same stream; with ``--paired``
 both run at once, each on its own stream, and the difference per pair is reported (see ``_paired_shares``).
 
+3. **Hot path per decision** (``hot_path_cost``): the daemon's code on one read of ``stride`` frames (decode,
+   freshness, detector, decision, metrics) without the event loop, back to back and after 10 ms asleep, against the
+   model step alone, and where it goes per stage (``STAGES``: decode, freshness check, features, step, decision,
+   contact state, reaction check, recorder, metrics). ``--json`` writes them in each entry of ``runs``:
+   ``hot_path_us`` and ``step_us`` (``{"back_to_back": .., "after_sleep": ..}``) and ``stages_us``; the idle event
+   loop's share is ``idle_loop_percent`` at the top level.
+
 Beside them: a process that only reads and decodes the same frames (``--decode-only``, one and two sensors,
 reading every frame as it arrives), an event loop that only wakes 100 times a second (``idle_loop``: what this
 machine charges for the decision rate's wake-ups alone), and the floor of the work on this machine: the bytes
@@ -276,40 +283,134 @@ def _encoded(counter: int, t_us: int, force: np.ndarray) -> bytes:
                               others=tuple((f, z) for f in force[1:])))
 
 
-def hot_path_cost(model: Path, sensors: int, decisions: int = HOT_DECISIONS,
-                  sleep_s: float = HOT_SLEEP_S) -> dict[str, float]:
-    """The daemon's work per decision without the event loop: 10 encoded frames decoded
-    (``FrameDecoder.feed_block``) and handed to ``Daemon._on_frames`` (freshness, detector, decision, metrics),
-    stride 10, in this process. Timed back to back and after ``sleep_s`` asleep, as the daemon is between
-    decisions: what the code costs, and what the same code costs once the machine has let its caches go cold
-    (on this virtual machine several times more; that difference, not the code, is most of the CPU share)."""
+def _hot_path_setup(model: Path, sensors: int, stride: int, decisions: int, tmp: Path,
+                    recorder: bool = False) -> tuple[Any, Any, list[bytes]]:
+    """A daemon (the bench's config at ``stride``, not running: no event loop, no devices) past its tare and first
+    windows, its decoder, and ``2 * decisions`` reads of ``stride`` encoded frames each, the first read ending on a
+    deciding frame. ``recorder``: with the recorder the default config runs (``recorder.enabled``)."""
     from slipd.config import load_config
     from slipd.daemon.loop import Daemon
+    from slipd.daemon.recorder import Recorder
     from slipd.detect.ensemble import Ensemble
     from slipd.io.pts import FrameDecoder
     from slipd.metrics import Metrics
 
-    n = 400 + 10 * (2 * decisions + 20)
+    n = 400 + stride * (2 * decisions + 20) + 40
     force = quiet_hold(n, sensors).force.reshape(n, sensors, 9, 3)
     data = [_encoded(i + 1, i * 1000, force[i]) for i in range(n)]
+    cfg = load_config(_config(tmp, model, "/dev/null", "/dev/null", sensors, stride))
+    daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics())
+    if recorder:
+        daemon.recorder = Recorder(tmp / "recordings", cfg.sensor.rate_hz, sensors=sensors)
+    dec = FrameDecoder(sensors)
+    daemon._on_frames(dec.feed_block(b"".join(data[:400])))  # the tare and the first windows
+    i = 400
+    while daemon.detector.samples_to_decision() != stride:
+        daemon._on_frames(dec.feed_block(data[i]))
+        i += 1
+    chunks = [b"".join(data[i + stride * k : i + stride * k + stride]) for k in range(2 * decisions)]
+    return daemon, dec, chunks
+
+
+def hot_path_cost(model: Path, sensors: int, decisions: int = HOT_DECISIONS, sleep_s: float = HOT_SLEEP_S,
+                  stride: int = 10) -> dict[str, Any]:
+    """The daemon's work per decision without the event loop: ``stride`` encoded frames decoded
+    (``FrameDecoder.feed_block``) and handed to ``Daemon._on_frames`` (freshness, detector, decision, metrics),
+    in this process. Timed back to back and after ``sleep_s`` asleep, as the daemon is between decisions: what
+    the code costs, and what the same code costs once the machine has let its caches go cold. Beside it the model
+    step alone (one onnxruntime call on the daemon's batch, a stream of its own) and ``stages_us``, the hot path
+    per stage (``stage_breakdown``)."""
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = load_config(_config(Path(tmp), model, "/dev/null", "/dev/null", sensors, 10))
-        daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics())
-        dec = FrameDecoder(sensors)
-        daemon._on_frames(dec.feed_block(b"".join(data[:400])))  # the tare and the first windows
-        i = 400
-        while daemon.detector.samples_to_decision() != 10:
-            daemon._on_frames(dec.feed_block(data[i]))
-            i += 1
-        chunks = [b"".join(data[i + 10 * k : i + 10 * k + 10]) for k in range(2 * decisions)]
+        daemon, dec, chunks = _hot_path_setup(model, sensors, stride, decisions, Path(tmp))
         hot = _warm_and_cold(lambda k: daemon._on_frames(dec.feed_block(chunks[k])), decisions, sleep_s)
-        # The model step alone (one onnxruntime call on the daemon's batch, a stream of its own): how much of the
-        # cold hot path is the runtime's.
         ens = daemon.ensemble
         window = np.zeros((sensors, ens.feature_spec.input_size), np.float32)
-        model = _warm_and_cold(lambda k: ens.step(window, stream=1_000), decisions, sleep_s)
+        step = _warm_and_cold(lambda k: ens.step(window, stream=1_000), decisions, sleep_s)
+        daemon.close()
+    with tempfile.TemporaryDirectory() as tmp:
+        daemon, dec, chunks = _hot_path_setup(model, sensors, stride, decisions, Path(tmp), recorder=True)
+        stages = stage_breakdown(daemon, dec, chunks)
+        daemon.close()
     return {"back_to_back_us": hot[0], "after_sleep_us": hot[1],
-            "model_back_to_back_us": model[0], "model_after_sleep_us": model[1]}
+            "model_back_to_back_us": step[0], "model_after_sleep_us": step[1], "stages_us": stages}
+
+
+STAGES: tuple[tuple[str, tuple[tuple[str, str, str], ...]], ...] = (
+    ("decode", (("slipd.io.pts", "FrameDecoder", "feed_block"),)),
+    ("freshness check", (("slipd.daemon.loop", "Daemon", "_check_samples"),)),
+    ("features", (("slipd.detect.detector", "Detector", "feature_windows"),
+                  ("slipd.detect.detector", "Detector", "derive_rows"))),
+    ("step", (("slipd.detect.ensemble", "Ensemble", "step"), ("slipd.detect.ensemble", "Ensemble", "step_rows"))),
+    ("decision", (("slipd.detect.detector", "Detector", "push_many"), ("slipd.detect.multisensor", "MultiDetector",
+                  "push_many"), ("slipd.detect.detector", "Detector", "_decide"),
+                  ("slipd.detect.detector", "Detector", "_gate"), ("slipd.detect.detector", "Detector", "_finish"))),
+    ("contact state", (("slipd.detect.detector", "Detector", "contact_state"),)),
+    ("reaction check", (("slipd.daemon.loop", "Daemon", "_on_frames"), ("slipd.daemon.loop", "Daemon", "_on_block"),
+                        ("slipd.daemon.loop", "Daemon", "_coalesce"))),
+    ("recorder", tuple(("slipd.daemon.recorder", "Recorder", f) for f in
+                       ("push_frames", "push_decision", "settle", "trigger"))),
+    ("metrics", (("prometheus_client.metrics", "Counter", "inc"), ("prometheus_client.metrics", "Histogram", "observe"),
+                 ("prometheus_client.metrics", "Gauge", "set"))),
+)
+"""The hot path's stages and the functions each one's time is spent in. Time is exclusive: a function's nested calls
+of another stage count there: "decision" is the detector's own work around the features, the step and the contact
+state (contact gate, press hold, alarm rule, the detections); "reaction check" what the loop does around the detector
+(per-decision bookkeeping, the rising-edge check that hands an alarm to the reaction, the read coalescing)."""
+
+
+def stage_breakdown(daemon: Any, dec: Any, chunks: list[bytes]) -> dict[str, float]:
+    """Mean microseconds per decision of each hot-path stage (``STAGES``), the reads of ``chunks`` handed to the
+    daemon back to back with a timer around each stage's functions (the timers add a little to every stage), and
+    ``total``, the instrumented read and decision whole."""
+    import importlib
+
+    acc = dict.fromkeys([name for name, _ in STAGES], 0.0)
+    stack: list[float] = []  # per active timed call: the time its nested timed calls took
+
+    def timed(f: Any, stage: str) -> Any:
+        def call(*a: Any, **k: Any) -> Any:
+            stack.append(0.0)
+            t0 = time.perf_counter()
+            try:
+                return f(*a, **k)
+            finally:
+                dt = time.perf_counter() - t0
+                acc[stage] += dt - stack.pop()
+                if stack:
+                    stack[-1] += dt
+
+        return call
+
+    patched = []
+    for stage, targets in STAGES:
+        for module, cls_name, attr in targets:
+            cls = getattr(importlib.import_module(module), cls_name)
+            f = cls.__dict__.get(attr)
+            if f is None:  # another tree's slipd (``--baseline-tree``, PYTHONPATH) may not have it
+                continue
+            patched.append((cls, attr, f))
+            setattr(cls, attr, timed(f, stage))
+    try:
+        half = len(chunks) // 2
+        for k in range(half):  # warm-up: the timers' own first calls
+            daemon._on_frames(dec.feed_block(chunks[k]))
+        for v in acc:
+            acc[v] = 0.0
+        t0 = time.perf_counter()
+        for k in range(half, len(chunks)):
+            daemon._on_frames(dec.feed_block(chunks[k]))
+        total = time.perf_counter() - t0
+    finally:
+        for cls, attr, f in patched:
+            setattr(cls, attr, f)
+    n = len(chunks) - half
+    return {**{k: v / n * 1e6 for k, v in acc.items()}, "total": total / n * 1e6}
+
+
+def _stages_line(stages: dict[str, float]) -> str:
+    """The per-stage breakdown as one line: each stage's microseconds, then the instrumented total."""
+    parts = [f"{k} {v:.1f}" for k, v in stages.items() if k != "total"]
+    return f"stages (us): {', '.join(parts)}; instrumented total {stages['total']:.0f}"
 
 
 def _warm_and_cold(call: Any, decisions: int, sleep_s: float) -> tuple[float, float]:
@@ -455,6 +556,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"{h['after_sleep_us']:.0f} us after {ms:g} ms asleep; the model step alone "
                       f"{h['model_back_to_back_us']:.0f} / {h['model_after_sleep_us']:.0f} us (medians of "
                       f"{HOT_DECISIONS})", flush=True)
+                print(f"  {_stages_line(h['stages_us'])}", flush=True)
         return 0
     logging.getLogger("slipd").setLevel(logging.ERROR)  # one alarm per window here: keep the log quiet
     load0 = os.getloadavg()[0]
@@ -491,7 +593,12 @@ def main(argv: list[str] | None = None) -> int:
             r.update(cpu_percent_grip_control=float(np.median(got)), cpu_percent_grip_control_runs=got)
     base = {s: float(np.median(shares[("decode_only", s, None)])) for s in args.sensors}
     idle_runs = shares[("idle_loop", 1, None)]
-    hot = {s: hot_path_cost(args.model, s) for s in args.sensors}
+    hot = {(r["sensors"], r["stride"]): hot_path_cost(args.model, r["sensors"], stride=r["stride"]) for r in runs}
+    for r in runs:
+        h = hot[(r["sensors"], r["stride"])]
+        r.update(hot_path_us={"back_to_back": h["back_to_back_us"], "after_sleep": h["after_sleep_us"]},
+                 step_us={"back_to_back": h["model_back_to_back_us"], "after_sleep": h["model_after_sleep_us"]},
+                 stages_us=h["stages_us"])
     bw, flops_rate = machine_rates()
     load1 = os.getloadavg()[0]
 
@@ -522,11 +629,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{s:>7} {'decode-only (every frame as it arrives)':<40} {cpu:>5.1f} % CPU")
     print(f"{'-':>7} {f'event loop waking {IDLE_HZ:g} times a second, nothing else':<40} "
           f"{float(np.median(idle_runs)):>5.1f} % CPU  [{', '.join(f'{x:.1f}' for x in idle_runs)}]")
-    for s, h in hot.items():
-        print(f"{s:>7} hot path per decision (decode 10 frames, detector, decision), stride 10: "
-              f"{h['back_to_back_us']:.0f} us back to back, {h['after_sleep_us']:.0f} us after "
-              f"{HOT_SLEEP_S * 1e3:g} ms asleep (medians); of it the model step alone (one onnxruntime call) "
-              f"{h['model_back_to_back_us']:.0f} / {h['model_after_sleep_us']:.0f} us")
+    print(f"hot path per decision (decode `stride` frames, freshness, detector, decision, metrics; no event loop), "
+          f"medians of {HOT_DECISIONS}, back to back / after {HOT_SLEEP_S * 1e3:g} ms asleep, against the model step "
+          "alone (one onnxruntime call on the same batch); per stage: means, instrumented, with the recorder on")
+    for r in runs:
+        hp, st = r["hot_path_us"], r["step_us"]
+        print(f"{r['sensors']:>7} {r['stride']:>6}  hot path {hp['back_to_back']:.0f} / {hp['after_sleep']:.0f} us, "
+              f"step {st['back_to_back']:.0f} / {st['after_sleep']:.0f} us: "
+              f"{hp['back_to_back'] / st['back_to_back']:.2f}x / {hp['after_sleep'] / st['after_sleep']:.2f}x")
+        print(f"{'':>16}{_stages_line(r['stages_us'])}")
     print(f"floor: bytes over {bw / 1e9:.1f} GB/s (copy) + FLOPs over {flops_rate / 1e9:.1f} GFLOP/s (float32 "
           "matrix product), one thread")
     if args.json:
@@ -534,7 +645,7 @@ def main(argv: list[str] | None = None) -> int:
                                               "cpu_percent_runs": shares[("decode_only", s, None)]}
                                              for s, c in base.items()],
                "idle_loop": {"hz": IDLE_HZ, "cpu_percent": float(np.median(idle_runs)), "cpu_percent_runs": idle_runs},
-               "hot_path": [{"sensors": s, **h} for s, h in hot.items()], "cpu_runs": args.cpu_runs,
+               "idle_loop_percent": float(np.median(idle_runs)), "cpu_runs": args.cpu_runs,
                "machine": {"copy_bytes_per_s": bw, "flops_per_s": flops_rate, "load_average": [load0, load1],
                            "cores": os.cpu_count()},
                "seconds": args.seconds, "model": str(args.model)}

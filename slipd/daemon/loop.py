@@ -316,7 +316,7 @@ class Daemon:
         moved = (disp[:, 0] if one else disp) if self._reads_disp else None
         dets = det_.push_many(force[:, 0] if one else force, stamps, moved)
         self.stats.frames += k
-        valid = np.zeros(self.sensors, bool)
+        valid = [False] * self.sensors
         recorded = 0
         grip = self.reaction.grip_control is not None
         grasp: list[Detection] = []  # grip control: this decision's detections with a contact state, one per sensor
@@ -369,7 +369,7 @@ class Daemon:
             if recorded < k:
                 rec.push_frames(stamps[recorded:], force[recorded:], disp[recorded:])
             rec.settle()  # a recording that ended in this block is written with its last frame's decisions
-        if valid.all() and not self._nonfinite_burst:
+        if all(valid) and not self._nonfinite_burst:
             # A valid decision on every sensor (a blind finger is a blind daemon); one on held values beyond
             # the bridge is no sign of life.
             now = time.monotonic()

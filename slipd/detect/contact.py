@@ -23,7 +23,7 @@ import numpy as np
 
 from slipd.detect.features import FeatureSpec, FeatureStream
 from slipd.detect.friction import FrictionEstimator
-from slipd.detect.pillar_slip import PillarSlip, PillarSlipParams, utilisation
+from slipd.detect.pillar_slip import PillarSlip, PillarSlipParams
 from slipd.detect.risk import contact_risk
 from slipd.geometry import CONTACT_THRESHOLD_N, N_PILLARS
 
@@ -168,23 +168,35 @@ class ContactStream:
         w = window.reshape(self.spec.window, N_PILLARS, 3)
         # Nine pillars once per decision: plain floats (a numpy call on nine values costs more than its work).
         first, last = w[0].tolist(), w[-1].tolist()
-        ends = fz, util, contact = utilisation(last)
-        if pillar_p is None:
-            p, source = self.pillars.step(first, last, ends), "features"
-        else:
-            p, source = np.asarray(pillar_p, np.float64).tolist(), "model"
+        # ``utilisation(last)`` and the contact's sums in one pass (the same operations, in the same order).
+        thr = CONTACT_THRESHOLD_N
+        fz: list[float] = []
+        util: list[float] = []
+        contact: list[bool] = []
         grip = fx = fy = shear = pressed = top_pressed = 0.0
         top = -1.0
-        for (x, y, z), u, c in zip(last, util, contact):
+        for x, y, z in last:
+            ft = math.hypot(x, y)
+            u = ft / (z if z > thr else thr)
+            c = z > thr
+            fz.append(z)
+            util.append(u)
+            contact.append(c)
             if z > 0.0:
                 pressed += z
-                top_pressed = max(top_pressed, u)
+                if u > top_pressed:  # max(top_pressed, u)
+                    top_pressed = u
             if c:
                 grip += z
                 fx += x
                 fy += y
-                shear += math.hypot(x, y)
-                top = max(top, u)
+                shear += ft
+                if u > top:
+                    top = u
+        if pillar_p is None:
+            p, source = self.pillars.step(first, last, (fz, util, contact)), "features"
+        else:
+            p, source = np.asarray(pillar_p, np.float64).tolist(), "model"
         if top < 0.0:
             self.friction.reset()  # released: the next grasp may be another object
             top = 0.0

@@ -114,7 +114,7 @@ class ContactGate:
 
     def touching(self, fz_tared: np.ndarray) -> bool | None:
         """Raw contact of one sample: some pillar above the baseline by the SDK threshold (None: no finite value)."""
-        rel = np.asarray(fz_tared, np.float64) - self._baseline
+        rel = np.subtract(fz_tared, self._baseline)  # in float64 (the baseline's type; float32 values convert exactly)
         top = float(np.fmax.reduce(rel))  # one pass; skips NaN pillars
         if not math.isfinite(top):  # rare: an infinite pillar (ignored, as a NaN one) or none finite
             finite = np.isfinite(rel)
@@ -323,18 +323,22 @@ class Detector:
         self.index += len(force) - i
         for j, window, filtered, state in self.feature_windows(force[i:]):
             k = i + j
+            assert window is not None
             det = self._decide(window, force[k], int(t_us[k]), base + k)
             out.append((k, det.with_contact(self.contact_state(filtered, state))))
             self.step_seconds.append(self.last_step_s)
         return out
 
-    def feature_windows(self, force: np.ndarray
-                        ) -> list[tuple[int, np.ndarray, np.ndarray | None, ContactState | None]]:
+    def feature_windows(self, force: np.ndarray, derive: bool = True
+                        ) -> list[tuple[int, np.ndarray | None, np.ndarray | None, ContactState | None]]:
         """The feature stages on a block of tared-phase samples: ``(i, model window, filtered window, contact
         state)`` for each sample that ends a window (the model is not stepped here). A detector that shares its
         filtered window with the contact state returns that window (``contact_state`` turns it into the state
-        once the model has stepped); otherwise the contact stream's own state."""
+        once the model has stepped); otherwise the contact stream's own state. ``derive`` False: a shared detector
+        leaves the model window to the caller (None; ``derive_rows`` makes the windows of several sensors at once)."""
         if self._shared:
+            if not derive:
+                return [(j, None, w, None) for j, w in self.features.push_many(force)]
             return [(j, self._derive(w), w, None) for j, w in self.features.push_many(force)]
         contact = dict(self.contact.push_many(force))
         return [(j, w, None, contact.get(j)) for j, w in self.features.push_many(force)]
@@ -343,6 +347,13 @@ class Detector:
         """A shared filtered window [window * n_base] -> the model's window (stage 5b)."""
         spec = self.spec
         out: np.ndarray = spec.derive(filtered.reshape(spec.window, spec.n_base)).reshape(-1)
+        return out
+
+    def derive_rows(self, filtered: np.ndarray) -> np.ndarray:
+        """Shared filtered windows of several sensors [B, window * n_base] -> their model windows [B, input_size] in
+        one pass (stage 5b works sample by sample: the same values as ``_derive`` on each)."""
+        spec = self.spec
+        out: np.ndarray = spec.derive(filtered.reshape(-1, spec.n_base)).reshape(len(filtered), spec.input_size)
         return out
 
     def contact_state(self, filtered: np.ndarray | None, state: ContactState | None) -> ContactState | None:
@@ -375,22 +386,22 @@ class Detector:
             stream = self.windows % self.n_streams
             try:
                 result = self.ensemble.step(window, stream=stream)
-                p, pm, valid = result.p_slip, result.p_members, result.valid
+                p, valid = result.p_slip, result.valid
                 if valid:
                     self.set_pillars(result.p_pillars)
             except StepError:
-                p, pm, valid = float("nan"), None, False
+                p, valid = float("nan"), False
         else:
             x = np.zeros((self.rows, len(window)), np.float32)
             x[self.row] = window
             active = np.arange(self.rows) == self.row
-            ps, pms, ok = self.ensemble.step_rows(x, self.phase(self.features.samples_seen), active)
-            p, pm, valid = ps[self.row], pms[:, self.row], bool(ok[self.row])
+            ps, _, ok = self.ensemble.step_rows(x, self.phase(self.features.samples_seen), active)
+            p, valid = ps[self.row], bool(ok[self.row])
             rows = self.ensemble.pillar_rows
             if valid and rows is not None:
                 self.set_pillars(rows[self.row])
         self.last_step_s = time.perf_counter() - t0
-        return self._finish(float(p), pm, valid, t_us, index)
+        return self._finish(float(p), valid, t_us, index)
 
     def set_pillars(self, p_pillars: np.ndarray | None) -> None:
         """The model's per-pillar P(slip) on the window just stepped, for the contact state; None where the graph
@@ -446,7 +457,7 @@ class Detector:
         rise = load - before
         self.pressing = bool(rise > PRESS_MIN_N and rise > press_rise * before)
 
-    def _finish(self, p_slip: float, p_members: np.ndarray | None, valid: bool, t_us: int, index: int) -> Detection:
+    def _finish(self, p_slip: float, valid: bool, t_us: int, index: int) -> Detection:
         """The decision on a model step's output (``valid`` False: refused input or non-finite output)."""
         self.windows += 1
         if not valid:
@@ -454,7 +465,8 @@ class Detector:
             self.step_errors += 1
             return Detection(index, t_us, float("nan"), 0.0, bool(self.decision.alarm), False, valid=False,
                              sensor=self.sensor)
-        d = self.decision.update(float(p_slip), p_members, may_raise=not self.pressing)
+        # The members' agreement (``DecisionResult.members_alarming``) is evaluation's: a Detection does not carry it.
+        d = self.decision.update(float(p_slip), None, may_raise=not self.pressing)
         return Detection(index, t_us, float(p_slip), float(d.risk), bool(d.alarm), bool(d.rising_edge),
                          sensor=self.sensor)
 

@@ -27,6 +27,7 @@ An ``Ensemble`` is not thread-safe: one owner calls ``step``.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -123,6 +124,12 @@ class _Stream:
 
     def reset(self) -> None:
         self.h[self.cur][:] = 0.0
+
+
+def _all_finite(a: np.ndarray) -> bool:
+    """No NaN or +-Inf in ``a``. One reduction where the sum is finite (a NaN or an infinity in the values makes the sum
+    NaN or infinite), the exact test only when it is not (finite values whose sum overflows)."""
+    return math.isfinite(a.sum()) or bool(np.isfinite(a).all())
 
 
 def session_options(threads: int = 1) -> ort.SessionOptions:
@@ -226,7 +233,7 @@ class Ensemble:
             w = w[None, :]
         if w.ndim != 2 or w.shape[1] != self._d:
             raise ValueError(f"window must be [{self._d}] or [B, {self._d}], got {np.shape(window)}")
-        if not np.isfinite(w).all():
+        if not _all_finite(w):
             self.refused_inputs += 1
             return self._invalid(w.shape[0], single, STATUS_NONFINITE_INPUT)
         st = self._streams.get(stream)
@@ -236,7 +243,7 @@ class Ensemble:
             raise ValueError(f"stream {stream} holds {st.batch} sequences, window has {w.shape[0]}; reset it first")
         np.copyto(st.x, w, casting="same_kind")
         self._session.run_with_iobinding(st.bindings[st.cur])
-        if not np.isfinite(st.outputs).all():  # p_slip, p_members, h_next (and p_pillars) in one pass
+        if not _all_finite(st.outputs):  # p_slip, p_members, h_next (and p_pillars) in one pass
             st.reset()
             self.nonfinite_outputs += 1
             return self._invalid(w.shape[0], single, STATUS_NONFINITE_OUTPUT)
@@ -267,34 +274,52 @@ class Ensemble:
         if w.ndim != 2 or w.shape[1] != self._d or act.shape != (len(w),):
             raise ValueError(f"windows must be [B, {self._d}] with active [B], got {w.shape} and {act.shape}")
         b = len(w)
-        finite = np.isfinite(w).all(axis=1)
-        run = act & finite
-        self.refused_inputs += int(np.count_nonzero(act & ~finite))
-        p = np.full(b, np.nan, np.float32)
-        pm = np.full((self._z, b), np.nan, np.float32)
-        if not run.any():
-            return p, pm, run
         st = self._streams.get(stream)
-        if st is None:
-            st = self._streams[stream] = _Stream(self._session, b, self._z, self._d, self._h, self._p)
-        elif st.batch != b:
+        if st is not None and st.batch != b:
             raise ValueError(f"stream {stream} holds {st.batch} sequences, windows has {b}; reset it first")
-        idle = ~run
-        h_cur, h_next = st.h[st.cur], st.h[1 - st.cur]
-        kept = h_cur[:, idle].copy() if idle.any() else None
-        np.copyto(st.x, w, casting="same_kind")
-        if kept is not None:
-            first = int(np.argmax(run))
-            st.x[idle] = st.x[first]
-            h_cur[:, idle] = h_cur[:, first : first + 1]
-        self._session.run_with_iobinding(st.bindings[st.cur])
+        if act.all() and _all_finite(w):
+            # Every row steps on a finite window (the fingers of a grasp, decision after decision): no row to keep
+            # aside, and when every output is finite too, every row is valid.
+            run = act
+            if st is None:
+                st = self._streams[stream] = _Stream(self._session, b, self._z, self._d, self._h, self._p)
+            np.copyto(st.x, w, casting="same_kind")
+            self._session.run_with_iobinding(st.bindings[st.cur])
+            if _all_finite(st.outputs):
+                st.cur = 1 - st.cur
+                if st.p_pillars is not None:
+                    self.pillar_rows = st.p_pillars.copy()
+                return st.p_slip.copy(), st.p_members.copy(), run.copy()
+            kept = None
+            h_next = st.h[1 - st.cur]
+            p = np.full(b, np.nan, np.float32)
+            pm = np.full((self._z, b), np.nan, np.float32)
+        else:
+            finite = np.isfinite(w).all(axis=1)
+            run = act & finite
+            self.refused_inputs += int(np.count_nonzero(act & ~finite))
+            p = np.full(b, np.nan, np.float32)
+            pm = np.full((self._z, b), np.nan, np.float32)
+            if not run.any():
+                return p, pm, run
+            if st is None:
+                st = self._streams[stream] = _Stream(self._session, b, self._z, self._d, self._h, self._p)
+            idle = ~run
+            h_cur, h_next = st.h[st.cur], st.h[1 - st.cur]
+            kept = h_cur[:, idle].copy() if idle.any() else None
+            np.copyto(st.x, w, casting="same_kind")
+            if kept is not None:
+                first = int(np.argmax(run))
+                st.x[idle] = st.x[first]
+                h_cur[:, idle] = h_cur[:, first : first + 1]
+            self._session.run_with_iobinding(st.bindings[st.cur])
         ok = run & np.isfinite(st.p_slip) & np.isfinite(st.p_members).all(axis=0) & np.isfinite(h_next).all(axis=(0, 2))
         bad = run & ~ok
         if bad.any():
             h_next[:, bad] = 0.0
             self.nonfinite_outputs += int(np.count_nonzero(bad))
         if kept is not None:
-            h_next[:, idle] = kept
+            h_next[:, ~run] = kept
         st.cur = 1 - st.cur
         p[ok] = st.p_slip[ok]
         pm[:, ok] = st.p_members[:, ok]

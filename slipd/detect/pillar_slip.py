@@ -96,6 +96,8 @@ class PillarSlip:
     def __init__(self, params: PillarSlipParams | None = None) -> None:
         self.p = params or PillarSlipParams()
         self._logit = [-self.p.limit] * N_PILLARS
+        # The probabilities of the latest logits: a hold leaves the logits where they are decision after decision.
+        self._probs: tuple[list[float], list[float]] = ([], [])
 
     def reset(self) -> None:
         """A new contact: every pillar sticks."""
@@ -113,21 +115,24 @@ class PillarSlip:
         ``utilisation(last)`` where the caller has it already."""
         p = self.p
         fz, util, contact = ends or utilisation(last)
-        fz0, util0, _ = utilisation(first)
-        rate = [math.hypot(b[0] - a[0], b[1] - a[1]) for a, b in zip(first, last)]
+        rate = []
         ref = top = -1.0
-        for i in range(N_PILLARS):
-            if contact[i]:
-                ref = max(ref, rate[i])
-                top = max(top, util[i])
+        for (ax, ay, _), (bx, by, _), c, u in zip(first, last, contact, util):
+            r = math.hypot(bx - ax, by - ay)
+            rate.append(r)
+            if c:  # the largest rate and utilisation in contact (``max`` keeps the first of equals, as here)
+                if r > ref:
+                    ref = r
+                if u > top:
+                    top = u
         if ref < 0.0:  # no pillar in contact
             self.reset()
             return self.probability_list()
         near = [u / top for u in util] if top > 0 else [0.0] * N_PILLARS
-        step = [0.0] * N_PILLARS
         if ref > p.rate_floor_n:
             # Equal utilisation across pillars of different normal force: a sticking contact shares its
             # load by deflection (equal Ft, so unequal Ft / Fz); only the friction limit equalises Ft / Fz.
+            step = [0.0] * N_PILLARS
             even = [contact[i] and near[i] > p.even for i in range(N_PILLARS)]
             fz_even = [fz[i] for i in range(N_PILLARS) if even[i]]
             informative = len(fz_even) > 1 and max(fz_even) > p.fz_ratio * min(fz_even)
@@ -140,23 +145,34 @@ class PillarSlip:
         else:
             # No load change. Gross slip keeps the sliding pillars at one (the top) utilisation: they hold
             # their state; a pillar below the top decays towards stick (a Coulomb hold does not slide).
-            top_set = [contact[i] and near[i] > p.near for i in range(N_PILLARS)]
+            top_set = [c and q > p.near for c, q in zip(contact, near)]
             n_top = sum(top_set)
-            slid = sum(1 for i in range(N_PILLARS) if top_set[i] and self._logit[i] > 0)
-            held = n_top > 1 and slid / n_top > 0.5
-            for i in range(N_PILLARS):
-                step[i] = -p.step if near[i] < p.far else 0.0 if held and top_set[i] else -p.decay
-        lim, logit = p.limit, self._logit
-        for i in range(N_PILLARS):
-            if not contact[i] or (util[i] < (1.0 - p.fall) * util0[i] and fz[i] > fz0[i] + p.rate_floor_n):
-                # Off the surface; or its utilisation fell while its normal force rose (``fall``): sticks.
-                step[i] = -p.step
-            logit[i] = min(lim, max(-lim, logit[i] + step[i]))
+            held = False
+            if n_top > 1:
+                slid = sum(1 for t, lg in zip(top_set, self._logit) if t and lg > 0)
+                held = slid / n_top > 0.5
+            stick, decay = -p.step, -p.decay
+            step = [stick if q < p.far else 0.0 if held and t else decay for q, t in zip(near, top_set)]
+        lim, logit, thr = p.limit, self._logit, CONTACT_THRESHOLD_N
+        keep, floor, stick = 1.0 - p.fall, p.rate_floor_n, -p.step
+        for i, ((x0, y0, z0), c, u, z, s) in enumerate(zip(first, contact, util, fz, step)):
+            if not c:
+                s = stick  # off the surface
+            elif u < keep * (math.hypot(x0, y0) / (z0 if z0 > thr else thr)) and z > z0 + floor:
+                s = stick  # its utilisation fell while its normal force rose (``fall``): sticks
+            # min(lim, max(-lim, logit + s)), without the two calls
+            v = logit[i] + s
+            v = v if v > -lim else -lim
+            logit[i] = v if v < lim else lim
         return self.probability_list()
 
     def probability_list(self) -> list[float]:
-        """P(slip) per pillar, as plain floats."""
-        return [1.0 / (1.0 + math.exp(-lg)) for lg in self._logit]
+        """P(slip) per pillar, as plain floats (a fresh list)."""
+        logits, probs = self._probs
+        if logits != self._logit:
+            logits, probs = list(self._logit), [1.0 / (1.0 + math.exp(-lg)) for lg in self._logit]
+            self._probs = (logits, probs)
+        return list(probs)
 
     def probability(self) -> np.ndarray:
         """P(slip) per pillar [9] (a fresh array)."""

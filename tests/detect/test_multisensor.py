@@ -81,6 +81,35 @@ def test_a_nonfinite_window_is_refused_for_its_row_only() -> None:
     assert not ens.hidden_state(0)[:, 1].any() and np.array_equal(ens.hidden_state(0)[:, 0], h[:, 0])
 
 
+def test_every_row_stepping_gives_what_the_general_path_gives(monkeypatch) -> None:
+    # Both fingers stepping on finite windows (every decision of a grasp) take a shorter path through step_rows; the
+    # general one (rows kept aside, outputs checked row by row) must give the same outputs and states, bit for bit.
+    import slipd.detect.ensemble as ensemble_mod
+    from slipd.models import packaged
+
+    ens = Ensemble.load(packaged("slip_ensemble_int8"))
+    x = np.random.default_rng(1).normal(size=(6, 2, ens.feature_spec.input_size)).astype(np.float32)
+    both = np.array([True, True])
+    checks = []
+    exact = ensemble_mod._all_finite
+
+    def counted(a: np.ndarray) -> bool:
+        checks.append(a.shape)
+        return exact(a)
+
+    monkeypatch.setattr(ensemble_mod, "_all_finite", counted)
+    short = [ens.step_rows(w, 0, both) for w in x]
+    h_short = ens.hidden_state(0)
+    assert len(checks) == 2 * len(x)  # each call: its windows, then its outputs, one check each
+    ens.reset()
+    monkeypatch.setattr(ensemble_mod, "_all_finite", lambda a: False)  # never sure: the general path every time
+    general = [ens.step_rows(w, 0, both) for w in x]
+    for a, b in zip(short, general, strict=True):
+        assert all(np.array_equal(u, v) for u, v in zip(a, b, strict=True))
+    assert all(ok.all() for _, _, ok in short)
+    assert np.array_equal(h_short, ens.hidden_state(0)) and h_short.any()
+
+
 def test_each_finger_takes_its_own_software_zero() -> None:
     """``set_offset`` ([S, 9, 3]): the daemon's free-air zero after a bias taken under a grasp (slipd.daemon.rezero)."""
     from slipd.models import packaged

@@ -352,6 +352,31 @@ def test_block_decode_equals_frame_by_frame() -> None:
     assert np.array_equal(b.force, simple_frame(3).force) and np.array_equal(b.disp, simple_frame(3).disp)
 
 
+def test_a_block_whose_byte_sums_pass_65535_decodes_as_frame_by_frame() -> None:
+    # A read of whole frames is checked at once, its checksums summed in a 16-bit accumulator that wraps: frames
+    # whose payload bytes sum far beyond 2**16 (values of mostly 0xFF bytes) decode as they do one at a time, and a
+    # checksum off by one in the middle of such a read is still refused.
+    big = np.full((9, 3), np.finfo(np.float32).min, np.float32)  # bytes ff ff 7f ff
+    parts = []
+    for i in range(8):
+        f = simple_frame(i)
+        low = float(np.finfo(np.float32).min)
+        f.force, f.disp, f.wrench = big.copy(), big.copy(), np.full(6, low, np.float32)
+        f.slip_state, f.friction = np.full(9, -1, np.int8), np.full(9, low, np.float32)
+        f.sensor_state, f.friction_est, f.target_grip_force = 255, low, low
+        parts.append(encode_frame(f))
+    assert all(sum(p[len(START) : -len(END) - 2]) > 65536 for p in parts)
+    bad = bytearray(parts[4])
+    bad[-len(END) - 2] ^= 0x01
+    parts[4] = bytes(bad)
+    whole, single = FrameDecoder(), FrameDecoder()
+    got = whole.feed_block(b"".join(parts))
+    ref = [f for p in parts for f in single.feed(p)]
+    assert got.counter.tolist() == [f.counter for f in ref] == [0, 1, 2, 3, 5, 6, 7]
+    assert np.array_equal(got.force[:, 0].view(np.uint32), np.array([f.force for f in ref]).view(np.uint32))
+    assert whole.errors() == single.errors() == {"bad_checksum": 1, "bad_length": 0, "bad_structure": 0}
+
+
 # ---------------------------------------------------------------------- two arrays
 def two_sensor_frame(counter: int) -> Frame:
     f = simple_frame(counter)

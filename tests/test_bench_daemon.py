@@ -1,0 +1,45 @@
+"""tools/bench_daemon.py's hot-path line on the shipped model (a few decisions, no timing asserted): the figures its
+JSON carries, the per-stage breakdown, and the daemon's code left as it was after the stage timers."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from types import ModuleType
+
+import pytest
+
+from sliplab.paths import ROOT
+
+MODEL = ROOT / "slipd" / "models" / "slip_ensemble_int8.json"
+
+
+def _bench() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("bench_daemon_tool", ROOT / "tools" / "bench_daemon.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("sensors", [1, 2])
+def test_hot_path_reports_each_stage_and_restores_the_timed_code(sensors: int) -> None:
+    from slipd.daemon.loop import Daemon
+    from slipd.detect.detector import Detector
+    from slipd.detect.ensemble import Ensemble
+
+    mod = _bench()
+    before = (Daemon.__dict__["_on_frames"], Detector.__dict__["contact_state"], Ensemble.__dict__["step_rows"])
+    h = mod.hot_path_cost(MODEL, sensors, decisions=12, sleep_s=0.0)
+    assert (Daemon.__dict__["_on_frames"], Detector.__dict__["contact_state"], Ensemble.__dict__["step_rows"]) == before
+    for key in ("back_to_back_us", "after_sleep_us", "model_back_to_back_us", "model_after_sleep_us"):
+        assert h[key] > 0
+    stages = h["stages_us"]
+    assert list(stages) == [name for name, _ in mod.STAGES] + ["total"]
+    # Every stage runs on each decision of a quiet hold (the recorder keeps the frames; no alarm, no file).
+    assert all(v > 0 for v in stages.values()), stages
+    # Exclusive times: the stages share out the instrumented total, nothing counted twice.
+    assert sum(v for k, v in stages.items() if k != "total") <= stages["total"]
+    line = mod._stages_line(stages)
+    assert "contact state" in line and "instrumented total" in line
