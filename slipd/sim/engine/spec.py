@@ -94,7 +94,7 @@ class LiftSeg(_P):
 
 class LoadSeg(_P):
     op: Literal["push", "twist", "fill"]
-    rate: float = Field(..., gt=0.0, le=10000.0)
+    rate: float = Field(..., gt=0.0, le=100000.0)
     """N/s (push), N mm/s (twist) or g/s (fill)."""
     duration_s: float = Field(..., gt=0.0, le=60.0)
     direction_deg: float = 0.0
