@@ -566,6 +566,11 @@ def _finish(sc: HexapodScene | GripperScene, eff: list[fx.Effect], seed: int, ct
     )
 
 
+finish_recording = _finish
+"""Public name of the one path from physics output to a recording (labels, the sensor's measurement chain, meta);
+the engine family (``slipd.sim.engine``) finishes its recordings through it."""
+
+
 # ---------------------------------------------------------------------------- timelines
 def _timeline_context(sc: HexapodScene, stops: dict[int, int]) -> tuple[fx.SimContext, tl.Built]:
     built = tl.build(sc.timeline, round(sc.pre_s / DT_S), stops)

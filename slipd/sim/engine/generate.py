@@ -1,8 +1,8 @@
 """Engine scenes -> recordings: input profiles from the timeline, the engine run, truth, labels, the sensor model.
 
-The measurement goes through the simulator's one sensor chain (``scene._finish``: the scene's signal effects, the
-reported displacements carrying the force error, saturation), and the labels follow the same rule as every other
-scene (``scene.incipient_labels``).
+The measurement goes through the simulator's one sensor chain (``scene.finish_recording``: the scene's signal
+effects, the reported displacements carrying the force error, saturation), and the labels follow the same rule as
+every other scene (``scene.incipient_labels``).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from slipd.sim.engine.model import ObjectGeometry
 from slipd.sim.engine.spec import EngineScene, GripSeg, HoldSeg, LiftSeg, LoadSeg
 from slipd.sim.engine.stepping import EngineOutput, EngineSim
 from slipd.sim.physics import DT_S, sensor_params
-from slipd.sim.scene import GROSS_DEG, GROSS_MM, _finish, incipient_labels
+from slipd.sim.scene import GROSS_DEG, GROSS_MM, finish_recording, incipient_labels
 
 STOP_RETRIES = 2
 """A stop that still slid is run again halted earlier (0.8x its load each time)."""
@@ -252,7 +252,8 @@ def generate_engine(scenes: list[EngineScene], seeds: list[int]) -> list[Recordi
         gm = gross_motion(out.pose, start) if start is not None else None
         eff = sc.build_effects()
         mtype = "+".join(sorted({m["op"] for m in prof.moves})) or "none"
-        rec = _finish(sc, eff, seed, ctx, res, motion, sensor_params(sc.sensor).to_dict(), mtype, gm, labels=lab)
+        rec = finish_recording(sc, eff, seed, ctx, res, motion, sensor_params(sc.sensor).to_dict(), mtype, gm,
+                               labels=lab)
         rec.meta["kind"] = "slip" if lab[1] is not None else ("stop" if prof.moves else "hold")
         if start is None:
             rec.meta["events"].pop("motion_start", None)
