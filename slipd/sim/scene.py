@@ -377,7 +377,11 @@ def generate_batch(scenes: list[HexapodScene | GripperScene], seeds: list[int | 
         groups.setdefault((family, sc.sensor), []).append(i)
     for (family, _), idx in groups.items():
         if family == "engine":
-            from slipd.sim.engine.generate import generate_engine as run  # imports MuJoCo (the sim extra)
+            from functools import partial
+
+            from slipd.sim.engine.generate import Rules, generate_engine  # imports MuJoCo (the sim extra)
+
+            run = partial(generate_engine, rules=Rules(_finish, incipient_labels, GROSS_MM, GROSS_DEG))
         else:
             run = {"hexapod": _generate_hexapod, "gripper": _generate_gripper, "timeline": _generate_timeline}[family]
         for i, rec in zip(idx, run([scenes[i] for i in idx], [_seed_of(scenes[i], seeds[i]) for i in idx])):
@@ -564,11 +568,6 @@ def _finish(sc: HexapodScene | GripperScene, eff: list[fx.Effect], seed: int, ct
         object_motion=motion.astype(np.float32),
         meta=meta,
     )
-
-
-finish_recording = _finish
-"""Public name of the one path from physics output to a recording (labels, the sensor's measurement chain, meta);
-the engine family (``slipd.sim.engine``) finishes its recordings through it."""
 
 
 # ---------------------------------------------------------------------------- timelines

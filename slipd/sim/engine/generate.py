@@ -1,12 +1,14 @@
 """Engine scenes -> recordings: input profiles from the timeline, the engine run, truth, labels, the sensor model.
 
-The measurement goes through the simulator's one sensor chain (``scene.finish_recording``: the scene's signal
-effects, the reported displacements carrying the force error, saturation), and the labels follow the same rule as
-every other scene (``scene.incipient_labels``).
+The measurement goes through the simulator's one sensor chain (``scene._finish``: the scene's signal effects, the
+reported displacements carrying the force error, saturation), and the labels follow the same rule as every other
+scene (``scene.incipient_labels``). ``scene.generate_batch`` hands both in as ``Rules``, so that this module does
+not import ``scene`` back.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,10 +20,19 @@ from slipd.sim.engine.model import ObjectGeometry
 from slipd.sim.engine.spec import EngineScene, GripSeg, HoldSeg, LiftSeg, LoadSeg
 from slipd.sim.engine.stepping import EngineOutput, EngineSim
 from slipd.sim.physics import DT_S, sensor_params
-from slipd.sim.scene import GROSS_DEG, GROSS_MM, finish_recording, incipient_labels
 
 STOP_RETRIES = 2
 """A stop that still slid is run again halted earlier (0.8x its load each time)."""
+
+
+@dataclass(frozen=True)
+class Rules:
+    """What every scene shares: the path from physics output to a recording, the label rule, gross motion."""
+
+    finish: Callable[..., Recording]
+    label_rule: Callable[..., tuple[np.ndarray, int | None, int | None]]
+    gross_mm: float
+    gross_deg: float
 
 
 @dataclass
@@ -166,14 +177,15 @@ def considered(out: EngineOutput, start: int) -> np.ndarray:
     return mask if mask.any() else fz > LIGHT_CONTACT_N
 
 
-def gross_motion(pose: np.ndarray, start: int) -> int | None:
+def gross_motion(pose: np.ndarray, start: int, rules: Rules) -> int | None:
     rel = pose - pose[start]
-    big = (np.hypot(rel[:, 0], rel[:, 1]) > GROSS_MM) | (np.abs(rel[:, 2]) > GROSS_DEG)
+    big = (np.hypot(rel[:, 0], rel[:, 1]) > rules.gross_mm) | (np.abs(rel[:, 2]) > rules.gross_deg)
     big[:start] = False
     return int(np.argmax(big)) if big.any() else None
 
 
-def labels(prof: Profiles, out: EngineOutput) -> tuple[tuple[np.ndarray, int | None, int | None], list[dict]]:
+def labels(prof: Profiles, out: EngineOutput,
+           rules: Rules) -> tuple[tuple[np.ndarray, int | None, int | None], list[dict]]:
     """Union of every non-stop segment's labels, each from its start until the next lift / load segment."""
     n = len(out.slip)
     label = np.zeros(n, np.uint8)
@@ -186,8 +198,8 @@ def labels(prof: Profiles, out: EngineOutput) -> tuple[tuple[np.ndarray, int | N
         if mv["stop"]:
             item["truth_slip"] = bool(out.slip[mv["start"]: end, cons].any())
         else:
-            gm = gross_motion(out.pose[:end], mv["start"])
-            lab, onset, gross = incipient_labels(out.slip[:end], cons, mv["start"], gm)
+            gm = gross_motion(out.pose[:end], mv["start"], rules)
+            lab, onset, gross = rules.label_rule(out.slip[:end], cons, mv["start"], gm)
             label[:end] |= lab
             item["onset_s"] = onset * DT_S if onset is not None else None
             item["gross_slip_s"] = gross * DT_S if gross is not None else None
@@ -204,7 +216,7 @@ def _stop_segment(sc: EngineScene) -> int | None:
     return None
 
 
-def run_scene(sc: EngineScene) -> tuple[Profiles, EngineOutput, dict]:
+def run_scene(sc: EngineScene, rules: Rules) -> tuple[Profiles, EngineOutput, dict]:
     """Physics of one scene, stops resolved: (profiles, engine output, stop details)."""
     si = _stop_segment(sc)
     info: dict = {}
@@ -214,7 +226,7 @@ def run_scene(sc: EngineScene) -> tuple[Profiles, EngineOutput, dict]:
         pout = simulate(sc, probe)
         mv = probe.moves[-1]
         cons = considered(pout, mv["start"])
-        _, onset, _ = incipient_labels(pout.slip, cons, mv["start"])
+        _, onset, _ = rules.label_rule(pout.slip, cons, mv["start"])
         seg = sc.timeline[si]
         assert isinstance(seg, LoadSeg)
         limit = (onset - mv["start"]) if onset is not None else mv["end"] - mv["start"]
@@ -237,23 +249,22 @@ def run_scene(sc: EngineScene) -> tuple[Profiles, EngineOutput, dict]:
     return prof, out, info
 
 
-def generate_engine(scenes: list[EngineScene], seeds: list[int]) -> list[Recording]:
+def generate_engine(scenes: list[EngineScene], seeds: list[int], rules: Rules) -> list[Recording]:
     """Simulate engine scenes one by one (each has its own model) and finish them like every other scene."""
     recs = []
     for sc, seed in zip(scenes, seeds):
-        prof, out, info = run_scene(sc)
+        prof, out, info = run_scene(sc, rules)
         n = len(out.slip)
-        lab, items = labels(prof, out)
+        lab, items = labels(prof, out, rules)
         start = prof.moves[0]["start"] if prof.moves else None
         ctx = fx.SimContext(family="engine", n=n, t_s=np.arange(n) * DT_S,
                             motion_start=start if start is not None else n)
         motion = out.pose - (out.pose[start] if start is not None else 0.0)
         res = {"force": out.force, "disp": out.disp, "slip": out.slip}
-        gm = gross_motion(out.pose, start) if start is not None else None
+        gm = gross_motion(out.pose, start, rules) if start is not None else None
         eff = sc.build_effects()
         mtype = "+".join(sorted({m["op"] for m in prof.moves})) or "none"
-        rec = finish_recording(sc, eff, seed, ctx, res, motion, sensor_params(sc.sensor).to_dict(), mtype, gm,
-                               labels=lab)
+        rec = rules.finish(sc, eff, seed, ctx, res, motion, sensor_params(sc.sensor).to_dict(), mtype, gm, labels=lab)
         rec.meta["kind"] = "slip" if lab[1] is not None else ("stop" if prof.moves else "hold")
         if start is None:
             rec.meta["events"].pop("motion_start", None)
@@ -265,4 +276,4 @@ def generate_engine(scenes: list[EngineScene], seeds: list[int]) -> list[Recordi
     return recs
 
 
-__all__ = ["N_PILLARS", "Profiles", "generate_engine", "profiles", "run_scene"]
+__all__ = ["N_PILLARS", "Profiles", "Rules", "generate_engine", "profiles", "run_scene"]
