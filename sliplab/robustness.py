@@ -20,6 +20,13 @@ Figures
     settles: p99 of p_slip over the last 80 % of each hold (worst recording) and the margin below the threshold.
     leave-one-family-out: each fold's model on its held-out family beside the better heuristic there.
     seeds: several manifests of one recipe -> mean and spread (sample standard deviation) of each figure.
+    engine hold-out (``--engine DIR``): a model trained on our own families only (``--engine-model``, default
+        ``--model``) on the engine's test split (``tools/make_dataset.py --set engine``), beside both heuristics:
+        offline success, online success on the gripper lifts, the stop false-alarm rate (no-slip recordings), and
+        the categories light grasps (grip < 3 N when the arm moves), few pillars in contact (<= 3), slow loads,
+        secure lifts, stops and holds. ``--json`` key ``engine_holdout``.
+    reverse hold-out (``--reverse MANIFEST``): a model trained on the engine only, on our families' robust test
+        split, beside both heuristics; ``reverse_holdout``, the same figures.
 """
 
 from __future__ import annotations
@@ -37,7 +44,7 @@ import numpy as np
 from slipd.detect.baselines import BASELINES, load_params
 from slipd.recording import Recording, list_recordings
 from sliplab.evaluate import evaluate_paths
-from sliplab.metrics import summarize
+from sliplab.metrics import confusion, summarize
 from sliplab.paths import ROOT
 
 DEFAULT_BASELINES = ROOT / "slipd" / "models" / "baselines_transfer.json"
@@ -126,6 +133,58 @@ def _model_entry(name: str, manifest: str) -> dict:
             "source": str(manifest)}
 
 
+# --------------------------------------------------------------------------- engine categories
+LIGHT_GRIP_N = 3.0
+"""A light grasp: the total grip when the arm starts to move is below this."""
+FEW_PILLARS = 3
+"""Few pillars in contact: this many or fewer carry more than the contact threshold when the arm starts to move."""
+CATEGORIES = ("light_grasp", "few_pillars", "slow_load", "secure_lift", "stop", "hold")
+HOLDOUT_KEYS = ("offline_success", "online_success", "stop_false_alarm_rate", "light_grasp_success",
+                "slow_load_success")
+
+
+def categories(paths: list[Path], tag: dict) -> dict[str, set[str]]:
+    """Recording stem -> the report's categories it belongs to: its scenario tag (slow loads, secure lifts, stops,
+    holds) and, from the engine's meta, a light grasp or few pillars in contact."""
+    out: dict[str, set[str]] = {}
+    for p in paths:
+        cats = {c for c in CATEGORIES if tag.get(p.stem, {}).get("scenario") == c}
+        eng = (Recording.load(p).meta or {}).get("engine") or {}
+        if eng.get("grip_at_motion_n") is not None and eng["grip_at_motion_n"] < LIGHT_GRIP_N:
+            cats.add("light_grasp")
+        if eng.get("pillars_in_contact") is not None and eng["pillars_in_contact"] <= FEW_PILLARS:
+            cats.add("few_pillars")
+        out[p.stem] = cats
+    return out
+
+
+def holdout_figures(results: list, cats: dict[str, set[str]]) -> dict:
+    """The hold-out figures of one detector: fractions 0..1 (None where a group is empty).
+
+    offline_success: (TP + TN) / N under the offline criterion; online_success: the online criterion over the
+    recordings whose motion includes a gripper lift; stop_false_alarm_rate: FP / (FP + TN) over the no-slip
+    recordings; light_grasp_success / slow_load_success: offline success within those categories."""
+    s = summarize([r[0] for r in results])
+    off = s.offline
+    lifts = [r[0] for r in results if "lift" in r[2].motion and r[2].family != "hexapod"]
+    on = confusion(lifts, online=True)
+    by_cat = {c: [r for r in results if c in cats.get(r[2].name, set())] for c in CATEGORIES}
+    out = {
+        "n": s.n_scenes,
+        "offline_success": off.success_rate,
+        "online_success": on.success_rate,
+        "online_lifts": on.n,
+        "stop_false_alarm_rate": off.fp / (off.fp + off.tn) if off.fp + off.tn else None,
+        "light_grasp_success": summarize([r[0] for r in by_cat["light_grasp"]]).offline.success_rate
+        if by_cat["light_grasp"] else None,
+        "slow_load_success": summarize([r[0] for r in by_cat["slow_load"]]).offline.success_rate
+        if by_cat["slow_load"] else None,
+        "all": figures(results),
+        "categories": {c: figures(rs) for c, rs in by_cat.items() if rs},
+    }
+    return out
+
+
 # --------------------------------------------------------------------------- figures
 def figures(results: list) -> dict:
     """The benchmark's figures of a group of (SceneResult, Trace, SceneTruth) (``sliplab.metrics``)."""
@@ -177,8 +236,13 @@ def group(results: list, tag: dict, key: str) -> dict[str, list]:
 def run(args) -> dict:
     robust_dir, holds_dir = Path(args.robust), Path(args.holds)
     robust = list_recordings(robust_dir) if robust_dir.is_dir() else []
-    holds = list_recordings(holds_dir) if holds_dir.is_dir() else []
-    if not robust and not holds:
+    holds = list_recordings(holds_dir) if holds_dir.is_dir() and not args.engine_only else []
+    engine_dir = Path(args.engine) if args.engine else None
+    engine = list_recordings(engine_dir) if engine_dir is not None and engine_dir.is_dir() else []
+    if engine_dir is not None and not engine:
+        raise SystemExit(f"--engine {engine_dir}: no recordings; make them with tools/make_dataset.py --set engine "
+                         "--split test --out DIR")
+    if not robust and not holds and not engine:
         raise SystemExit(f"no recordings in {robust_dir} or {holds_dir}; make them with tools/make_dataset.py "
                          "--set robust|holds --split test --out DIR")
     rtag = tags(robust_dir) if robust else {}
@@ -190,10 +254,12 @@ def run(args) -> dict:
                     "detectors": [], "families": {}, "holds": {}, "provenance": provenance()}
     t0 = time.perf_counter()
     w = max(1, args.workers)
+    family_results: dict[str, list] = {}
     for det in detectors(args):
         report["detectors"].append({k: det[k] for k in ("name", "kind", "threshold", "source")})
-        if robust:
+        if robust and not args.engine_only:
             res = evaluate_paths(robust, det["kind"], det["args"], workers=w, progress=False)
+            family_results[det["name"]] = res
             fams = {fam: figures(rs) for fam, rs in group(res, rtag, "physics_family").items()}
             fams["all"] = figures(res)
             report["families"][det["name"]] = fams
@@ -247,6 +313,32 @@ def run(args) -> dict:
                 spread[k] = {"mean": statistics.fmean(vals), "sd": statistics.stdev(vals) if len(vals) > 1 else 0.0,
                              "min": min(vals), "max": max(vals)}
         report["seeds"] = {"runs": per_seed, "summary": spread}
+    if engine:
+        etag = tags(engine_dir)
+        engine = subset(engine, args.engine_limit, etag, "scenario")
+        report["engine_data"] = _rel(engine_dir)
+        report["engine_recordings"] = len(engine)
+        ecats = categories(engine, etag)
+        dets = [d for d in detectors(args) if d["kind"] == "baseline"]
+        if args.engine_model or args.model:
+            dets.insert(0, _model_entry("slipd", args.engine_model or args.model))
+        report["engine_holdout"] = {}
+        for det in dets:
+            res = evaluate_paths(engine, det["kind"], det["args"], workers=w, progress=False)
+            report["engine_holdout"][det["name"]] = {"source": det["source"], **holdout_figures(res, ecats)}
+        print(f"  engine hold-out: done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    if args.reverse:
+        if not robust:
+            raise SystemExit(f"--reverse needs our families' recordings (--robust {robust_dir})")
+        rcats = categories(robust, rtag)
+        report["reverse_holdout"] = {}
+        dets = [_model_entry("slipd", args.reverse)] + [d for d in detectors(args) if d["kind"] == "baseline"]
+        for det in dets:
+            res = family_results.get(det["name"]) if det["kind"] == "baseline" else None
+            if res is None:
+                res = evaluate_paths(robust, det["kind"], det["args"], workers=w, progress=False)
+            report["reverse_holdout"][det["name"]] = {"source": det["source"], **holdout_figures(res, rcats)}
+        print(f"  reverse hold-out: done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
     report["seconds"] = round(time.perf_counter() - t0, 1)
     return report
 
@@ -295,6 +387,20 @@ def tables(report: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                  _pct(f["best_heuristic_balanced"]), _num(f["margin_points"]), f["manifest"]]
                 for fam, f in report["lofo"].items()]
         out.append(("Leave-one-family-out: each fold's model on the family it was trained without", head, rows))
+    for key, title in (("engine_holdout", "Engine held out: trained on our own families, tested on the engine"),
+                       ("reverse_holdout", "Reverse: trained on the engine only, tested on our own families")):
+        if not report.get(key):
+            continue
+        head = ["detector", "n", "offline success", "online success (lifts)", "stop false alarms", "light grasps",
+                "slow loads", *[c.replace("_", " ") for c in CATEGORIES[1:]]]
+        rows = []
+        for det, f in report[key].items():
+            cat = f["categories"]
+            rows.append([det, str(f["n"]), _pct(f["offline_success"]),
+                         f"{_pct(f['online_success'])} ({f['online_lifts']})", _pct(f["stop_false_alarm_rate"]),
+                         _pct(f["light_grasp_success"]), _pct(f["slow_load_success"]),
+                         *[f"{_pct(cat[c]['success'])} ({cat[c]['n']})" if c in cat else "-" for c in CATEGORIES[1:]]])
+        out.append((title, head, rows))
     if report.get("seeds"):
         head = ["figure", "mean", "sd", "min", "max"]
         rows = []
@@ -317,6 +423,8 @@ def markdown(report: dict) -> str:
                 else ")"),
              "- detectors: " + "; ".join(f"{d['name']} ({d['kind']}, threshold {d['threshold']:g}, {d['source']})"
                                           for d in report["detectors"]),
+             *([f"- engine test split: `{report['engine_data']}` ({report['engine_recordings']} recordings)"]
+               if report.get("engine_data") else []),
              f"- evaluation time: {report['seconds']} s"]
     prov = report.get("provenance") or {}
     if prov:
@@ -359,8 +467,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--limit", type=int, default=0,
                    help="evaluate N robust recordings, an equal share per family (0: all; a reduced run says so)")
     p.add_argument("--holds-limit", type=int, default=0, help="the same for the holds, per hold type")
+    p.add_argument("--engine", default=None,
+                   help="the engine's test split (tools/make_dataset.py --set engine): the engine hold-out")
+    p.add_argument("--engine-model", default=None,
+                   help="engine hold-out: a manifest trained without engine data (default: --model)")
+    p.add_argument("--engine-limit", type=int, default=0, help="evaluate N engine recordings, spread over scenarios")
+    p.add_argument("--reverse", default=None, metavar="MANIFEST",
+                   help="a manifest trained on the engine only, tested on --robust (the reverse hold-out)")
+    p.add_argument("--engine-only", action="store_true",
+                   help="only the hold-outs: skip the per-family table and the holds")
     p.add_argument("--out", default=str(ROOT / "reports" / "robustness"),
                    help="report path without suffix (.md and .json are written)")
+    p.add_argument("--json", default=None, metavar="PATH", help="also write the report's JSON here")
     p.add_argument("--record-manifest", action="store_true",
                    help="merge the --model's figures (all families, holds, folds) into its manifest's metrics")
     p.add_argument("--from-report", metavar="JSON",
@@ -381,6 +499,8 @@ def main(argv: list[str] | None = None) -> int:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")
         out.with_suffix(".md").write_text(markdown(report))
+        if args.json:
+            Path(args.json).write_text(json.dumps(report, indent=1) + "\n")
         print(f"\nwrote {out.with_suffix('.md')} and {out.with_suffix('.json')} ({report['seconds']} s)")
     if args.record_manifest:
         from slipd.detect.manifest import update_metrics

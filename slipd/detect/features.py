@@ -38,7 +38,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from slipd.geometry import CONTACT_THRESHOLD_N, FT_RANGE_N, FZ_RANGE_N, N_PILLARS, OUTER
 
 CHANNEL_INDEX = {"fx": 0, "fy": 1, "fz": 2}
-DERIVED = ("util", "lutil", "ux", "uy")
+DERIVED = ("util", "lutil", "ux", "uy", "gft", "gfz")
 """Derived channels, computed from a pillar's filtered forces after the median (stage 5b):
 
 util  friction utilisation |Ft| / max(Fz, 0.5 N): the share of the friction cone a pillar uses, up to the
@@ -52,6 +52,10 @@ lutil ln(max(util, 0.01)): the same on a log scale, where "every pillar uses the
       comparison a first linear layer makes directly. The floor keeps noise on unloaded pillars at -4.6.
 ux, uy fx / max(Fz, 0.5 N) and fy / max(Fz, 0.5 N): the utilisation as a vector (util is its length), which
       keeps the direction each pillar is loaded in (a rotation loads pillars in different directions).
+gft   |Ft| / max(sum of Fz, 0.5 N): a pillar's tangential force over the whole grasp's normal load (the spec's
+      pillars), so a 2 N grasp reads like a 20 N one; unlike util it stays defined on pillars that barely touch.
+gfz   Fz / max(sum of Fz, 0.5 N): each pillar's share of the grasp's normal load (how the contact is spread:
+      a flat face over nine pillars, a curved one over two or three), whatever the grip.
 """
 ALL_CHANNELS = (*CHANNEL_INDEX, *DERIVED)
 UTIL_FLOOR_N = CONTACT_THRESHOLD_N
@@ -68,6 +72,10 @@ def channel_bound(channel: str) -> float:
         return float(CLIP_N[0] / UTIL_FLOOR_N)
     if channel == "lutil":
         return float(max(np.log(channel_bound("util")), -np.log(LUTIL_FLOOR)))
+    if channel == "gft":
+        return channel_bound("util")
+    if channel == "gfz":
+        return float(CLIP_N[2] / UTIL_FLOOR_N)
     return float(CLIP_N[CHANNEL_INDEX[channel]])
 TARE_GLITCH_FLOOR_N = 0.05
 """Smallest deviation from the median that ``tare_offset`` may treat as a glitch (five noise sigmas)."""
@@ -137,6 +145,7 @@ class FeatureSpec:
             return out.reshape(len(filtered), self.n_channels)
         parts = []
         util = np.hypot(f[:, :, 0], f[:, :, 1]) / fz if {"util", "lutil"} & set(self.channels) else fz
+        grasp = np.maximum(f[:, :, 2].sum(axis=1, keepdims=True), np.float32(UTIL_FLOOR_N))
         for c in self.channels:
             if c == "ux":
                 parts.append(f[:, :, 0] / fz)
@@ -146,6 +155,10 @@ class FeatureSpec:
                 parts.append(util)
             elif c == "lutil":
                 parts.append(np.log(np.maximum(util, LUTIL_FLOOR)))
+            elif c == "gft":
+                parts.append(np.hypot(f[:, :, 0], f[:, :, 1]) / grasp)
+            elif c == "gfz":
+                parts.append(f[:, :, 2] / grasp)
             else:
                 parts.append(f[:, :, CHANNEL_INDEX[c]])
         return np.stack(parts, axis=-1).astype(np.float32, copy=False).reshape(len(filtered), self.n_channels)

@@ -19,6 +19,8 @@ Families (hexapod scenes; gripper scenes keep the default):
                   parallel with a Maxwell branch (spring ``ratio kt``, relaxation time ``tau_s``). Fast
                   loading sees ``kt``, slow loading ``(1 - ratio) kt``; after a halt the force relaxes
                   while the tip stays put. Friction as in stick-slip, on the total force.
+``mujoco``        the MuJoCo engine (``slipd.sim.engine``): physics none of the families above shares code with. It
+                  runs engine scenes (``family: engine``) only; its parameters are the solver's settings.
 ``stribeck``      velocity-weakening friction: while sliding, mu(v) = mu_k + (mu_s - mu_k) exp(-v / v_s)
                   (v the tip's slip speed), and neighbouring tips are coupled through the membrane by a
                   spring ``coupling kt`` between their deflections (a tip that slips unloads or loads its
@@ -38,6 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from slipd.geometry import HEIGHT_OFFSET_MM, N_PILLARS, PILLAR_XY_MM
 from slipd.sim.effects import scene_params
+from slipd.sim.engine.model import EngineParams
 from slipd.sim.physics import (
     DT_S,
     SensorParams,
@@ -82,7 +85,9 @@ class ContactModel:
     """A physics family: ``name``, a ``Params`` model, and its per-scene coefficients for ``run_general``."""
 
     name: ClassVar[str]
-    Params: ClassVar[type[ModelParams]] = ModelParams
+    Params: ClassVar[type[BaseModel]] = ModelParams
+    engine: ClassVar[bool] = False
+    """True for the engine family: its scenes run on the engine, not on ``run_general``."""
 
     def __init__(self, params: ModelParams) -> None:
         self.p = params
@@ -146,6 +151,13 @@ class Stribeck(ContactModel):
 
     def coefficients(self) -> dict[str, float]:
         return {**super().coefficients(), "vs_mm_s": self.p.vs_mm_s, "coupling": self.p.coupling}
+
+
+@register
+class Mujoco(ContactModel):
+    name = "mujoco"
+    Params = EngineParams
+    engine = True
 
 
 def build_model(spec: dict[str, Any] | None, where: str = "physics") -> ContactModel:

@@ -39,6 +39,7 @@ from slipd.recording import Recording
 from slipd.sim import contact_models as cm
 from slipd.sim import effects as fx
 from slipd.sim import timeline as tl
+from slipd.sim.engine.spec import EngineScene
 from slipd.sim.physics import (
     DT_S,
     GripperStepper,
@@ -135,7 +136,8 @@ class HexapodScene(_SceneBase):
     @field_validator("physics")
     @classmethod
     def _physics_valid(cls, value: dict[str, Any] | None) -> dict[str, Any] | None:
-        cm.build_model(value)  # raises ValueError naming the key and reason
+        if cm.build_model(value).engine:  # build_model raises ValueError naming the key and reason
+            raise ValueError(f"name: {value['name']} runs engine scenes (family: engine)")
         return value
 
     @model_validator(mode="after")
@@ -215,7 +217,7 @@ class GripperScene(_SceneBase):
         return self.trial
 
 
-Scene = Annotated[HexapodScene | GripperScene, Field(discriminator="family")]
+Scene = Annotated[HexapodScene | GripperScene | EngineScene, Field(discriminator="family")]
 
 
 class _SceneDoc(_Model):
@@ -226,7 +228,7 @@ def _format_error(source: str, exc: ValidationError) -> str:
     parts = []
     for err in exc.errors()[:3]:
         keys = [str(x) for x in err["loc"][1:]]
-        loc = ".".join(x for x in keys if x not in ("hexapod", "gripper"))
+        loc = ".".join(x for x in keys if x not in ("hexapod", "gripper", "engine"))
         msg = err["msg"].removeprefix("Value error, ")
         for long, short in (("Input should be greater than or equal to", "must be >="),
                             ("Input should be less than or equal to", "must be <="),
@@ -241,7 +243,7 @@ def parse_scene(data: Any, source: str = "scene") -> HexapodScene | GripperScene
     if not isinstance(data, dict):
         raise SceneError(f"{source}: a scene must be a mapping, got {type(data).__name__}")
     if "family" not in data:
-        raise SceneError(f"{source}: family: required (hexapod or gripper)")
+        raise SceneError(f"{source}: family: required (hexapod, gripper or engine)")
     try:
         return _SceneDoc(scene=data).scene
     except ValidationError as exc:
@@ -371,10 +373,17 @@ def generate_batch(scenes: list[HexapodScene | GripperScene], seeds: list[int | 
     out: list[Recording | None] = [None] * len(scenes)
     groups: dict[tuple[str, str], list[int]] = {}
     for i, sc in enumerate(scenes):
-        family = "timeline" if getattr(sc, "timeline", None) is not None else sc.family
+        family = "timeline" if isinstance(sc, HexapodScene) and sc.timeline is not None else sc.family
         groups.setdefault((family, sc.sensor), []).append(i)
     for (family, _), idx in groups.items():
-        run = {"hexapod": _generate_hexapod, "gripper": _generate_gripper, "timeline": _generate_timeline}[family]
+        if family == "engine":
+            from functools import partial
+
+            from slipd.sim.engine.generate import Rules, generate_engine  # imports MuJoCo (the sim extra)
+
+            run = partial(generate_engine, rules=Rules(_finish, incipient_labels, GROSS_MM, GROSS_DEG))
+        else:
+            run = {"hexapod": _generate_hexapod, "gripper": _generate_gripper, "timeline": _generate_timeline}[family]
         for i, rec in zip(idx, run([scenes[i] for i in idx], [_seed_of(scenes[i], seeds[i]) for i in idx])):
             out[i] = rec
     return out  # type: ignore[return-value]

@@ -129,6 +129,21 @@ def test_util_channel_is_friction_utilisation_of_filtered_forces() -> None:
     assert np.allclose(logs.reshape(-1, 2), np.log([0.25, 0.01]))
 
 
+def test_grasp_normalised_channels_divide_by_the_whole_grasps_normal_load() -> None:
+    # gft = |Ft| / max(sum of Fz over the spec's pillars, 0.5 N); gfz = Fz / the same sum.
+    spec = FeatureSpec(pillars=(4, 0), channels=("gft", "gfz"), median=5, window=10)
+    force = np.zeros((30, 9, 3), np.float32)
+    force[:, 4] = [0.3, 0.4, 1.5]
+    force[:, 0] = [0.06, 0.08, 0.5]
+    force[:, 8] = [1.0, 1.0, 9.0]  # not among the spec's pillars: not in the sum
+    win, _ = batch_windows(force, spec)
+    assert np.allclose(win.reshape(-1, 2, 2), [[0.25, 0.75], [0.05, 0.25]])
+    light = force * np.float32(0.5)  # a grasp half as strong (still above the floor) reads the same
+    assert np.allclose(batch_windows(light, spec)[0], win)
+    force[:] = 0.0  # unloaded: the floor, not a division by zero
+    assert np.all(np.isfinite(batch_windows(force, spec)[0]))
+
+
 def test_spec_roundtrip_and_validation() -> None:
     spec = FeatureSpec(stride=20)
     assert FeatureSpec.from_dict(spec.to_dict()) == spec

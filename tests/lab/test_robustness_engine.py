@@ -1,0 +1,61 @@
+"""The engine hold-out and its reverse in tools/robustness.py, on a tiny engine set and one recording of ours."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+pytest.importorskip("mujoco")
+
+from slipd.sim import parse_scene
+from slipd.sim.datasets import MEASUREMENT, write_dataset
+from slipd.sim.scene import generate_batch
+
+MODEL = "slipd/models/slip_ensemble_int8.json"
+DETECTORS = {"slipd", "deceleration", "reference_pillar"}
+
+
+def _ours(folder):
+    """One slip on our own stick-slip family, tagged like the robust set."""
+    folder.mkdir()
+    tl = [{"op": "press", "depth_mm": 1.0, "duration_s": 0.2}, {"op": "hold", "duration_s": 0.3},
+          {"op": "move", "kind": "translation", "speed_mm_s": 3.0, "accel_mm_s2": 30.0, "duration_s": 0.6}]
+    sc = parse_scene({"family": "hexapod", "sensor": "v1", "timeline": tl, "effects": list(MEASUREMENT)})
+    rec = generate_batch([sc], [1])[0]
+    rec.meta.update({"physics_family": "stick_slip", "scenario": "slip"})
+    rec.save(folder / "00000_robust_stick_slip_slip.npz")
+
+
+def test_engine_holdout_report_shape(tmp_path, capsys):
+    from sliplab.robustness import CATEGORIES, HOLDOUT_KEYS, main
+
+    engine = tmp_path / "engine"
+    index = write_dataset("engine", "test", engine, count=4)  # a lift that slips, a secure one, a light one, a curved
+    assert index["physics_family"] == {"engine": 4}
+    assert [e["scenario"] for e in index["recordings"]] == ["lift_slip", "secure_lift", "light_grasp", "curved"]
+    _ours(tmp_path / "robust")
+    out, js = tmp_path / "report", tmp_path / "report_copy.json"
+    # The shipped model stands in for both members here: the test is about the report, not the figures.
+    rc = main(["--model", MODEL, "--engine", str(engine), "--reverse", MODEL, "--robust", str(tmp_path / "robust"),
+               "--holds", str(tmp_path / "none"), "--engine-only", "--out", str(out), "--json", str(js)])
+    assert rc == 0
+    report = json.loads(js.read_text())
+    assert report == json.loads(out.with_suffix(".json").read_text())
+    assert report["engine_recordings"] == 4 and not report["families"] and not report["holds"]
+    for key, n in (("engine_holdout", 4), ("reverse_holdout", 1)):
+        assert set(report[key]) == DETECTORS
+        for fig in report[key].values():
+            assert fig["n"] == n
+            for k in HOLDOUT_KEYS:
+                assert fig[k] is None or 0.0 <= fig[k] <= 1.0, (key, k, fig[k])
+            assert set(fig["categories"]) <= set(CATEGORIES)
+    eng = report["engine_holdout"]["slipd"]
+    assert eng["offline_success"] is not None and eng["online_lifts"] == 4  # every recording here lifts
+    assert "light_grasp" in eng["categories"] and eng["light_grasp_success"] is not None
+    assert eng["slow_load_success"] is None  # no slow load among the four
+    rev = report["reverse_holdout"]["slipd"]
+    assert rev["online_success"] is None and rev["light_grasp_success"] is None  # a hexapod slip: offline only
+    printed = capsys.readouterr().out
+    for title in ("Engine held out", "Reverse: trained on the engine only"):
+        assert title in printed and title in out.with_suffix(".md").read_text()
