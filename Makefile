@@ -78,7 +78,7 @@ wheel-test: $(TEST_STAMP)
 	  { ! venv/bin/python -c "import sliplab" 2>lab.err; } && grep -q "needs the train extra" lab.err && \
 	  venv/bin/python -c "import slipd.cli, slipd.daemon.service, slipd.daemon.loop, slipd.detect.replay" && \
 	  venv/bin/python -c "import importlib.util as u; \
-	    extra = [m for m in ['torch', 'scipy', 'matplotlib', 'tqdm'] if u.find_spec(m) is not None]; \
+	    extra = [m for m in ['torch', 'scipy', 'matplotlib', 'tqdm', 'mujoco'] if u.find_spec(m) is not None]; \
 	    assert not extra, f'installed without extras, yet present: {extra}'"
 	@echo "wheel-test: OK ($$(ls $(WHEEL_TEST)/dist))"
 
