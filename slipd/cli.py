@@ -1,4 +1,4 @@
-"""Command line: ``slipd run | sim | replay | check-config | models | version`` (also ``python -m slipd``).
+"""Command line: ``slipd run | sim | replay | convert | check-config | models | version`` (also ``python -m slipd``).
 
 Every subcommand and every exit code lives here; the wings below raise typed errors
 (``ConfigError``, ``ModelError``, ``RecordingError``, ``DeviceError``) and this module turns them into
@@ -207,6 +207,44 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# ---------------------------------------------------------------------------------------------- convert
+CONVERT_SUFFIXES = (".mcap", ".npz", ".csv")
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    """``slipd convert IN OUT``: a recording from one format into another, by the files' endings (the same samples,
+    truth and metadata; replay decides identically on both)."""
+    from slipd.recording import Recording, RecordingError, write_sdk_csv
+    from slipd.recording_mcap import write_mcap
+
+    for given in (args.input, args.output):
+        if Path(given).suffix.lower() not in CONVERT_SUFFIXES:
+            _err(f"slipd convert: {given}: unknown format (the name must end in {', '.join(CONVERT_SUFFIXES)})")
+            return EXIT_USAGE
+    out = Path(args.output)
+    if not out.parent.is_dir():
+        _err(f"slipd convert: {out}: its folder does not exist")
+        return EXIT_USAGE
+    try:
+        rec = Recording.load(args.input)
+    except RecordingError as exc:
+        _err(f"slipd convert: {exc}")
+        return EXIT_RUNTIME
+    suffix = out.suffix.lower()
+    try:
+        if suffix == ".mcap":
+            write_mcap(rec, out)
+        elif suffix == ".csv":
+            write_sdk_csv(rec, out)
+        else:
+            rec.save(out)
+    except OSError as exc:
+        _err(f"slipd convert: {out}: cannot write ({exc.strerror or exc})")
+        return EXIT_RUNTIME
+    print(f"{args.input} -> {out}: {len(rec)} samples, {rec.sensors} sensor(s)")
+    return EXIT_OK
+
+
 def nonfinite_runs(rec: Any) -> tuple[int, int | None]:
     """Samples of ``rec`` with a non-finite force (any sensor), and the t_us at which a run of them first outlasts
     what the daemon bridges (``NONFINITE_BRIDGE_S``: there it goes blind and fails safe), or None."""
@@ -298,11 +336,15 @@ def _parser() -> argparse.ArgumentParser:
     chk.add_argument("config", help="YAML configuration file")
 
     rep = add("replay", cmd_replay, "run a recording through the daemon's decision path offline and print alarms")
-    rep.add_argument("recording", help=".npz recording or Contactile SDK CSV log")
+    rep.add_argument("recording", help=".mcap or .npz recording, or Contactile SDK CSV log")
     rep.add_argument("--model", "-m", default=None,
                      help="packaged model name or manifest path (.json); default: the config's, else the shipped one")
     rep.add_argument("--config", "-c", default=None, help="optional YAML config (decision settings)")
     rep.add_argument("--json", default=None, help="write the alarms and probabilities as JSON")
+
+    conv = add("convert", cmd_convert, "convert a recording between .mcap, .npz and the Contactile SDK CSV")
+    conv.add_argument("input", help="recording to read (.mcap, .npz or .csv)")
+    conv.add_argument("output", help="recording to write; its ending picks the format (.mcap, .npz or .csv)")
 
     add("models", cmd_models, "list the packaged models (name, sha256, figures)")
 

@@ -74,7 +74,7 @@ def test_extras_are_not_runtime_dependencies():
 
 
 # ---------------------------------------------------------------------------------------------- the house
-GROUND = {"slipd", "slipd.metrics", "slipd.recording", "slipd.geometry", "slipd.models"}
+GROUND = {"slipd", "slipd.metrics", "slipd.recording", "slipd.recording_mcap", "slipd.geometry", "slipd.models"}
 
 
 def _wing(module: str) -> str:

@@ -511,9 +511,10 @@ class RecorderConfig(_Section):
     max_total_mb: float = Field(
         500.0, gt=0.0, le=1_000_000.0, description="MiB for all recordings; the oldest are deleted beyond it"
     )
-    formats: list[Literal["npz", "csv"]] = Field(
-        default_factory=lambda: list[Literal["npz", "csv"]](["npz"]), min_length=1,
-        description="npz and/or Contactile SDK CSV",
+    formats: list[Literal["mcap", "npz", "csv"]] = Field(
+        default_factory=lambda: list[Literal["mcap", "npz", "csv"]](["mcap"]), min_length=1,
+        description="mcap (opens in Foxglove; slipd replay reads it), npz and/or Contactile SDK CSV; one file per "
+        "format and episode",
     )
 
     @field_validator("directory", mode="before")

@@ -179,6 +179,14 @@ def metrics_exposure(host: str) -> str:
     return f"on the network interface {host}, beyond this machine"
 
 
+def recording_meta(cfg: SlipdConfig, manifest: Any) -> dict[str, Any]:
+    """What every recording carries about the daemon that made it: the model (sha256 and manifest), the configuration
+    and the alarm threshold in force (the MCAP recordings show them as metadata, and the threshold with p_slip)."""
+    threshold = cfg.decision.threshold if cfg.decision.threshold is not None else manifest.threshold
+    return {"model_sha256": manifest.sha256, "threshold": float(threshold),
+            "config": cfg.model_dump(mode="json"), "model": manifest.model_dump(mode="json")}
+
+
 def prepare(config_path: str | os.PathLike[str]) -> Service:
     """Load and check everything, then open the devices (in that order). Raises ConfigError, ModelError or
     DeviceError; nothing is opened when the config or the model is refused or a device is missing."""
@@ -201,7 +209,7 @@ def prepare(config_path: str | os.PathLike[str]) -> Service:
 
             try:
                 recorder = Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz, sensors=cfg.sensor.sensors,
-                                                meta={"model_sha256": ensemble.manifest.sha256})
+                                                meta=recording_meta(cfg, ensemble.manifest))
             except OSError as exc:
                 raise ConfigError([f"{config_path}: recorder.directory: {cfg.recorder.directory} cannot be used: "
                                    f"{exc.strerror or exc}"]) from exc
