@@ -111,11 +111,22 @@ def cmd_replay(args: argparse.Namespace) -> int:
         except ConfigError as exc:
             _err(exc)
             return EXIT_CONFIG
+    rec = None
+    if not args.model and cfg is None:
+        # The recording names the model that decided it: replay with that one where it is packaged.
+        try:
+            rec = Recording.load(args.recording)
+        except RecordingError as exc:
+            _err(f"slipd replay: {exc}")
+            return EXIT_RUNTIME
     try:
         if args.model:
             model = models.packaged(args.model) if models.is_name(args.model) else Path(args.model)
+        elif cfg is not None:
+            model = cfg.model.manifest
         else:
-            model = cfg.model.manifest if cfg is not None else models.packaged(models.DEFAULT_MODEL)
+            model = _packaged_by_sha(rec.meta.get("model_sha256") if rec is not None else None) or \
+                models.packaged(models.DEFAULT_MODEL)
         ensemble = Ensemble.load(model)
     except (ModelError, FileNotFoundError) as exc:
         _err(f"slipd replay: {exc}")
@@ -134,7 +145,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
             _err(f"slipd replay: --json {args.json}: {problem}")
             return EXIT_USAGE
     try:
-        rec = Recording.load(args.recording)
+        rec = rec or Recording.load(args.recording)
     except RecordingError as exc:
         _err(f"slipd replay: {exc}")
         return EXIT_RUNTIME
@@ -245,6 +256,22 @@ def cmd_convert(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _packaged_by_sha(sha: object) -> Path | None:
+    """The packaged model whose graph has this sha256 (a recording's ``model_sha256``), or None."""
+    from slipd import models
+    from slipd.detect.manifest import ModelError, load_manifest
+
+    if not isinstance(sha, str):
+        return None
+    for name in models.names():
+        try:
+            if load_manifest(models.packaged(name), check_graph=False).sha256 == sha:
+                return models.packaged(name)
+        except (ModelError, FileNotFoundError):
+            continue
+    return None
+
+
 def nonfinite_runs(rec: Any) -> tuple[int, int | None]:
     """Samples of ``rec`` with a non-finite force (any sensor), and the t_us at which a run of them first outlasts
     what the daemon bridges (``NONFINITE_BRIDGE_S``: there it goes blind and fails safe), or None."""
@@ -338,7 +365,8 @@ def _parser() -> argparse.ArgumentParser:
     rep = add("replay", cmd_replay, "run a recording through the daemon's decision path offline and print alarms")
     rep.add_argument("recording", help=".mcap or .npz recording, or Contactile SDK CSV log")
     rep.add_argument("--model", "-m", default=None,
-                     help="packaged model name or manifest path (.json); default: the config's, else the shipped one")
+                     help="packaged model name or manifest path (.json); default: the config's, else the packaged "
+                          "model the recording names (its model_sha256), else the shipped one")
     rep.add_argument("--config", "-c", default=None, help="optional YAML config (decision settings)")
     rep.add_argument("--json", default=None, help="write the alarms and probabilities as JSON")
 
