@@ -70,6 +70,7 @@ if TYPE_CHECKING:
     from slipd.config import SlipdConfig
     from slipd.daemon.recorder import Recorder
     from slipd.daemon.sdnotify import Notifier
+    from slipd.daemon.taps import Tap
     from slipd.detect.contact import ContactState
     from slipd.detect.decision import Detection
     from slipd.detect.ensemble import Ensemble
@@ -219,6 +220,8 @@ class Daemon:
         self.notifier = notifier
         self._crashed: BaseException | None = None  # a crash of supervision or the health task (``_on_task_end``)
         self.recorder: Recorder | None = None
+        self.taps: list[Tap] = []
+        """ROS 2 publisher, live view (``slipd.daemon.taps``): they copy frames and decisions off this thread."""
         self.stats = LoopStats()
         self.sensor: Any = None
         self._stop = asyncio.Event()
@@ -336,6 +339,8 @@ class Daemon:
             valid[s] = True
             m_dec.inc()
             self._latest[s] = det
+            for tap in self.taps:
+                tap.on_decision(det, force[i, s])
             if rec is not None:
                 if det.alarm and not rec.recording:
                     self._note_offset()
@@ -365,6 +370,8 @@ class Daemon:
             self._on_grasp(grasp)
         if dets:
             self._track_grasp()
+        for tap in self.taps:
+            tap.on_block(stamps, force)
         if rec is not None:
             if recorded < k:
                 rec.push_frames(stamps[recorded:], force[recorded:], disp[recorded:])
@@ -972,3 +979,5 @@ class Daemon:
                             name, DEVICE_CLOSE_TIMEOUT_S)
         if self.recorder is not None:
             self.recorder.close()
+        for tap in self.taps:
+            tap.close()

@@ -187,6 +187,31 @@ def recording_meta(cfg: SlipdConfig, manifest: Any) -> dict[str, Any]:
             "config": cfg.model_dump(mode="json"), "model": manifest.model_dump(mode="json")}
 
 
+def start_taps(cfg: SlipdConfig, daemon: Daemon, config_path: str) -> None:
+    """The ROS 2 publisher and the live view where the configuration enables them (each needs its extra); a failure
+    closes the ones already started."""
+    try:
+        if cfg.ros2.enabled:
+            try:
+                import rosbags  # noqa: F401
+                import zenoh  # noqa: F401
+
+                from slipd.daemon.ros2 import Ros2Publisher, daemon_health
+            except ImportError as exc:
+                raise ConfigError([f"{config_path}: ros2.enabled: needs the ros2 extra: pip install 'slipd[ros2]' "
+                                   f"({exc})"]) from None
+            try:
+                daemon.taps.append(Ros2Publisher(cfg.ros2, cfg.sensor.sensors,
+                                                 health=lambda: daemon_health(daemon)).start())
+            except Exception as exc:  # zenoh's own errors (a client that reaches no router)
+                raise DeviceError(f"ros2: cannot open the zenoh session: {' '.join(str(exc).split())}") from exc
+    except BaseException:
+        for tap in daemon.taps:
+            tap.close()
+        daemon.taps.clear()
+        raise
+
+
 def prepare(config_path: str | os.PathLike[str]) -> Service:
     """Load and check everything, then open the devices (in that order). Raises ConfigError, ModelError or
     DeviceError; nothing is opened when the config or the model is refused or a device is missing."""
@@ -218,6 +243,7 @@ def prepare(config_path: str | os.PathLike[str]) -> Service:
             arm, gripper = build_devices(cfg, metrics)
         daemon = Daemon(cfg, ensemble, metrics=metrics, arm=arm, gripper=gripper, notifier=Notifier())
         daemon.recorder = recorder
+        start_taps(cfg, daemon, str(config_path))
     except BaseException:
         close_quietly(arm, gripper)  # opened, then a stop or a failure before the daemon took them over
         native.close()
