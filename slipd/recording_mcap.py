@@ -184,8 +184,10 @@ def _stamp(t_us: int) -> dict[str, int]:
     return {"sec": t // 1_000_000, "nsec": (t % 1_000_000) * 1000}
 
 
-def _finite(values: list[float]) -> list[float | None]:
+def _finite(values: list[float]) -> list[float] | list[float | None]:
     """JSON has no NaN: a value that is not finite is written as null (read back as NaN)."""
+    if all(map(math.isfinite, values)):
+        return values  # the common case, without a copy
     return [v if math.isfinite(v) else None for v in values]
 
 
@@ -274,16 +276,7 @@ def write_mcap(
         _write_frames(w, rec)
         _write_truth(w, rec)
         for k, row in enumerate(decisions):
-            t = int(row["t_us"])
-            pill = row.get("pillar_slip")
-            w.add(TOPIC_DECISIONS, t, {
-                "timestamp": _stamp(t), "t_us": t, "sensor": int(row.get("sensor", 0)),
-                "p_slip": float(row["p_slip"]), "alarm": bool(row["alarm"]), "risk": _opt(row.get("risk")),
-                "threshold": threshold,
-                "pillar_slip": None if pill is None else _finite([float(v) if v is not None else math.nan
-                                                                  for v in pill]),
-                "contact_risk": _opt(row.get("contact_risk")), "friction": _opt(row.get("friction")),
-            }, k)
+            w.add(TOPIC_DECISIONS, int(row["t_us"]), decision_message(row, threshold), k)
         all_events = [*events, *trigger_events(meta.get("trigger") or {})]
         for e in sorted(all_events, key=lambda e: int(e.get("t_us", 0))):
             t = int(e.get("t_us", 0))
@@ -310,6 +303,33 @@ def write_mcap(
     return path
 
 
+def decision_message(row: Mapping[str, Any], threshold: float | None) -> dict[str, Any]:
+    """A ``slipd.Decision`` message from a decision's dict (t_us, sensor, p_slip, alarm; optionally risk, pillar_slip,
+    contact_risk, friction)."""
+    t = int(row["t_us"])
+    pill = row.get("pillar_slip")
+    return {
+        "timestamp": _stamp(t), "t_us": t, "sensor": int(row.get("sensor", 0)), "p_slip": float(row["p_slip"]),
+        "alarm": bool(row["alarm"]), "risk": _opt(row.get("risk")), "threshold": threshold,
+        "pillar_slip": None if pill is None else _finite([math.nan if v is None else float(v) for v in pill]),
+        "contact_risk": _opt(row.get("contact_risk")), "friction": _opt(row.get("friction")),
+    }
+
+
+def frame_message(t_us: int, sample: int, sensor: int, force: np.ndarray, disp: np.ndarray,
+                  controller_friction: float | None = None) -> dict[str, Any]:
+    """A ``slipd.PillarFrame`` message from one sensor's sample (``force``, ``disp`` [9, 3])."""
+    f = force.astype(np.float64)
+    return _frame_dict(t_us, sample, sensor, f.ravel().tolist(), disp.astype(np.float64).ravel().tolist(),
+                       np.hypot(f[:, 0], f[:, 1]).round(6).tolist(), controller_friction)
+
+
+def _frame_dict(t: int, i: int, s: int, force: list[float], disp: list[float], tangential: list[float],
+                friction: float | None) -> dict[str, Any]:
+    return {"timestamp": _stamp(t), "sample": i, "t_us": t, "sensor": s, "force": _finite(force),
+            "disp": _finite(disp), "tangential": _finite(tangential), "controller_friction": _opt(friction)}
+
+
 def _write_frames(w: _Writer, rec: RecordingLike) -> None:
     n = len(rec)
     t_list = rec.t_us.tolist()
@@ -321,18 +341,10 @@ def _write_frames(w: _Writer, rec: RecordingLike) -> None:
         f_rows, d_rows = force.tolist(), one.disp.reshape(n, 3 * N_PILLARS).astype(np.float64).tolist()
         t_rows = tang.tolist()
         fr = None if one.friction_est is None else one.friction_est.astype(np.float64).tolist()
-        finite_f = np.asarray(np.isfinite(force).all(axis=1))
-        finite_d = np.asarray(np.isfinite(one.disp.reshape(n, -1)).all(axis=1))
         topic = TOPIC_FRAMES.format(s)
         for i in range(n):
-            t = t_list[i]
-            w.add(topic, t, {
-                "timestamp": _stamp(t), "sample": i, "t_us": t, "sensor": s,
-                "force": f_rows[i] if finite_f[i] else _finite(f_rows[i]),
-                "disp": d_rows[i] if finite_d[i] else _finite(d_rows[i]),
-                "tangential": t_rows[i] if finite_f[i] else _finite(t_rows[i]),
-                "controller_friction": None if fr is None else _opt(fr[i]),
-            }, i)
+            w.add(topic, t_list[i], _frame_dict(t_list[i], i, s, f_rows[i], d_rows[i], t_rows[i],
+                                                None if fr is None else fr[i]), i)
 
 
 def _write_truth(w: _Writer, rec: RecordingLike) -> None:

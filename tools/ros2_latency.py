@@ -5,8 +5,9 @@ decoded ``std_msgs/Bool``.
 
 A subscriber session listens on 127.0.0.1; ``slipd.daemon.ros2.Ros2Publisher`` (its thread, its queue, rosbags'
 CDR, rmw_zenoh's key expressions) connects to it. Each round hands the publisher one decision that raises the alarm
-and one that clears it, ``--period-ms`` apart, as the loop does; the time from the raising ``on_decision`` call to
-the callback that decodes ``data: true`` is one sample. Prints the median, p99 and maximum.
+and one that clears it, ``--period-ms`` apart, each followed by the end of its block (``on_block``), as the loop
+does; the time from the raising ``on_decision`` call to the callback that decodes ``data: true`` is one sample.
+Prints the median, p99 and maximum.
 """
 
 from __future__ import annotations
@@ -48,16 +49,19 @@ def main() -> None:
     sub = sub_session.declare_subscriber(pub.keys["/slip/alarm"], on_alarm)
     time.sleep(1.0)  # the sessions connect
     force = np.zeros((9, 3), np.float32)
+    block, block_t = np.zeros((1, 1, 9, 3), np.float32), np.zeros(1, np.int64)
     lat = []
     for k in range(args.alarms):
         got.clear()
         n = len(rx)
         t0 = time.perf_counter()
         pub.on_decision(Detection(2 * k, 2000 * k, 0.9, 1.0, True, True), force)
+        pub.on_block(block_t, block, block)  # the loop's block ends: the ros2 thread wakes
         if got.wait(1.0) and len(rx) > n:
             lat.append(rx[n] - t0)
         time.sleep(args.period_ms / 2e3)
         pub.on_decision(Detection(2 * k + 1, 2000 * k + 1000, 0.1, 0.0, False, False), force)
+        pub.on_block(block_t, block, block)
         time.sleep(args.period_ms / 2e3)
     pub.close()
     sub.undeclare()

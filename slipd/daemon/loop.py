@@ -339,8 +339,6 @@ class Daemon:
             valid[s] = True
             m_dec.inc()
             self._latest[s] = det
-            for tap in self.taps:
-                tap.on_decision(det, force[i, s])
             if rec is not None:
                 if det.alarm and not rec.recording:
                     self._note_offset()
@@ -366,12 +364,14 @@ class Daemon:
                             det.risk, det.t_us / 1e6)
                 if rec is not None:
                     rec.trigger(det.t_us, "alarm", p_slip=det.p_slip, sensor=s)
+            for tap in self.taps:  # after the reaction went out; the taps' threads wake at the block's end
+                tap.on_decision(det, force[i, s])
         if grasp:  # a sensor without a valid decision (or contact state) for the last one
             self._on_grasp(grasp)
         if dets:
             self._track_grasp()
         for tap in self.taps:
-            tap.on_block(stamps, force)
+            tap.on_block(stamps, force, disp)
         if rec is not None:
             if recorded < k:
                 rec.push_frames(stamps[recorded:], force[recorded:], disp[recorded:])

@@ -242,16 +242,18 @@ class Ros2Publisher:
         return self
 
     # ------------------------------------------------------------------ the loop's side
-    def on_block(self, t_us: np.ndarray, force: np.ndarray) -> None:
-        """Frames are not published on ROS 2 (the decisions carry what a ROS node acts on)."""
+    def on_block(self, t_us: np.ndarray, force: np.ndarray, disp: np.ndarray) -> None:
+        """Wake the ``ros2`` thread for the block's decisions (frames are not published on ROS 2: the decisions carry
+        what a ROS node acts on)."""
+        if self.queue:
+            self._wake.set()
 
     def on_decision(self, det: Detection, force: np.ndarray) -> None:
-        """Queue one decision (a copy of its frame's forces) and wake the ``ros2`` thread."""
+        """Queue one decision (a copy of its frame's forces); ``on_block`` wakes the ``ros2`` thread."""
         if len(self.queue) == self.queue.maxlen:
             self.dropped += 1  # the deque drops its oldest on append
         pill = det.contact.pillar_slip if det.contact is not None else None
         self.queue.append((time.time_ns(), det.sensor, det.p_slip, det.alarm, pill, force.copy()))
-        self._wake.set()
 
     def close(self) -> None:
         """Stop the thread (it publishes what is queued first), withdraw the tokens, close the session."""

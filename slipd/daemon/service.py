@@ -205,6 +205,20 @@ def start_taps(cfg: SlipdConfig, daemon: Daemon, config_path: str) -> None:
                                                  health=lambda: daemon_health(daemon)).start())
             except Exception as exc:  # zenoh's own errors (a client that reaches no router)
                 raise DeviceError(f"ros2: cannot open the zenoh session: {' '.join(str(exc).split())}") from exc
+        if cfg.viz.enabled:
+            try:
+                import foxglove  # noqa: F401
+
+                from slipd.daemon.viz import LiveView
+            except ImportError as exc:
+                raise ConfigError([f"{config_path}: viz.enabled: needs the viz extra: pip install 'slipd[viz]' "
+                                   f"({exc})"]) from None
+            threshold = cfg.decision.threshold or daemon.ensemble.manifest.threshold
+            try:
+                daemon.taps.append(LiveView(cfg.viz, cfg.sensor.sensors, cfg.sensor.rate_hz, threshold).start())
+            except Exception as exc:  # the SDK's own errors (the port is taken)
+                raise DeviceError(f"viz: cannot start the Foxglove server on {cfg.viz.host}:{cfg.viz.port}: "
+                                  f"{' '.join(str(exc).split())}") from exc
     except BaseException:
         for tap in daemon.taps:
             tap.close()

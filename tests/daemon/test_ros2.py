@@ -96,6 +96,8 @@ def test_a_zenoh_subscriber_decodes_every_message_and_gets_the_alarm(decided) ->
             if d.rising_edge and sent_at is None:
                 sent_at = time.perf_counter()
             pub.on_decision(d, rec.force[d.index])
+            pub.on_block(rec.t_us[d.index : d.index + 1], rec.force[d.index : d.index + 1, None],
+                         rec.disp[d.index : d.index + 1, None])  # the loop's block ends: the thread wakes
             time.sleep(0.0005)  # about the loop's pace (a decision every 10 ms, here faster)
         deadline = time.monotonic() + 10
         key = pub.keys["/lab/slip/p_slip"]
