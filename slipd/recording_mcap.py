@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -43,6 +44,8 @@ from slipd.geometry import N_PILLARS
 
 MAGIC = b"\x89MCAP0\r\n"
 FORMAT_VERSION = "1"
+YIELD_EVERY = 8
+"""Messages written between two releases of the interpreter's lock (a few hundred microseconds of work)."""
 TOPIC_FRAMES = "/slipd/frames/s{}"
 TOPIC_DECISIONS = "/slipd/decisions"
 TOPIC_EVENTS = "/slipd/events"
@@ -226,6 +229,7 @@ class _Writer:
         self.w.start(profile="", library="slipd")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
+        self._added = 0
 
     def channel(self, topic: str) -> int:
         cid = self._channels.get(topic)
@@ -242,6 +246,11 @@ class _Writer:
     def add(self, topic: str, t_us: int, message: dict[str, Any], seq: int = 0) -> None:
         ns = max(0, int(t_us)) * 1000
         self.w.add_message(self.channel(topic), ns, json.dumps(message, separators=(",", ":")).encode(), ns, seq)
+        self._added += 1
+        if self._added % YIELD_EVERY == 0:
+            # This is Python work that holds the interpreter's lock; the daemon writes on its recorder thread, and the
+            # control loop would otherwise wait up to the switch interval (5 ms) for the lock at each of its wake-ups.
+            time.sleep(0)
 
 
 def write_mcap(

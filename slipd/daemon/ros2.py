@@ -22,7 +22,7 @@ and each sample's attachment: sequence number and source time in ns (int64 littl
 publisher GID behind its length (one byte, 16).
 
 Threads: the loop's ``on_decision`` puts a small tuple into a bounded queue (``ros2.queue``; the oldest is dropped
-and counted when it is full) and wakes the ``ros2`` thread, which serialises and publishes. Nothing here blocks the
+and counted when it is full) and wakes the ``slipd-ros2`` thread, which serialises and publishes. Nothing here blocks the
 loop: a network that stalls fills the queue, and the loop goes on.
 """
 
@@ -64,7 +64,7 @@ LEVEL_OK, LEVEL_WARN, LEVEL_ERROR = 0, 1, 2
 
 @dataclass
 class Health:
-    """The daemon's state for the diagnostics message (read on the ``ros2`` thread)."""
+    """The daemon's state for the diagnostics message (read on the ``slipd-ros2`` thread)."""
 
     level: int
     message: str
@@ -193,7 +193,7 @@ class Ros2Publisher:
         self.health = health
         self.queue: deque[tuple[Any, ...]] = deque(maxlen=cfg.queue)
         self.dropped = 0
-        """Decisions dropped from a full queue (the ``ros2`` thread fell behind)."""
+        """Decisions dropped from a full queue (the ``slipd-ros2`` thread fell behind)."""
         self.published = 0
         self.errors = 0
         self._wake = threading.Event()
@@ -210,7 +210,7 @@ class Ros2Publisher:
         """Topic -> key expression of its samples."""
         self.tokens: list[str] = []
         """The liveliness tokens declared (node first)."""
-        self._thread = threading.Thread(target=self._run, name="ros2", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="slipd-ros2", daemon=True)
 
     # ------------------------------------------------------------------ set-up
     def start(self) -> Ros2Publisher:
@@ -243,13 +243,13 @@ class Ros2Publisher:
 
     # ------------------------------------------------------------------ the loop's side
     def on_block(self, t_us: np.ndarray, force: np.ndarray, disp: np.ndarray) -> None:
-        """Wake the ``ros2`` thread for the block's decisions (frames are not published on ROS 2: the decisions carry
+        """Wake the ``slipd-ros2`` thread for the block's decisions (frames are not published on ROS 2: the decisions carry
         what a ROS node acts on)."""
         if self.queue:
             self._wake.set()
 
     def on_decision(self, det: Detection, force: np.ndarray) -> None:
-        """Queue one decision (a copy of its frame's forces); ``on_block`` wakes the ``ros2`` thread."""
+        """Queue one decision (a copy of its frame's forces); ``on_block`` wakes the ``slipd-ros2`` thread."""
         if len(self.queue) == self.queue.maxlen:
             self.dropped += 1  # the deque drops its oldest on append
         pill = det.contact.pillar_slip if det.contact is not None else None

@@ -5,7 +5,7 @@ The same channels and schemas as a recording (``slipd.recording_mcap``): ``/slip
 ``deploy/foxglove/slipd.json`` shows a live daemon as it shows a recording. Message times are the computer's clock.
 
 Threads: the loop's ``on_block`` and ``on_decision`` copy what is due into a bounded queue (``viz.queue``; the oldest
-is dropped and counted when it is full); the ``viz`` thread takes it every ``POLL_S``, builds the JSON messages and
+is dropped and counted when it is full); the ``slipd-viz`` thread takes it every ``POLL_S``, builds the JSON messages and
 hands them to the SDK. The SDK's server runs on its own threads and keeps a bounded backlog per client, dropping
 what a client does not read: a client that is slow or never reads costs the loop nothing (``tools/bench_daemon.py
 --viz``).
@@ -56,7 +56,7 @@ class LiveView:
         """One frame in this many samples goes to the view."""
         self.queue: deque[tuple[Any, ...]] = deque(maxlen=cfg.queue)
         self.dropped = 0
-        """Items dropped from a full queue (the ``viz`` thread fell behind)."""
+        """Items dropped from a full queue (the ``slipd-viz`` thread fell behind)."""
         self.sent = 0
         self.errors = 0
         self._samples = 0
@@ -64,11 +64,11 @@ class LiveView:
         self._server: Any = None
         self._context: Any = None
         self._channels: dict[str, Any] = {}
-        self._thread = threading.Thread(target=self._run, name="viz", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="slipd-viz", daemon=True)
         self.port: int | None = None
 
     def start(self) -> LiveView:
-        """Start the WebSocket server (``viz.host``:``viz.port``), its channels and the ``viz`` thread."""
+        """Start the WebSocket server (``viz.host``:``viz.port``), its channels and the ``slipd-viz`` thread."""
         import foxglove
 
         ctx = self._context = foxglove.Context()  # kept: the channels and the server live in it
