@@ -118,7 +118,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "timestamp": _TIME,
             "t_us": {"type": "integer", "description": "sensor time at which it was sent"},
             "action": {"type": "string", "description": "stop_arm, tighten_gripper, grip_force, ..."},
-            "state": {"type": "string", "description": "sent, acked or failed"},
+            "state": {"type": "string", "description": "sent, acked or failed (the daemon's); reached (the simulated "
+                      "device received it)"},
             "detail": {"type": "string"},
         },
         "required": ["timestamp", "t_us", "action", "state"],
@@ -277,6 +278,8 @@ def write_mcap(
     if decisions is None:
         d = meta.get("decisions")
         decisions = decision_rows(d) if isinstance(d, Mapping) else []
+    if not reactions and isinstance(meta.get("reactions"), list):
+        reactions = [r for r in meta["reactions"] if isinstance(r, Mapping) and "t_us" in r and "action" in r]
     if threshold is None and isinstance(meta.get("threshold"), (int, float)):
         threshold = float(meta["threshold"])
     tmp = path.with_name(path.name + ".tmp")

@@ -42,7 +42,7 @@ import os
 import threading
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -182,6 +182,9 @@ class Recorder:
         self.deleted: deque[Path] = deque(maxlen=MAX_KEPT_PATHS)
         self.failures = 0
         self.dropped = 0
+        self.extra_meta: Callable[[int, int], dict[str, Any]] | None = None
+        """Called on the loop thread when a recording is cut, with its first and last t_us: what the daemon adds to its
+        meta (``slipd.daemon.recording_context``: the reactions)."""
         self._own_worker = worker is None
         self.worker = worker or DeviceWorker("recorder")
         self._prepare_directory()
@@ -387,6 +390,8 @@ class Recorder:
         )
         if len(t):
             meta["events"] = {trig.get("reason", "alarm"): (trig.get("t_us", int(t[0])) - int(t[0])) / 1e6}
+            if self.extra_meta is not None:
+                meta.update(self.extra_meta(int(t[0]), int(t[-1])))
         self._seq += 1
         stamp = datetime.fromtimestamp(trig.get("wall_time", time.time()), tz=timezone.utc)
         name = f"{PREFIX}{stamp:%Y%m%dT%H%M%S.%fZ}-{os.getpid()}-{self._seq:04d}"

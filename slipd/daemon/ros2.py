@@ -22,8 +22,8 @@ and each sample's attachment: sequence number and source time in ns (int64 littl
 publisher GID behind its length (one byte, 16).
 
 Threads: the loop's ``on_decision`` puts a small tuple into a bounded queue (``ros2.queue``; the oldest is dropped
-and counted when it is full) and wakes the ``slipd-ros2`` thread, which serialises and publishes. Nothing here blocks the
-loop: a network that stalls fills the queue, and the loop goes on.
+and counted when it is full), and the end of its block (``on_block``) wakes the ``slipd-ros2`` thread, which
+serialises and publishes. Nothing here blocks the loop: a network that stalls fills the queue, and the loop goes on.
 """
 
 from __future__ import annotations
@@ -243,8 +243,8 @@ class Ros2Publisher:
 
     # ------------------------------------------------------------------ the loop's side
     def on_block(self, t_us: np.ndarray, force: np.ndarray, disp: np.ndarray) -> None:
-        """Wake the ``slipd-ros2`` thread for the block's decisions (frames are not published on ROS 2: the decisions carry
-        what a ROS node acts on)."""
+        """Wake the ``slipd-ros2`` thread for the block's decisions (frames are not published on ROS 2: the decisions
+        carry what a ROS node acts on)."""
         if self.queue:
             self._wake.set()
 

@@ -257,6 +257,10 @@ def prepare(config_path: str | os.PathLike[str]) -> Service:
             arm, gripper = build_devices(cfg, metrics)
         daemon = Daemon(cfg, ensemble, metrics=metrics, arm=arm, gripper=gripper, notifier=Notifier())
         daemon.recorder = recorder
+        if recorder is not None:
+            from slipd.daemon.recording_context import attach
+
+            attach(recorder, daemon)  # the recordings carry the reactions
         start_taps(cfg, daemon, str(config_path))
     except BaseException:
         close_quietly(arm, gripper)  # opened, then a stop or a failure before the daemon took them over

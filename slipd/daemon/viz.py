@@ -4,11 +4,11 @@ The same channels and schemas as a recording (``slipd.recording_mcap``): ``/slip
 ``viz.frame_rate_hz`` per sensor, every decision on ``/slipd/decisions``, alarms on ``/slipd/events``; so the layout
 ``deploy/foxglove/slipd.json`` shows a live daemon as it shows a recording. Message times are the computer's clock.
 
-Threads: the loop's ``on_block`` and ``on_decision`` copy what is due into a bounded queue (``viz.queue``; the oldest
-is dropped and counted when it is full); the ``slipd-viz`` thread takes it every ``POLL_S``, builds the JSON messages and
-hands them to the SDK. The SDK's server runs on its own threads and keeps a bounded backlog per client, dropping
-what a client does not read: a client that is slow or never reads costs the loop nothing (``tools/bench_daemon.py
---viz``).
+Threads: the loop's ``on_block`` and ``on_decision`` copy what is due into a bounded queue (``viz.queue``; the
+oldest is dropped and counted when it is full); the ``slipd-viz`` thread takes it every ``POLL_S``, builds the JSON
+messages and hands them to the SDK. The SDK's server runs on its own threads and keeps a bounded backlog per
+client, dropping what a client does not read: a client that is slow or never reads costs the loop nothing
+(``tools/bench_daemon.py --viz``).
 """
 
 from __future__ import annotations

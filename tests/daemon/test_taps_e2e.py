@@ -5,17 +5,20 @@ its .npz twin."""
 
 from __future__ import annotations
 
+import json
 import socket
 import threading
 
 import numpy as np
 import pytest
 from conftest import ROOT, run_streamed
+from mcap.reader import make_reader
 
 from slipd.config import load_config, override
 from slipd.daemon.devices import build_devices
 from slipd.daemon.loop import Daemon
 from slipd.daemon.recorder import Recorder
+from slipd.daemon.recording_context import attach
 from slipd.daemon.service import start_taps
 from slipd.detect.ensemble import Ensemble
 from slipd.detect.replay import replay
@@ -66,6 +69,7 @@ def test_live_daemon_publishes_its_alarm_and_records_mcap_like_npz(tmp_path) -> 
             daemon = Daemon(live_cfg, Ensemble.load(live_cfg.model.manifest), metrics=metrics, gripper=gripper)
             daemon.recorder = Recorder(tmp_path, 1000, seconds_before=2.0, seconds_after=0.3,
                                        formats=["mcap", "npz"], meta={"threshold": 0.5})
+            attach(daemon.recorder, daemon)  # as the service does: the recordings carry the reactions
             start_taps(live_cfg, daemon, "test.yaml")
             assert len(daemon.taps) == 1
             pub = daemon.taps[0]
@@ -86,3 +90,10 @@ def test_live_daemon_publishes_its_alarm_and_records_mcap_like_npz(tmp_path) -> 
     ens = Ensemble.load(live_cfg.model.manifest)
     runs = {k: [(d.index, d.p_slip, d.alarm) for d in replay(r, ens, live_cfg)] for k, r in twins.items()}
     assert runs[".mcap"] == runs[".npz"] and any(a for *_, a in runs[".mcap"])
+    # The tighten the alarm sent, and the servo's answer, on the recording's clock after the alarm's sample.
+    with open(files[".mcap"], "rb") as fh:
+        reactions = [json.loads(m.data) for _, _, m in make_reader(fh).iter_messages(topics=["/slipd/reactions"])]
+    alarm_t = stats.alarms[0][1]
+    states = [(r["action"], r["state"]) for r in reactions]
+    assert ("tighten_gripper", "sent") in states and ("tighten_gripper", "acked") in states, reactions
+    assert all(alarm_t <= r["t_us"] < alarm_t + 200_000 for r in reactions), (alarm_t, reactions)
