@@ -6,9 +6,9 @@ The same channels and schemas as a recording (``slipd.recording_mcap``): ``/slip
 
 Threads: the loop's ``on_block`` and ``on_decision`` copy what is due into a bounded queue (``viz.queue``; the
 oldest is dropped and counted when it is full); the ``slipd-viz`` thread takes it every ``POLL_S``, builds the JSON
-messages and hands them to the SDK. The SDK's server runs on its own threads and keeps a bounded backlog per
-client, dropping what a client does not read: a client that is slow or never reads costs the loop nothing
-(``tools/bench_daemon.py --viz``).
+messages for the channels a viewer subscribed to (none while nobody watches) and hands them to the SDK. The SDK's
+server runs on its own threads and keeps a bounded backlog per client, dropping what a client does not read: a
+client that is slow or never reads costs the loop nothing (``tools/bench_daemon.py --viz``).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("slipd.daemon.viz")
 
-POLL_S = 0.02
+POLL_S = 0.05
 """The ``viz`` thread sends what the loop queued this often."""
 BACKLOG = 256
 """Messages the server keeps per client that has not read them; beyond it the client loses the oldest."""
@@ -126,6 +126,10 @@ class LiveView:
         self._channels[topic].log(json.dumps(msg, separators=(",", ":")).encode(), log_time=t_ns)
         self.sent += 1
 
+    def _watched(self, topic: str) -> bool:
+        """Whether a viewer subscribed to ``topic`` (no message is built for a channel nobody watches)."""
+        return bool(self._channels[topic].has_sinks())
+
     def _run(self) -> None:
         while True:
             # Every POLL_S, not at each block: a person watches at this rate, and the loop pays no wake-up per block.
@@ -136,12 +140,14 @@ class LiveView:
                     if item[0] == "frame":
                         _, t_ns, sample, t_us, force, disp = item
                         for s in range(self.sensors):
-                            self._log(TOPIC_FRAMES.format(s), frame_message(t_us, sample, s, force[s], disp[s]),
-                                      t_ns)
+                            topic = TOPIC_FRAMES.format(s)
+                            if self._watched(topic):
+                                self._log(topic, frame_message(t_us, sample, s, force[s], disp[s]), t_ns)
                     else:
                         _, t_ns, row, rising = item
-                        self._log(TOPIC_DECISIONS, decision_message(row, self.threshold), t_ns)
-                        if rising:
+                        if self._watched(TOPIC_DECISIONS):
+                            self._log(TOPIC_DECISIONS, decision_message(row, self.threshold), t_ns)
+                        if rising and self._watched(TOPIC_EVENTS):
                             self._log(TOPIC_EVENTS, {"timestamp": {"sec": t_ns // 10**9, "nsec": t_ns % 10**9},
                                                      "level": 3, "name": "slipd", "file": "", "line": 0,
                                                      "message": f"alarm: sensor {row['sensor']} p_slip "
