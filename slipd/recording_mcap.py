@@ -11,6 +11,7 @@ Channels (``log_time`` is the sensor's clock, ``t_us`` * 1000 ns; ``sample`` the
     /slipd/frames/s<S>   slipd.PillarFrame   per sample and sensor: force and disp (9 pillars x, y, z in SDK order,
                                              pillar-major), each pillar's tangential force, the controller's own
                                              friction estimate
+    /slipd/pillars/s<S>  foxglove.SceneUpdate each pillar's force as a 3D arrow, 50 a second (a 3D panel shows them)
     /slipd/decisions     slipd.Decision      per decision: sensor, p_slip, alarm, risk, threshold, the slip map
                                              (nine pillars' P(slip)), friction estimate
     /slipd/events        foxglove.Log        alarms and fail-safes that started a recording, with their causes
@@ -40,13 +41,14 @@ from typing import IO, Any, Protocol
 
 import numpy as np
 
-from slipd.geometry import N_PILLARS
+from slipd.geometry import N_PILLARS, PILLAR_XY_MM
 
 MAGIC = b"\x89MCAP0\r\n"
 FORMAT_VERSION = "1"
 YIELD_EVERY = 8
 """Messages written between two releases of the interpreter's lock (a few hundred microseconds of work)."""
 TOPIC_FRAMES = "/slipd/frames/s{}"
+TOPIC_PILLARS = "/slipd/pillars/s{}"
 TOPIC_DECISIONS = "/slipd/decisions"
 TOPIC_EVENTS = "/slipd/events"
 TOPIC_REACTIONS = "/slipd/reactions"
@@ -174,13 +176,89 @@ def _one_line(exc: BaseException) -> str:
     return text if len(text) <= 160 else text[:157] + "..."
 
 
+_VEC3 = {"type": "object", "properties": {k: {"type": "number"} for k in "xyz"}, "required": list("xyz")}
+_QUAT = {"type": "object", "properties": {k: {"type": "number"} for k in "xyzw"}, "required": list("xyzw")}
+_COLOR = {"type": "object", "properties": {k: {"type": "number"} for k in "rgba"}, "required": list("rgba")}
+_EMPTY = {"type": "array", "maxItems": 0}
+SCHEMAS["foxglove.SceneUpdate"] = {
+    "type": "object", "title": "foxglove.SceneUpdate",
+    "description": "each pillar's force as an arrow from its tip (Foxglove's well-known schema; the arrows alone)",
+    "properties": {
+        "deletions": _EMPTY,
+        "entities": {"type": "array", "items": {
+            "type": "object", "title": "foxglove.SceneEntity",
+            "properties": {
+                "timestamp": _TIME, "frame_id": {"type": "string"}, "id": {"type": "string"},
+                "lifetime": _TIME, "frame_locked": {"type": "boolean"}, "metadata": _EMPTY,
+                "arrows": {"type": "array", "items": {
+                    "type": "object", "title": "foxglove.ArrowPrimitive",
+                    "properties": {
+                        "pose": {"type": "object", "properties": {"position": _VEC3, "orientation": _QUAT},
+                                 "required": ["position", "orientation"]},
+                        "shaft_length": {"type": "number"}, "shaft_diameter": {"type": "number"},
+                        "head_length": {"type": "number"}, "head_diameter": {"type": "number"}, "color": _COLOR},
+                    "required": ["pose", "shaft_length", "shaft_diameter", "head_length", "head_diameter", "color"]}},
+                **{k: _EMPTY for k in ("cubes", "spheres", "cylinders", "lines", "triangles", "texts", "models")},
+            },
+            "required": ["timestamp", "frame_id", "id", "lifetime", "frame_locked", "arrows"]}},
+    },
+    "required": ["deletions", "entities"],
+}
+SCENE_EVERY = 20
+"""One pillar-arrows message per this many samples (50 a second at 1 kHz)."""
+ARROW_M_PER_N = 0.004
+"""Arrow length per newton of pillar force (the pillars sit 7 mm apart)."""
+
 _TOPIC_SCHEMA = {TOPIC_DECISIONS: "slipd.Decision", TOPIC_EVENTS: "foxglove.Log", TOPIC_REACTIONS: "slipd.Reaction",
                  TOPIC_STATE: "slipd.GripArmState", TOPIC_TRUTH: "slipd.Truth"}
 
 
 def schema_of(topic: str) -> str:
     """The schema name of one of slipd's channels."""
-    return "slipd.PillarFrame" if topic.startswith("/slipd/frames/") else _TOPIC_SCHEMA[topic]
+    if topic.startswith("/slipd/frames/"):
+        return "slipd.PillarFrame"
+    if topic.startswith("/slipd/pillars/"):
+        return "foxglove.SceneUpdate"
+    return _TOPIC_SCHEMA[topic]
+
+
+def _rotation_from_x(v: np.ndarray) -> tuple[float, float, float, float]:
+    """The unit quaternion (x, y, z, w) that turns +x onto the direction of ``v`` (Foxglove's arrows point along
+    +x)."""
+    n = float(np.linalg.norm(v))
+    if n == 0.0:
+        return 0.0, 0.0, 0.0, 1.0
+    u = v / n
+    # The half-way vector between +x and u: q = (x cross h, x . h).
+    h = u + np.array([1.0, 0.0, 0.0])
+    hn = float(np.linalg.norm(h))
+    if hn < 1e-9:  # u is -x: half a turn about z
+        return 0.0, 0.0, 1.0, 0.0
+    h /= hn
+    return 0.0, float(-h[2]), float(h[1]), float(h[0])
+
+
+def pillar_scene(t_us: int, sensor: int, force: np.ndarray) -> dict[str, Any]:
+    """A ``foxglove.SceneUpdate``: each pillar's force ([9, 3], N) as an arrow from its place on the sensor (metres,
+    frame ``slipd_sensor<S>``), ``ARROW_M_PER_N`` long per newton."""
+    arrows = []
+    for p in range(N_PILLARS):
+        f = force[p].astype(np.float64)
+        if not np.isfinite(f).all():
+            continue
+        length = float(np.linalg.norm(f)) * ARROW_M_PER_N
+        qx, qy, qz, qw = _rotation_from_x(f)
+        arrows.append({
+            "pose": {"position": {"x": float(PILLAR_XY_MM[p, 0]) / 1e3, "y": float(PILLAR_XY_MM[p, 1]) / 1e3,
+                                  "z": 0.0},
+                     "orientation": {"x": qx, "y": qy, "z": qz, "w": qw}},
+            "shaft_length": length * 0.8, "shaft_diameter": 0.0008, "head_length": length * 0.2,
+            "head_diameter": 0.0016, "color": {"r": 0.1, "g": 0.5, "b": 1.0, "a": 1.0}})
+    stamp = _stamp(t_us)
+    entity = {"timestamp": stamp, "frame_id": f"slipd_sensor{sensor}", "id": "pillars",
+              "lifetime": {"sec": 0, "nsec": 0}, "frame_locked": False, "metadata": [], "arrows": arrows,
+              **{k: [] for k in ("cubes", "spheres", "cylinders", "lines", "triangles", "texts", "models")}}
+    return {"deletions": [], "entities": [entity]}
 
 
 def _stamp(t_us: int) -> dict[str, int]:
@@ -357,6 +435,8 @@ def _write_frames(w: _Writer, rec: RecordingLike) -> None:
         for i in range(n):
             w.add(topic, t_list[i], _frame_dict(t_list[i], i, s, f_rows[i], d_rows[i], t_rows[i],
                                                 None if fr is None else fr[i]), i)
+        for i in range(0, n, SCENE_EVERY):
+            w.add(TOPIC_PILLARS.format(s), t_list[i], pillar_scene(t_list[i], s, one.force[i]), i)
 
 
 def _write_truth(w: _Writer, rec: RecordingLike) -> None:
@@ -474,7 +554,7 @@ def _read(fh: IO[bytes]) -> dict[str, Any]:
     except McapRecordingError:
         raise
     except (McapError, CRCValidationError, ZstdError, EOFError, struct.error, UnicodeDecodeError, KeyError,
-            IndexError) as exc:  # what the reader meets in a corrupted file
+            IndexError, OverflowError, MemoryError) as exc:  # what the reader meets in a corrupted file
         raise McapRecordingError(f"broken MCAP file ({_one_line(exc)})") from None
     if not seen.all():
         i, s = (int(v) for v in np.argwhere(~seen)[0])

@@ -93,7 +93,7 @@ def test_every_message_decodes_against_its_schema(tmp_path) -> None:
                       threshold=0.5)
     counts = _validate_all(path)
     assert counts == {"/slipd/frames/s0": 200, "/slipd/truth": 200, TOPIC_DECISIONS: 20, TOPIC_EVENTS: 2,
-                      "/slipd/reactions": 2, "/slipd/state": 200}
+                      "/slipd/reactions": 2, "/slipd/state": 200, "/slipd/pillars/s0": 10}
     with open(path, "rb") as fh:
         events = [json.loads(m.data) for _, _, m in make_reader(fh).iter_messages(topics=[TOPIC_EVENTS])]
         fh.seek(0)

@@ -1,8 +1,9 @@
 """The live view: a Foxglove WebSocket server (``foxglove-sdk``) with the channels of an MCAP recording, live.
 
-The same channels and schemas as a recording (``slipd.recording_mcap``): ``/slipd/frames/s<S>`` decimated to
-``viz.frame_rate_hz`` per sensor, every decision on ``/slipd/decisions``, alarms on ``/slipd/events``; so the layout
-``deploy/foxglove/slipd.json`` shows a live daemon as it shows a recording. Message times are the computer's clock.
+The same channels and schemas as a recording (``slipd.recording_mcap``): ``/slipd/frames/s<S>`` and the pillar
+arrows ``/slipd/pillars/s<S>`` decimated to ``viz.frame_rate_hz`` per sensor, every decision on ``/slipd/decisions``,
+alarms on ``/slipd/events``; so the layout ``deploy/foxglove/slipd.json`` shows a live daemon as it shows a
+recording. Message times are the computer's clock.
 
 Threads: the loop's ``on_block`` and ``on_decision`` copy what is due into a bounded queue (``viz.queue``; the
 oldest is dropped and counted when it is full); the ``slipd-viz`` thread takes it every ``POLL_S``, builds the JSON
@@ -27,8 +28,10 @@ from slipd.recording_mcap import (
     TOPIC_DECISIONS,
     TOPIC_EVENTS,
     TOPIC_FRAMES,
+    TOPIC_PILLARS,
     decision_message,
     frame_message,
+    pillar_scene,
     schema_of,
 )
 
@@ -40,6 +43,8 @@ log = logging.getLogger("slipd.daemon.viz")
 
 POLL_S = 0.05
 """The ``viz`` thread sends what the loop queued this often."""
+STOP_TIMEOUT_S = 1.0
+"""How long closing waits for the server to stop."""
 BACKLOG = 256
 """Messages the server keeps per client that has not read them; beyond it the client loses the oldest."""
 
@@ -73,6 +78,7 @@ class LiveView:
 
         ctx = self._context = foxglove.Context()  # kept: the channels and the server live in it
         topics = [TOPIC_FRAMES.format(s) for s in range(self.sensors)] + [TOPIC_DECISIONS, TOPIC_EVENTS]
+        topics += [TOPIC_PILLARS.format(s) for s in range(self.sensors)]
         for topic in topics:
             name = schema_of(topic)
             schema = foxglove.Schema(name=name, encoding="jsonschema", data=json.dumps(SCHEMAS[name]).encode())
@@ -115,11 +121,23 @@ class LiveView:
         if self._thread.is_alive():
             self._thread.join(timeout=2.0)
         if self._server is not None:
-            try:
-                self._server.stop()
-            except Exception:
-                log.debug("viz: server stop failed", exc_info=True)
+            # The SDK's stop waits for each viewer's connection to close, which a viewer that stopped reading never
+            # lets happen: it runs on a thread of its own, given STOP_TIMEOUT_S, and the daemon exits without it.
+            stopper = threading.Thread(target=self._stop_server, args=(self._server,), name="slipd-viz-stop",
+                                       daemon=True)
+            stopper.start()
+            stopper.join(STOP_TIMEOUT_S)
+            if stopper.is_alive():
+                log.warning("viz: the Foxglove server did not stop within %.0f s (a viewer that does not read); "
+                            "exiting without it", STOP_TIMEOUT_S)
             self._server = None
+
+    @staticmethod
+    def _stop_server(server: Any) -> None:
+        try:
+            server.stop()
+        except Exception:
+            log.debug("viz: server stop failed", exc_info=True)
 
     # ------------------------------------------------------------------ the viz thread
     def _log(self, topic: str, msg: dict[str, Any], t_ns: int) -> None:
@@ -143,6 +161,8 @@ class LiveView:
                             topic = TOPIC_FRAMES.format(s)
                             if self._watched(topic):
                                 self._log(topic, frame_message(t_us, sample, s, force[s], disp[s]), t_ns)
+                            if self._watched(TOPIC_PILLARS.format(s)):
+                                self._log(TOPIC_PILLARS.format(s), pillar_scene(t_us, s, force[s]), t_ns)
                     else:
                         _, t_ns, row, rising = item
                         if self._watched(TOPIC_DECISIONS):

@@ -44,7 +44,8 @@ def test_channels_list_and_every_message_decodes_against_its_schema(sim_mcap) ->
     topics = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
     assert topics == {"/slipd/frames/s0": "slipd.PillarFrame", "/slipd/truth": "slipd.Truth",
                       "/slipd/decisions": "slipd.Decision", "/slipd/events": "foxglove.Log",
-                      "/slipd/reactions": "slipd.Reaction", "/slipd/state": "slipd.GripArmState"}
+                      "/slipd/reactions": "slipd.Reaction", "/slipd/state": "slipd.GripArmState",
+                      "/slipd/pillars/s0": "foxglove.SceneUpdate"}
     validators = {name: jsonschema.Draft202012Validator(SCHEMAS[name]) for name in set(topics.values())}
     counts: dict[str, int] = {}
     for schema, channel, message in _messages(path):
@@ -75,6 +76,7 @@ def test_the_foxglove_layout_plots_fields_the_recording_has(sim_mcap) -> None:
     layout = json.loads(LAYOUT.read_text())
     paths = [p["value"] for cfg in layout["configById"].values() for p in cfg.get("paths", [])]
     paths += [cfg["topicToRender"] for cfg in layout["configById"].values() if "topicToRender" in cfg]
+    paths += [t for cfg in layout["configById"].values() for t in cfg.get("topics", {})]  # the 3D panel's
     assert sum("/slipd/frames/s0.tangential[" in p for p in paths) == 9
     first = {}
     for _, channel, message in _messages(path):
