@@ -1,9 +1,9 @@
 """The live view: a Foxglove WebSocket server (``foxglove-sdk``) with the channels of an MCAP recording, live.
 
-The same channels and schemas as a recording (``slipd.recording_mcap``): ``/slipd/frames/s<S>`` and the pillar
-arrows ``/slipd/pillars/s<S>`` decimated to ``viz.frame_rate_hz`` per sensor, every decision on ``/slipd/decisions``,
-alarms on ``/slipd/events``; so the layout ``deploy/foxglove/slipd.json`` shows a live daemon as it shows a
-recording. Message times are the computer's clock.
+The same channels and schemas as a recording (``slipd.recording_mcap``): ``/slipd/frames/s<S>`` decimated to
+``viz.frame_rate_hz`` per sensor, the pillar arrows ``/slipd/pillars/s<S>`` at most ``SCENE_HZ`` a second, every
+decision on ``/slipd/decisions``, alarms on ``/slipd/events``; so the layout ``deploy/foxglove/slipd.json`` shows a
+live daemon as it shows a recording. Message times are the computer's clock.
 
 Threads: the loop's ``on_block`` and ``on_decision`` copy what is due into a bounded queue (``viz.queue``; the
 oldest is dropped and counted when it is full); the ``slipd-viz`` thread takes it every ``POLL_S``, builds the JSON
@@ -43,6 +43,8 @@ log = logging.getLogger("slipd.daemon.viz")
 
 POLL_S = 0.05
 """The ``viz`` thread sends what the loop queued this often."""
+SCENE_HZ = 10.0
+"""Pillar-arrow messages a second and sensor, at most."""
 STOP_TIMEOUT_S = 1.0
 """How long closing waits for the server to stop."""
 BACKLOG = 256
@@ -59,6 +61,9 @@ class LiveView:
         self.threshold = threshold
         self.every = max(1, round(rate_hz / cfg.frame_rate_hz))
         """One frame in this many samples goes to the view."""
+        self.scene_every = max(self.every, round(rate_hz / SCENE_HZ))
+        """One pillar-arrows message in this many samples (at most ``SCENE_HZ`` a second: the 3D panel's arrows cost
+        more to build and draw than a plot's points)."""
         self.queue: deque[tuple[Any, ...]] = deque(maxlen=cfg.queue)
         self.dropped = 0
         """Items dropped from a full queue (the ``slipd-viz`` thread fell behind)."""
@@ -161,7 +166,7 @@ class LiveView:
                             topic = TOPIC_FRAMES.format(s)
                             if self._watched(topic):
                                 self._log(topic, frame_message(t_us, sample, s, force[s], disp[s]), t_ns)
-                            if self._watched(TOPIC_PILLARS.format(s)):
+                            if sample % self.scene_every < self.every and self._watched(TOPIC_PILLARS.format(s)):
                                 self._log(TOPIC_PILLARS.format(s), pillar_scene(t_us, s, force[s]), t_ns)
                     else:
                         _, t_ns, row, rising = item
