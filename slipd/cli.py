@@ -1,4 +1,4 @@
-"""Command line: ``slipd run | sim | replay | check-config | models | version`` (also ``python -m slipd``).
+"""Command line: ``slipd run | sim | replay | convert | check-config | models | version`` (also ``python -m slipd``).
 
 Every subcommand and every exit code lives here; the packages below raise typed errors
 (``ConfigError``, ``ModelError``, ``RecordingError``, ``DeviceError``) and this module turns them into
@@ -116,11 +116,22 @@ def cmd_replay(args: argparse.Namespace) -> int:
         except ConfigError as exc:
             _err(exc)
             return EXIT_CONFIG
+    rec = None
+    if not args.model and cfg is None:
+        # The recording names the model that decided it: replay with that one where it is packaged.
+        try:
+            rec = Recording.load(args.recording)
+        except RecordingError as exc:
+            _err(f"slipd replay: {exc}")
+            return EXIT_RUNTIME
     try:
         if args.model:
             model = models.packaged(args.model) if models.is_name(args.model) else Path(args.model)
+        elif cfg is not None:
+            model = cfg.model.manifest
         else:
-            model = cfg.model.manifest if cfg is not None else models.packaged(models.DEFAULT_MODEL)
+            model = _packaged_by_sha(rec.meta.get("model_sha256") if rec is not None else None) or \
+                models.packaged(models.DEFAULT_MODEL)
         ensemble = Ensemble.load(model)
     except (ModelError, FileNotFoundError) as exc:
         _err(f"slipd replay: {exc}")
@@ -139,7 +150,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
             _err(f"slipd replay: --json {args.json}: {problem}")
             return EXIT_USAGE
     try:
-        rec = Recording.load(args.recording)
+        rec = rec or Recording.load(args.recording)
     except RecordingError as exc:
         _err(f"slipd replay: {exc}")
         return EXIT_RUNTIME
@@ -210,6 +221,60 @@ def cmd_replay(args: argparse.Namespace) -> int:
         _err(f"slipd replay: {args.recording}: no finite sample: nothing was decided on")
         return EXIT_RUNTIME
     return EXIT_OK
+
+
+# ---------------------------------------------------------------------------------------------- convert
+CONVERT_SUFFIXES = (".mcap", ".npz", ".csv")
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    """``slipd convert IN OUT``: a recording from one format into another, by the files' endings (the same samples,
+    truth and metadata; replay decides identically on both)."""
+    from slipd.recording import Recording, RecordingError, write_sdk_csv
+    from slipd.recording_mcap import write_mcap
+
+    for given in (args.input, args.output):
+        if Path(given).suffix.lower() not in CONVERT_SUFFIXES:
+            _err(f"slipd convert: {given}: unknown format (the name must end in {', '.join(CONVERT_SUFFIXES)})")
+            return EXIT_USAGE
+    out = Path(args.output)
+    if not out.parent.is_dir():
+        _err(f"slipd convert: {out}: its folder does not exist")
+        return EXIT_USAGE
+    try:
+        rec = Recording.load(args.input)
+    except RecordingError as exc:
+        _err(f"slipd convert: {exc}")
+        return EXIT_RUNTIME
+    suffix = out.suffix.lower()
+    try:
+        if suffix == ".mcap":
+            write_mcap(rec, out)
+        elif suffix == ".csv":
+            write_sdk_csv(rec, out)
+        else:
+            rec.save(out)
+    except OSError as exc:
+        _err(f"slipd convert: {out}: cannot write ({exc.strerror or exc})")
+        return EXIT_RUNTIME
+    print(f"{args.input} -> {out}: {len(rec)} samples, {rec.sensors} sensor(s)")
+    return EXIT_OK
+
+
+def _packaged_by_sha(sha: object) -> Path | None:
+    """The packaged model whose graph has this sha256 (a recording's ``model_sha256``), or None."""
+    from slipd import models
+    from slipd.detect.manifest import ModelError, load_manifest
+
+    if not isinstance(sha, str):
+        return None
+    for name in models.names():
+        try:
+            if load_manifest(models.packaged(name), check_graph=False).sha256 == sha:
+                return models.packaged(name)
+        except (ModelError, FileNotFoundError):
+            continue
+    return None
 
 
 def nonfinite_runs(rec: Any) -> tuple[int, int | None]:
@@ -305,13 +370,18 @@ def _parser() -> argparse.ArgumentParser:
     chk.add_argument("config", help="YAML configuration file")
 
     rep = add("replay", cmd_replay, "run a recording through the daemon's decision path offline and print alarms")
-    rep.add_argument("recording", nargs="?", default=None, help=".npz recording or Contactile SDK CSV log")
+    rep.add_argument("recording", nargs="?", default=None, help=".mcap or .npz recording, or Contactile SDK CSV log")
     rep.add_argument("--sample", action="store_true",
                      help="replay the packaged sample instead (a simulated lift that slips, 1.5 s)")
     rep.add_argument("--model", "-m", default=None,
-                     help="packaged model name or manifest path (.json); default: the config's, else the shipped one")
+                     help="packaged model name or manifest path (.json); default: the config's, else the packaged "
+                          "model the recording names (its model_sha256), else the shipped one")
     rep.add_argument("--config", "-c", default=None, help="optional YAML config (decision settings)")
     rep.add_argument("--json", default=None, help="write the alarms and probabilities as JSON")
+
+    conv = add("convert", cmd_convert, "convert a recording between .mcap, .npz and the Contactile SDK CSV")
+    conv.add_argument("input", help="recording to read (.mcap, .npz or .csv)")
+    conv.add_argument("output", help="recording to write; its ending picks the format (.mcap, .npz or .csv)")
 
     add("models", cmd_models, "list the packaged models (name, sha256, figures)")
 

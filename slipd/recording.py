@@ -1,7 +1,8 @@
 """Recordings: the one data format of slipd (simulator output, recorder dumps, replay input).
 
-On disk a recording is an ``.npz`` (see ``design.md`` section 3) or a Contactile SDK CSV log, so
-that recordings made with Contactile's own tools replay through the same code.
+On disk a recording is an ``.npz`` (see ``design.md`` section 3), a Contactile SDK CSV log, so
+that recordings made with Contactile's own tools replay through the same code, or an ``.mcap`` file
+(``slipd.recording_mcap``: the same arrays on channels that Foxglove opens).
 
 Arrays (N samples, 9 pillars in SDK order):
     t_us            [N] int64        sample time, microseconds
@@ -29,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from slipd.geometry import N_PILLARS, PILLAR_XY_MM
+from slipd.recording_mcap import McapRecordingError, read_arrays
 
 _AXES = ("X", "Y", "Z")
 MAX_SENSORS = 8
@@ -143,7 +145,7 @@ class Recording:
 
     @classmethod
     def load(cls, path: str | Path) -> Recording:
-        """Read an ``.npz`` recording or an SDK CSV log (by extension).
+        """Read an ``.npz`` recording, an SDK CSV log or an ``.mcap`` recording (by extension).
 
         A broken file raises ``RecordingError`` with one line naming the file and the part at fault
         (``rec.npz: meta: not JSON: ...``, ``log.csv: T_us: goes backwards at sample 12 ...``).
@@ -151,6 +153,8 @@ class Recording:
         path = Path(path)
         if path.suffix.lower() == ".csv":
             return read_sdk_csv(path)
+        if path.suffix.lower() == ".mcap":
+            return read_mcap(path)
         return read_npz(path)
 
 
@@ -446,7 +450,25 @@ def read_sdk_csv(path: str | Path) -> Recording:
     return rec
 
 
+def read_mcap(path: str | Path) -> Recording:
+    """Read an ``.mcap`` recording (``slipd.recording_mcap``); ``RecordingError`` names the file and the part at
+    fault."""
+    path = Path(path)
+    try:
+        rec = Recording(**read_arrays(path))
+        check_times(rec.t_us)
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except (RecordingError, McapRecordingError) as exc:
+        raise RecordingError(f"{path}: {exc}") from None
+    return rec
+
+
 def list_recordings(folder: str | Path) -> list[Path]:
-    """All ``.npz`` and ``.csv`` recordings below ``folder``, sorted by name."""
+    """All ``.npz``, ``.csv`` and ``.mcap`` recordings below ``folder``, sorted by name."""
     folder = Path(folder)
-    return sorted(p for p in folder.rglob("*") if p.suffix.lower() in (".npz", ".csv") and p.is_file())
+    return sorted(p for p in folder.rglob("*") if p.suffix.lower() in SUFFIXES and p.is_file())
+
+
+SUFFIXES = (".npz", ".csv", ".mcap")
+"""The file name endings of recordings, one per format."""

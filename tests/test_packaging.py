@@ -29,7 +29,7 @@ SLIPD = ROOT / ".venv" / "bin" / "slipd"
 
 # What `pip install slipd` does not bring (the sim, train and dev extras) and the two parts of slipd
 # that need them.
-EXTRAS = ("torch", "scipy", "matplotlib", "tqdm", "onnx", "hypothesis", "pytest")
+EXTRAS = ("torch", "scipy", "matplotlib", "tqdm", "onnx", "hypothesis", "pytest", "zenoh", "rosbags", "foxglove")
 OFFLINE = ("slipd.sim", "sliplab")
 
 
@@ -69,12 +69,13 @@ def test_extras_are_not_runtime_dependencies():
     reqs = metadata.requires("slipd") or []
     names = [re.split(r"[\s<>=!~;\[]", r, maxsplit=1)[0] for r in reqs if "extra ==" not in r]
     runtime = {n.lower().replace("_", "-") for n in names}
-    assert runtime.isdisjoint({"torch", "scipy", "matplotlib", "tqdm", "onnx"}), runtime
+    extras = {"torch", "scipy", "matplotlib", "tqdm", "onnx", "eclipse-zenoh", "rosbags", "foxglove-sdk"}
+    assert runtime.isdisjoint(extras), runtime
     assert {"numpy", "onnxruntime", "pyyaml", "pydantic"} <= runtime
 
 
 # ---------------------------------------------------------------------------------------------- the house
-GROUND = {"slipd", "slipd.metrics", "slipd.recording", "slipd.geometry", "slipd.models"}
+GROUND = {"slipd", "slipd.metrics", "slipd.recording", "slipd.recording_mcap", "slipd.geometry", "slipd.models"}
 
 
 def _wing(module: str) -> str:

@@ -3,6 +3,7 @@ decision strides 40 / 20 / 10, the decode-only baseline and the machine's floor 
 
     python tools/bench_daemon.py [--seconds 30] [--model slipd/models/slip_ensemble_int8.json] [--json FILE]
     python tools/bench_daemon.py --baseline-tree /tmp/base --strides 10 [--reps 4] [--seconds 15]
+    python tools/bench_daemon.py --viz --sensors 1 --strides 10 [--seconds 30] [--cpu-runs 4]
 
 Per configuration (sensors x stride):
 
@@ -84,7 +85,7 @@ def _free_port() -> int:
 
 
 def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str, sensors: int, stride: int,
-            policy: str = "stop_and_secure") -> Path:
+            policy: str = "stop_and_secure", viz_port: int | None = None) -> Path:
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
     cfg["model"].update(manifest=str(model.resolve()), detector="onnx", stride=stride)
     cfg["sensor"].update(port=sensor_port, tare="startup", tare_samples=300, stall_timeout_ms=1000, sensors=sensors)
@@ -92,7 +93,9 @@ def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str, sensors: 
     cfg["arm"]["enabled"] = False
     cfg["reaction"].update(actions=["tighten_gripper"], on_failsafe="log_only", rearm_after_s=0.0, policy=policy)
     cfg["recorder"]["enabled"] = False
-    path = tmp / f"bench-{sensors}-{stride}-{policy}.yaml"
+    if viz_port is not None:
+        cfg["viz"] = {"enabled": True, "host": "127.0.0.1", "port": viz_port}
+    path = tmp / f"bench-{sensors}-{stride}-{policy}{'-viz' if viz_port else ''}.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
 
@@ -128,12 +131,23 @@ def _emulator_process(conn: Any, n: int, sensors: int) -> None:
         conn.send((written, sensor.frames_written, [(w.t, w.address, bytes(w.data)) for w in servo.writes()]))
 
 
-def reaction_latency(model: Path, seconds: float, sensors: int, stride: int) -> dict[str, float]:
+def _stuck_viewer(port: int, sensors: int) -> Any:
+    """A Foxglove client on the live view that subscribes to every channel and then never reads."""
+    from slipd.sim.devices.foxglove_client import FoxgloveClient
+
+    client = FoxgloveClient("127.0.0.1", port, recv_buffer=4096)
+    client.wait_for_channels({f"/slipd/frames/s{s}" for s in range(sensors)} | {"/slipd/decisions"})
+    client.subscribe_all()
+    return client
+
+
+def reaction_latency(model: Path, seconds: float, sensors: int, stride: int, viz: bool = False) -> dict[str, float]:
     """Latency figures (ms) from the window's last sample written to the tighten bytes parsed by the servo,
-    and the stream's frames sent and lost."""
+    and the stream's frames sent and lost. ``viz``: with the live view on and a viewer that never reads."""
     from slipd.config import load_config
     from slipd.daemon.devices import build_devices
     from slipd.daemon.loop import Daemon
+    from slipd.daemon.service import start_taps
     from slipd.detect.ensemble import Ensemble
     from slipd.metrics import Metrics
 
@@ -144,11 +158,15 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int) -> 
     proc.start()
     with tempfile.TemporaryDirectory() as tmp:
         sensor_port, servo_port = parent.recv()
-        cfg = load_config(_config(Path(tmp), model, sensor_port, servo_port, sensors, stride))
+        cfg_path = _config(Path(tmp), model, sensor_port, servo_port, sensors, stride,
+                           viz_port=_free_port() if viz else None)
+        cfg = load_config(cfg_path)
         metrics = Metrics()
         ens = Ensemble.load(cfg.model.manifest)
         _, gripper = build_devices(cfg, metrics)
         daemon = Daemon(cfg, ens, metrics=metrics, gripper=gripper)
+        start_taps(cfg, daemon, str(cfg_path))
+        viewer = _stuck_viewer(cfg.viz.port, sensors) if viz else None
         subs = getattr(daemon.detector, "detectors", [daemon.detector])
         decision = subs[-1].decision  # one sensor's decisions: the second finger's when there are two
         decision.threshold = 1e-9  # every window alarms ...
@@ -171,7 +189,10 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int) -> 
 
         stats = asyncio.run(main())
         time.sleep(0.3)
+        view = daemon.taps[0] if daemon.taps else None
         daemon.close()
+        if viewer is not None:
+            viewer.close()
         parent.send("stop")
         written, sent, writes = parent.recv()
         proc.join(10)
@@ -191,12 +212,13 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int) -> 
     return {"latency_p50_ms": float(np.median(ms)), "latency_p99_ms": float(np.percentile(ms, 99)),
             "latency_max_ms": float(ms.max()), "decision_p50_ms": float(np.median(to_decision)),
             "decision_p99_ms": float(np.percentile(to_decision, 99)), "alarms": len(ms), "frames_sent": int(sent),
-            "frames_lost": int(sent - stats.frames)}
+            "frames_lost": int(sent - stats.frames), "view_sent": getattr(view, "sent", 0),
+            "view_dropped": getattr(view, "dropped", 0)}
 
 
 # ---------------------------------------------------------------------------------------------- CPU
 def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None, tree: Path | None = None,
-              policy: str = "stop_and_secure", idle_hz: float | None = None) -> float:
+              policy: str = "stop_and_secure", idle_hz: float | None = None, viz: bool = False) -> float:
     """CPU seconds per wall second of one process reading the 1 kHz stream (``slipd run``; decode-only when
     ``stride`` is None). ``tree``: run the ``slipd`` of that source tree instead of this one (``--baseline-tree``).
     ``policy`` grip_control: the grip controller takes the quiet grasp over and runs on every decision.
@@ -211,15 +233,19 @@ def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None, tre
         elif stride is None:
             cmd = [sys.executable, __file__, "--decode-only", sensor.port, "--sensors", str(sensors)]
         else:
-            cfg = _config(Path(tmp), model, sensor.port, servo.port, sensors, stride, policy)
+            viz_port = _free_port() if viz else None
+            cfg = _config(Path(tmp), model, sensor.port, servo.port, sensors, stride, policy, viz_port)
             cmd = [sys.executable, "-m", "slipd", "run", "--config", str(cfg)]
         env = None
         if tree is not None:  # the other tree's package first on the path (an editable install points here)
             env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])}
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
                                 cwd=tree if tree is not None else None)
+        viewer = None
         try:
             time.sleep(4.0)  # start-up (imports, warm-up) is not the steady state
+            if viz:
+                viewer = _stuck_viewer(viz_port, sensors)  # type: ignore[arg-type]
             sensor.start()
             time.sleep(2.0)
             t0, c0 = time.monotonic(), _cpu_seconds(proc.pid)
@@ -228,6 +254,8 @@ def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None, tre
         finally:
             proc.terminate()
             proc.wait(20)
+            if viewer is not None:
+                viewer.close()
     return (c1 - c0) / (t1 - t0)
 
 
@@ -514,6 +542,44 @@ def compare_trees(args: argparse.Namespace) -> int:
     return 0
 
 
+def compare_viz(args: argparse.Namespace) -> int:
+    """``--viz``: each configuration with the live view off and on (a viewer subscribed to every channel that never
+    reads), alternating, ``--cpu-runs`` rounds; the medians of p99 latency and CPU, and every frame lost."""
+    load0 = os.getloadavg()[0]
+    per = args.seconds / args.cpu_runs
+    rows = []
+    for sensors in args.sensors:
+        for stride in args.strides:
+            got: dict[bool, dict[str, list[float]]] = {False: {}, True: {}}
+            for rnd in range(args.cpu_runs):
+                for viz in ((False, True) if rnd % 2 == 0 else (True, False)):
+                    r = reaction_latency(args.model, per, sensors, stride, viz=viz)
+                    r["cpu_percent"] = 100 * cpu_share(args.model, per, sensors, stride, viz=viz)
+                    for k, v in r.items():
+                        got[viz].setdefault(k, []).append(float(v))
+                print(f"  {sensors} sensor(s) stride {stride}: round {rnd + 1} of {args.cpu_runs} done", flush=True)
+            rows.append((sensors, stride, got))
+    load1 = os.getloadavg()[0]
+    print(f"\nlive view off / on, {args.cpu_runs} alternating rounds of {per:g} s, model {args.model.name}, load "
+          f"average {load0:.2f} -> {load1:.2f} on {os.cpu_count()} cores; medians (each round in brackets)")
+    print(f"{'sensors':>7} {'stride':>6} {'view':>4} {'p99 ms':>7} {'p50 ms':>7} {'lost':>5} {'CPU %':>6}  "
+          "messages sent / dropped by the view")
+    out = []
+    for sensors, stride, got in rows:
+        for viz in (False, True):
+            g = got[viz]
+            lost = int(sum(g["frames_lost"]))
+            print(f"{sensors:>7} {stride:>6} {'on' if viz else 'off':>4} {np.median(g['latency_p99_ms']):>7.2f} "
+                  f"{np.median(g['latency_p50_ms']):>7.2f} {lost:>5} {np.median(g['cpu_percent']):>6.1f}  "
+                  f"{int(sum(g['view_sent']))} / {int(sum(g['view_dropped']))}   "
+                  f"[p99 {', '.join(f'{x:.2f}' for x in g['latency_p99_ms'])}; "
+                  f"CPU {', '.join(f'{x:.1f}' for x in g['cpu_percent'])}]")
+            out.append({"sensors": sensors, "stride": stride, "viz": viz, **g})
+    if args.json:
+        args.json.write_text(json.dumps({"viz": out, "load_average": [load0, load1], "seconds": args.seconds}))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run every configuration and print them side by side."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -537,6 +603,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="CPU share: interleaved rounds of --seconds / cpu-runs each; the median is the figure")
     p.add_argument("--hot-path", type=float, nargs="+", metavar="SLEEP_MS",
                    help="only the hot-path line, after each of these sleeps (ms): its cost against the idle time")
+    p.add_argument("--viz", action="store_true",
+                   help="the live view off and on (a Foxglove viewer that never reads): p99, frames lost, CPU")
     p.add_argument("--decode-only", metavar="PORT", help=argparse.SUPPRESS)
     p.add_argument("--idle-loop", type=float, metavar="HZ", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -559,6 +627,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"  {_stages_line(h['stages_us'])}", flush=True)
         return 0
     logging.getLogger("slipd").setLevel(logging.ERROR)  # one alarm per window here: keep the log quiet
+    if args.viz:
+        return compare_viz(args)
     load0 = os.getloadavg()[0]
     runs: list[dict[str, Any]] = []
     for sensors in args.sensors:

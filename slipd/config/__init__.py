@@ -23,8 +23,10 @@ from slipd.config.schema import (
     ModelConfig,
     ReactionConfig,
     RecorderConfig,
+    Ros2Config,
     SensorConfig,
     SlipdConfig,
+    VizConfig,
 )
 
 __all__ = [
@@ -41,8 +43,10 @@ __all__ = [
     "ModelConfig",
     "ReactionConfig",
     "RecorderConfig",
+    "Ros2Config",
     "SensorConfig",
     "SlipdConfig",
+    "VizConfig",
     "check_against_manifest",
     "config_from_dict",
     "load_config",

@@ -511,9 +511,10 @@ class RecorderConfig(_Section):
     max_total_mb: float = Field(
         500.0, gt=0.0, le=1_000_000.0, description="MiB for all recordings; the oldest are deleted beyond it"
     )
-    formats: list[Literal["npz", "csv"]] = Field(
-        default_factory=lambda: list[Literal["npz", "csv"]](["npz"]), min_length=1,
-        description="npz and/or Contactile SDK CSV",
+    formats: list[Literal["mcap", "npz", "csv"]] = Field(
+        default_factory=lambda: list[Literal["mcap", "npz", "csv"]](["mcap"]), min_length=1,
+        description="mcap (opens in Foxglove; slipd replay reads it), npz and/or Contactile SDK CSV; one file per "
+        "format and episode",
     )
 
     @field_validator("directory", mode="before")
@@ -538,6 +539,80 @@ class RecorderConfig(_Section):
         if self.enabled and self.seconds_before + self.seconds_after <= 0:
             raise FieldProblem("seconds_after", "seconds_before + seconds_after must be > 0 when recording")
         return self
+
+
+_ROS_NAME = re.compile(r"^(/[A-Za-z][A-Za-z0-9_]*)*$")
+_ROS_NODE = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+_ZENOH_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|unixsock-stream|ws)/\S+$")
+
+
+def _endpoints(v: list[str], key: str) -> list[str]:
+    bad = [e for e in v if not _ZENOH_ENDPOINT.match(e)]
+    if bad:
+        raise ValueError(f"{key}: {bad[0]!r} is not a zenoh endpoint (like tcp/localhost:7447)")
+    return v
+
+
+class Ros2Config(_Section):
+    """Slip events on ROS 2 over Zenoh (rmw_zenoh); needs the ros2 extra (pip install 'slipd[ros2]')."""
+
+    enabled: bool = Field(False, description="publish the alarm, p_slip, the slip map, each finger's wrench and "
+                          "diagnostics as ROS 2 messages (docs/ros2.md)")
+    domain_id: int = Field(0, ge=0, le=232, description="the ROS_DOMAIN_ID of the ROS 2 graph")
+    namespace: str = Field("", description="ROS namespace of the node and its topics ('' none, or like /robot1)")
+    node_name: str = Field("slipd", min_length=1, description="ROS node name the topics belong to")
+    mode: Literal["peer", "client"] = Field(
+        "peer", description="zenoh session mode: peer (as rmw_zenoh's nodes: through the router, and directly to "
+        "peers it tells about) or client (through the router only)")
+    connect: list[str] = Field(
+        default_factory=lambda: ["tcp/localhost:7447"],
+        description="zenoh endpoints to connect to; rmw_zenoh's router (ros2 run rmw_zenoh_cpp rmw_zenohd) "
+        "listens on tcp/localhost:7447")
+    listen: list[str] = Field(default_factory=list, description="zenoh endpoints to listen on (empty: none)")
+    type_hashes: bool = Field(
+        True, description="put the REP-2016 type hash (RIHS01) in the key expressions, as rmw_zenoh on Jazzy and "
+        "later does; false for Humble's rmw_zenoh (TypeHashNotSupported)")
+    frame_id: str = Field("slipd_sensor", min_length=1,
+                          description="header frame_id of each finger's wrench, followed by the sensor index")
+    queue: int = Field(256, ge=8, le=65536, description="messages waiting for the publishing thread; beyond it the "
+                       "oldest are dropped and counted (the diagnostics report the count)")
+    diagnostics_period_s: float = Field(1.0, gt=0.0, le=60.0, description="seconds between diagnostics messages")
+
+    @field_validator("namespace")
+    @classmethod
+    def _namespace(cls, v: str) -> str:
+        if not _ROS_NAME.match(v):
+            raise ValueError("must be empty or a ROS namespace like /robot1 (letters, digits, _; no trailing /)")
+        return v
+
+    @field_validator("node_name")
+    @classmethod
+    def _node(cls, v: str) -> str:
+        if not _ROS_NODE.match(v):
+            raise ValueError("must be a ROS node name (a letter, then letters, digits or _)")
+        return v
+
+    @field_validator("connect", "listen")
+    @classmethod
+    def _valid_endpoints(cls, v: list[str], info: ValidationInfo) -> list[str]:
+        return _endpoints(v, str(info.field_name))
+
+
+class VizConfig(_Section):
+    """Live view in Foxglove (a WebSocket server); needs the viz extra (pip install 'slipd[viz]')."""
+
+    enabled: bool = Field(False, description="serve the frames and decisions live to Foxglove (docs/recordings.md)")
+    host: str = Field("127.0.0.1", min_length=1, description="listen address (loopback unless viewed remotely)")
+    port: int = Field(8765, ge=1, le=65535, description="listen port (Foxglove: open connection, ws://host:port)")
+    frame_rate_hz: float = Field(50.0, gt=0.0, le=1000.0,
+                                 description="pillar frames sent per second and sensor (decimated from 1 kHz)")
+    queue: int = Field(256, ge=8, le=65536, description="messages waiting for the view's thread; beyond it the "
+                       "oldest are dropped and counted")
+
+    @field_validator("host")
+    @classmethod
+    def _valid_host(cls, v: str) -> str:
+        return _host(v, "host")
 
 
 class ControlConfig(_Section):
@@ -569,6 +644,8 @@ class SlipdConfig(_Section):
     metrics: MetricsConfig = Field(default_factory=MetricsConfig, description="Prometheus exporter")
     recorder: RecorderConfig = Field(default_factory=RecorderConfig, description="alarm recordings")
     control: ControlConfig = Field(default_factory=ControlConfig, description="the loop and supervision")
+    ros2: Ros2Config = Field(default_factory=Ros2Config, description="slip events on ROS 2 over Zenoh")
+    viz: VizConfig = Field(default_factory=VizConfig, description="live view in Foxglove")
 
     @model_validator(mode="after")
     def _devices_for_actions(self) -> SlipdConfig:

@@ -70,6 +70,7 @@ if TYPE_CHECKING:
     from slipd.config import SlipdConfig
     from slipd.daemon.recorder import Recorder
     from slipd.daemon.sdnotify import Notifier
+    from slipd.daemon.taps import Tap
     from slipd.detect.contact import ContactState
     from slipd.detect.decision import Detection
     from slipd.detect.ensemble import Ensemble
@@ -219,6 +220,8 @@ class Daemon:
         self.notifier = notifier
         self._crashed: BaseException | None = None  # a crash of supervision or the health task (``_on_task_end``)
         self.recorder: Recorder | None = None
+        self.taps: list[Tap] = []
+        """ROS 2 publisher, live view (``slipd.daemon.taps``): they copy frames and decisions off this thread."""
         self.stats = LoopStats()
         self.sensor: Any = None
         self._stop = asyncio.Event()
@@ -361,10 +364,14 @@ class Daemon:
                             det.risk, det.t_us / 1e6)
                 if rec is not None:
                     rec.trigger(det.t_us, "alarm", p_slip=det.p_slip, sensor=s)
+            for tap in self.taps:  # after the reaction went out; the taps' threads wake at the block's end
+                tap.on_decision(det, force[i, s])
         if grasp:  # a sensor without a valid decision (or contact state) for the last one
             self._on_grasp(grasp)
         if dets:
             self._track_grasp()
+        for tap in self.taps:
+            tap.on_block(stamps, force, disp)
         if rec is not None:
             if recorded < k:
                 rec.push_frames(stamps[recorded:], force[recorded:], disp[recorded:])
@@ -972,3 +979,5 @@ class Daemon:
                             name, DEVICE_CLOSE_TIMEOUT_S)
         if self.recorder is not None:
             self.recorder.close()
+        for tap in self.taps:
+            tap.close()

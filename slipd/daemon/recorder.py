@@ -7,15 +7,15 @@ The control loop calls ``push_frames`` for every block of sensor frames (``push_
 ``seconds_before + seconds_after`` of frames, so when an alarm (a decision with ``alarm=True``, or
 ``trigger()`` for a fail-safe event) has been followed by ``seconds_after`` of frames, the ring holds
 exactly the stretch [alarm - before, alarm + after). That stretch is copied once and handed to the
-recorder's own worker thread, which writes it as a ``slipd.recording.Recording`` (``.npz`` and/or the
+recorder's own worker thread, which writes it as a ``slipd.recording.Recording`` (``.mcap``, ``.npz`` and/or the
 Contactile SDK CSV) with the decisions of the stretch in ``meta["decisions"]``: time, P(slip), alarm and sensor of
 each, and where the decision carried a contact state its nine pillars' P(slip), contact risk and friction
 estimate (None before the contact showed one, and for a decision without a contact state).
 
 Crash safety: each file is first written under a staging name (``*.part``, itself written through
 ``Recording.save``'s ``*.tmp`` + rename), flushed to disk, given mode 0640, and only then renamed to
-its final ``.npz`` / ``.csv`` name. A crash at any point leaves either the complete file or only
-staging files, which ``slipd.recording.list_recordings`` (suffix ``.npz``/``.csv``) never returns and
+its final ``.mcap`` / ``.npz`` / ``.csv`` name. A crash at any point leaves either the complete file or only
+staging files, which ``slipd.recording.list_recordings`` (suffix ``.mcap``/``.npz``/``.csv``) never returns and
 the next ``Recorder`` deletes. The directory is created with mode 0750.
 
 Episodes: one recording per alarm episode. An alarm decision while a recording runs extends it to
@@ -42,7 +42,7 @@ import os
 import threading
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -53,7 +53,8 @@ import numpy as np
 
 from slipd.daemon.worker import DeviceWorker
 from slipd.geometry import N_PILLARS
-from slipd.recording import Recording, write_sdk_csv
+from slipd.recording import SUFFIXES, Recording, write_sdk_csv
+from slipd.recording_mcap import write_mcap
 
 if TYPE_CHECKING:
     from slipd.detect.contact import ContactState
@@ -64,7 +65,7 @@ FILE_MODE = 0o640
 DIR_MODE = 0o750
 PREFIX = "slip-"
 STAGING_SUFFIXES = (".part", ".tmp")
-FORMATS = ("npz", "csv")
+FORMATS = ("npz", "csv", "mcap")
 MAX_TRIGGER_EVENTS = 100
 """Fail-safe events one recording names beside its trigger (bounded: one per blind episode, but an episode may last)."""
 MAX_KEPT_PATHS = 1000
@@ -181,6 +182,9 @@ class Recorder:
         self.deleted: deque[Path] = deque(maxlen=MAX_KEPT_PATHS)
         self.failures = 0
         self.dropped = 0
+        self.extra_meta: Callable[[int, int], dict[str, Any]] | None = None
+        """Called on the loop thread when a recording is cut, with its first and last t_us: what the daemon adds to its
+        meta (``slipd.daemon.recording_context``: the reactions)."""
         self._own_worker = worker is None
         self.worker = worker or DeviceWorker("recorder")
         self._prepare_directory()
@@ -386,6 +390,8 @@ class Recorder:
         )
         if len(t):
             meta["events"] = {trig.get("reason", "alarm"): (trig.get("t_us", int(t[0])) - int(t[0])) / 1e6}
+            if self.extra_meta is not None:
+                meta.update(self.extra_meta(int(t[0]), int(t[-1])))
         self._seq += 1
         stamp = datetime.fromtimestamp(trig.get("wall_time", time.time()), tz=timezone.utc)
         name = f"{PREFIX}{stamp:%Y%m%dT%H%M%S.%fZ}-{os.getpid()}-{self._seq:04d}"
@@ -441,6 +447,8 @@ class Recorder:
             staging = final.with_name(final.name + ".part")
             if fmt == "npz":
                 rec.save(staging)
+            elif fmt == "mcap":
+                write_mcap(rec, staging)
             else:
                 write_sdk_csv(rec, staging)
             _finalize(staging, final)
@@ -451,7 +459,7 @@ class Recorder:
         """Complete recordings in the directory: name stem -> its files, oldest first."""
         groups: dict[str, list[Path]] = {}
         for p in self.directory.iterdir():
-            if p.name.startswith(PREFIX) and p.suffix in (".npz", ".csv") and p.is_file():
+            if p.name.startswith(PREFIX) and p.suffix in SUFFIXES and p.is_file():
                 groups.setdefault(p.stem, []).append(p)
         return dict(sorted(groups.items()))
 

@@ -179,6 +179,53 @@ def metrics_exposure(host: str) -> str:
     return f"on the network interface {host}, beyond this machine"
 
 
+def recording_meta(cfg: SlipdConfig, manifest: Any) -> dict[str, Any]:
+    """What every recording carries about the daemon that made it: the model (sha256 and manifest), the configuration
+    and the alarm threshold in force (the MCAP recordings show them as metadata, and the threshold with p_slip)."""
+    threshold = cfg.decision.threshold if cfg.decision.threshold is not None else manifest.threshold
+    return {"model_sha256": manifest.sha256, "threshold": float(threshold),
+            "config": cfg.model_dump(mode="json"), "model": manifest.model_dump(mode="json")}
+
+
+def start_taps(cfg: SlipdConfig, daemon: Daemon, config_path: str) -> None:
+    """The ROS 2 publisher and the live view where the configuration enables them (each needs its extra); a failure
+    closes the ones already started."""
+    try:
+        if cfg.ros2.enabled:
+            try:
+                import rosbags  # noqa: F401
+                import zenoh  # noqa: F401
+
+                from slipd.daemon.ros2 import Ros2Publisher, daemon_health
+            except ImportError as exc:
+                raise ConfigError([f"{config_path}: ros2.enabled: needs the ros2 extra: pip install 'slipd[ros2]' "
+                                   f"({exc})"]) from None
+            try:
+                daemon.taps.append(Ros2Publisher(cfg.ros2, cfg.sensor.sensors,
+                                                 health=lambda: daemon_health(daemon)).start())
+            except Exception as exc:  # zenoh's own errors (a client that reaches no router)
+                raise DeviceError(f"ros2: cannot open the zenoh session: {' '.join(str(exc).split())}") from exc
+        if cfg.viz.enabled:
+            try:
+                import foxglove  # noqa: F401
+
+                from slipd.daemon.viz import LiveView
+            except ImportError as exc:
+                raise ConfigError([f"{config_path}: viz.enabled: needs the viz extra: pip install 'slipd[viz]' "
+                                   f"({exc})"]) from None
+            threshold = cfg.decision.threshold or daemon.ensemble.manifest.threshold
+            try:
+                daemon.taps.append(LiveView(cfg.viz, cfg.sensor.sensors, cfg.sensor.rate_hz, threshold).start())
+            except Exception as exc:  # the SDK's own errors (the port is taken)
+                raise DeviceError(f"viz: cannot start the Foxglove server on {cfg.viz.host}:{cfg.viz.port}: "
+                                  f"{' '.join(str(exc).split())}") from exc
+    except BaseException:
+        for tap in daemon.taps:
+            tap.close()
+        daemon.taps.clear()
+        raise
+
+
 def prepare(config_path: str | os.PathLike[str]) -> Service:
     """Load and check everything, then open the devices (in that order). Raises ConfigError, ModelError or
     DeviceError; nothing is opened when the config or the model is refused or a device is missing."""
@@ -201,7 +248,7 @@ def prepare(config_path: str | os.PathLike[str]) -> Service:
 
             try:
                 recorder = Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz, sensors=cfg.sensor.sensors,
-                                                meta={"model_sha256": ensemble.manifest.sha256})
+                                                meta=recording_meta(cfg, ensemble.manifest))
             except OSError as exc:
                 raise ConfigError([f"{config_path}: recorder.directory: {cfg.recorder.directory} cannot be used: "
                                    f"{exc.strerror or exc}"]) from exc
@@ -210,6 +257,11 @@ def prepare(config_path: str | os.PathLike[str]) -> Service:
             arm, gripper = build_devices(cfg, metrics)
         daemon = Daemon(cfg, ensemble, metrics=metrics, arm=arm, gripper=gripper, notifier=Notifier())
         daemon.recorder = recorder
+        if recorder is not None:
+            from slipd.daemon.recording_context import attach
+
+            attach(recorder, daemon)  # the recordings carry the reactions
+        start_taps(cfg, daemon, str(config_path))
     except BaseException:
         close_quietly(arm, gripper)  # opened, then a stop or a failure before the daemon took them over
         native.close()

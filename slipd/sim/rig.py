@@ -396,6 +396,9 @@ def run_rig(
                 ur_state = dev.ur.state()
                 writes = dev.servo.writes()
                 metrics_text = _scrape(port)
+                # For out/sim.mcap (slipd.sim.rig_mcap): what the devices received, and the sensor's bias.
+                physics.ur_state, physics.servo_writes = ur_state, writes
+                physics.sensor_bias, physics.sensor_bias_disp = dev.sensor.bias
             finally:
                 proc.terminate()
                 try:
@@ -606,4 +609,10 @@ def main_sim(args: Any) -> int:
         print(f"plot: {plot_run(physics, result, args.plot)}")
     Path("out").mkdir(exist_ok=True)
     Path("out/sim_result.json").write_text(json.dumps(asdict(result), indent=1))
+    from slipd.sim.rig_mcap import write_run_mcap
+
+    detector = {"model.detector": args.detector} if args.detector else None
+    path, alarms = write_run_mcap(physics, result, config, "out/sim.mcap", detector)
+    print(f"recording: {path} (open it in Foxglove with deploy/foxglove/slipd.json; slipd replay {path} "
+          f"replays it: {len(alarms)} alarm(s))")
     return 0

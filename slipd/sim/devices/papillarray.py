@@ -288,6 +288,12 @@ class EmulatedPapillArray:
         assert src is not None
         return src(i)
 
+    @property
+    def bias(self) -> tuple[np.ndarray, np.ndarray]:
+        """The first sensor's (force, disp) offsets set by the last bias command, subtracted from every frame since."""
+        with self._lock:
+            return self._bias_force[0].copy(), self._bias_disp[0].copy()
+
     def _make_frame(self, i: int, t_s: float) -> bytes | None:
         sample = self._sample(i, t_s)
         if sample is None:
