@@ -57,6 +57,7 @@ import numpy as np
 
 from slipd.daemon.devices import close_quietly
 from slipd.daemon.grip_control import GripControlSettings
+from slipd.daemon.rate import RateMonitor
 from slipd.daemon.reaction import Reaction
 from slipd.daemon.rezero import LoadedZero
 from slipd.daemon.worker import DeviceWorker
@@ -68,6 +69,7 @@ from slipd.metrics import Metrics
 
 if TYPE_CHECKING:
     from slipd.config import SlipdConfig
+    from slipd.config.schema import DecisionConfig
     from slipd.daemon.recorder import Recorder
     from slipd.daemon.sdnotify import Notifier
     from slipd.detect.contact import ContactState
@@ -152,6 +154,9 @@ ARM_RECONNECT_MAX_S = 5.0
 NONFINITE_BRIDGE_S = 0.005
 """Non-finite samples the feature stage may bridge (it holds the last finite value): a few ms. Longer
 runs make every decision one on a frozen picture of the grasp, so liveness fails."""
+OWN_STOP_S = 10.0
+"""A control script that ends this soon after slipd issued an arm stop ended because of it (an INFO line, not an
+ERROR): a stop and the health poll that sees its end are well under a second apart."""
 KICKS_PER_WATCHDOG = 4
 """The arm's controller-side watchdog is kicked this many times per ``arm.watchdog_s`` while live: a
 late kick or two (a busy arm thread, a slow machine) must not halt the arm."""
@@ -231,6 +236,9 @@ class Daemon:
         self.blind: str | None = None
         """The cause of the current blind episode (one fail-safe each), None while live or starting."""
         self._stall_s = cfg.sensor.stall_timeout_ms / 1e3
+        self.rate = RateMonitor(cfg.sensor.rate_hz, cfg.sensor.rate_tolerance, self.metrics)
+        """The stream's rate by the controller's clock and counter: outside its tolerance the daemon is blind
+        (``rate``); at start-up it is live only once the rate was measured."""
         self._nonfinite_bridge = max(1, round(NONFINITE_BRIDGE_S * cfg.sensor.rate_hz))
         self.sensors = cfg.sensor.sensors
         ns = self.sensors
@@ -279,6 +287,10 @@ class Daemon:
     # ----------------------------------------------------------------- hot path
     def _on_frames(self, block: FrameBlock) -> None:
         t0 = time.perf_counter()
+        rate = self.rate
+        rate.push(block.counter, block.t_us, block.discontinuity)  # also while the sensor zeroes itself
+        if rate.outside and self.blind is None:
+            self._wake_supervisor()
         if self._bias_until is not None:
             if time.monotonic() < self._bias_until:
                 return  # the sensor zeroes itself after a reconnect: these frames are not decided on
@@ -502,6 +514,7 @@ class Daemon:
 
     def _on_disconnect(self, reason: str) -> None:
         self._restart()
+        self.rate.restart()
         self._go_blind("sensor_lost", f"sensor lost: {reason}")
 
     def _on_reconnect(self) -> None:
@@ -574,9 +587,21 @@ class Daemon:
         self._decision_due = now + self._stall_s + need / self.cfg.sensor.rate_hz
         self._decision_frames = need + (self.sensor.frames if self.sensor is not None else 0)
 
-    def _fail_safe(self, reason: str) -> None:
+    def set_decision_rule(self, rule: DecisionConfig) -> None:
+        """A reload's decision section (``slipd.daemon.reload``), applied between two blocks: threshold, hysteresis,
+        decisions in a row and the press hold of every sensor's decision rule (the heuristics have none)."""
+        threshold = rule.effective_threshold(self.ensemble.threshold)
+        for det in getattr(self.detector, "detectors", [self.detector]):
+            decision = getattr(det, "decision", None)
+            if decision is None:
+                continue
+            decision.threshold, decision.hysteresis = float(threshold), float(rule.hysteresis)
+            decision.min_consecutive = int(rule.min_consecutive)
+            det.press_rise = rule.press_rise
+
+    def _fail_safe(self, reason: str, logged: bool = False) -> None:
         self.stats.failsafes += 1
-        self.reaction.failsafe(reason)
+        self.reaction.failsafe(reason, logged)
 
     def _go_blind(self, cause: str, detail: str) -> None:
         """Liveness lost: one log line and one fail-safe per episode, whatever follows inside it."""
@@ -586,8 +611,9 @@ class Daemon:
         if self.blind is not None:
             return
         self.blind = cause
-        log.error("blind: %s; fail-safe", detail)
-        self._fail_safe(cause)
+        # The episode's one line at its start (its end: "live again after"); the reaction adds none.
+        log.error("blind: %s; fail-safe (%s)", detail, self.reaction.on_failsafe)
+        self._fail_safe(cause, logged=True)
         if self.recorder is not None and self._last_t_us is not None:
             # What led to the fault, written now: the frames after it may never come (a stalled or lost sensor).
             self._note_offset()
@@ -607,6 +633,8 @@ class Daemon:
         sensor = self.sensor
         if sensor is not None and not sensor.connected:
             return "sensor_lost", "sensor port closed"
+        if self.rate.outside:
+            return "rate", self.rate.describe()
         if self._nonfinite_burst or (self._nonfinite_run > self._nonfinite_bridge).any():
             worst = int(np.argmax(self._nonfinite_run)) if not self._nonfinite_burst else self._nonfinite_sensor
             return "sensor_nonfinite", (f"non-finite samples for more than {self._nonfinite_bridge} frames"
@@ -689,8 +717,8 @@ class Daemon:
             if fault is not None:
                 self._go_blind(*fault)
                 continue
-            if self._decided_t is None:
-                continue  # starting, or an episode not over: no valid decision on fresh data yet
+            if self._decided_t is None or not (self.started_live or self.rate.known):
+                continue  # starting (or the rate not measured yet), or an episode not over
             if not self.live:
                 self._on_live()
             if ping_every and now - last_ping >= ping_every:
@@ -729,6 +757,8 @@ class Daemon:
             # Also after a blind episode before it (a sensor that starts streaming late): under Type=notify systemd
             # kills a daemon that never says READY=1.
             self.started_live = True
+            if self.sensor is not None:
+                self.sensor.starting = False  # counter gaps from now on are losses (slipd_dropped_frames_total)
             if self.notifier is not None:
                 self.notifier.ready(f"running: model {self.cfg.model.manifest.name}")
 
@@ -827,8 +857,14 @@ class Daemon:
         elif state == "protective_stop":
             log.error("arm: protective stop; slipd does not unlock it: inspect the cell, unlock from the pendant")
         elif state == "script_stopped":
-            log.error("arm: control script ended (watchdog expired or stopped from the pendant); "
-                      "re-uploading it once decisions are live")
+            stopped = self.reaction.last_arm_stop()
+            if self.blind is not None or (stopped is not None and time.monotonic() - stopped < OWN_STOP_S):
+                # slipd's own doing: a blind daemon stops kicking the controller's watchdog, and its stops end the
+                # control script. Nothing to alarm anyone about beyond the episode's own line.
+                log.info("arm: control script ended after slipd's stop; re-uploading it once decisions are live")
+            else:
+                log.error("arm: control script ended (watchdog expired or stopped from the pendant); "
+                          "re-uploading it once decisions are live")
         elif before is not None:
             log.warning("arm: healthy again (was %s)", before)
 
@@ -883,6 +919,7 @@ class Daemon:
             metrics=self.metrics,
             low_latency=cfg.low_latency,
         )
+        self.sensor.starting = not self.started_live
         await self.sensor.start()
         if self._set_up_sensor(start_up=True):
             # The frames while the sensor zeroes itself are neither zeroed nor its steady output: not decided on (no
