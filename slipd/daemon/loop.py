@@ -21,7 +21,9 @@ the reader), every value the detector reads is finite and it is not bit-identica
 never noise-free). Blind causes, each failing safe (stop the arm, keep the grip) once per episode with
 one log line and ``slipd_failsafe_stops_total{reason=...}``: ``sensor_lost`` (port gone),
 ``sensor_silent`` (no frame since start-up), ``sensor_stall`` (frames stopped), ``sensor_counter_stuck``,
-``sensor_frozen`` (frames arrive, none fresh), ``sensor_nonfinite`` (non-finite samples for longer than
+``sensor_frozen`` (frames arrive, none fresh), ``rate`` (the stream's rate by the controller's own clock and
+counter is not the model's, ``slipd.daemon.rate``; at start-up the daemon is not live before it was measured),
+``sensor_nonfinite`` (non-finite samples for longer than
 ``NONFINITE_BRIDGE_S``, what the feature stage may bridge by holding the last value) and
 ``no_decisions`` (fresh frames, but no valid decision when one was due; when the frames that decision needed
 never all came, the stream stopped short of it: ``sensor_stall``). With two sensors every rule holds
@@ -31,13 +33,10 @@ valid decision on fresh data; a loss followed by a stall is one episode, one sto
 the systemd watchdog pinged and the arm's controller-side watchdog (ur_rtde ``kickWatchdog``) kicked, so
 a wedged or dead loop, or a blind one, halts the arm; ``READY=1`` goes out with the first live decision.
 
-A device health task polls the arm (``read_state``, every 150 ms) and the gripper
-(``read_status``, every 500 ms) on their own worker threads; the loop only looks at finished futures, so a slow or
-dead device never blocks it. An arm link that drops is logged and reconnected with backoff (the
-arm's own metrics count ``disconnected`` / ``protective_stop``); a protective stop is logged, never
-unlocked automatically. A gripper that stops answering or reports a hardware error or torque off
-fails safe (stop the arm) once per occurrence and is counted as
-``slipd_device_errors{device="gripper", kind="unhealthy"}``.
+Beside the loop, in modules of their own: the device health task (``slipd.daemon.health``: polls, reconnects, a
+gripper fault), the stream's rate and timestamps (``slipd.daemon.rate``: the ``rate`` cause above), the software zero
+after a bias under a grasp (``slipd.daemon.rezero``); around it, the start-up checks (``slipd.daemon.preflight``),
+signals (``slipd.daemon.signals``) and reloads (``slipd.daemon.reload``).
 """
 
 from __future__ import annotations
@@ -57,6 +56,7 @@ import numpy as np
 
 from slipd.daemon.devices import close_quietly
 from slipd.daemon.grip_control import GripControlSettings
+from slipd.daemon.health import GRIPPER_HEALTH_PERIOD_S, HEALTH_PERIOD_S, DeviceHealth
 from slipd.daemon.rate import RateMonitor
 from slipd.daemon.reaction import Reaction
 from slipd.daemon.rezero import LoadedZero
@@ -92,42 +92,6 @@ def _settle(fut: asyncio.Future[None]) -> None:
         fut.set_result(None)
 
 
-class _Reconnects:
-    """One device's reconnects on its worker thread: at most one in flight, the back-off doubling after each failure
-    (``ARM_RECONNECT_INITIAL_S`` to ``ARM_RECONNECT_MAX_S``) and starting over after a success."""
-
-    def __init__(self, worker: DeviceWorker, reconnect: Any) -> None:
-        self._worker, self._reconnect = worker, reconnect
-        self._fut: concurrent.futures.Future[Any] | None = None
-        self._delay = ARM_RECONNECT_INITIAL_S
-        self._next = 0.0
-
-    @property
-    def pending(self) -> bool:
-        return self._fut is not None
-
-    def outcome(self, now: float) -> bool | None:
-        """Whether the reconnect in flight succeeded, once it has ended (None until then, or with none in flight)."""
-        if self._fut is None or not self._fut.done():
-            return None
-        fut, self._fut = self._fut, None
-        ok = fut.exception() is None and bool(fut.result())
-        if ok:
-            self._delay = ARM_RECONNECT_INITIAL_S
-        else:
-            self._next = now + self._delay
-            self._delay = min(2 * self._delay, ARM_RECONNECT_MAX_S)
-        return ok
-
-    def due(self, now: float) -> bool:
-        """None in flight and the back-off has passed."""
-        return self._fut is None and now >= self._next
-
-    def attempt(self, now: float) -> None:
-        """Start one when it is due."""
-        if self.due(now):
-            self._fut = self._worker.submit(self._reconnect)
-
 SUPERVISION_PERIOD_S = 0.005
 """Supervision tick for short stall timeouts (up to 25 ms); longer ones allow up to SUPERVISION_MAX_PERIOD_S."""
 SUPERVISION_MAX_PERIOD_S = 0.010
@@ -139,24 +103,9 @@ def supervision_period(stall_s: float) -> float:
     the wake-ups) from 50 ms, the real sensor's default."""
     return min(max(stall_s / 5, SUPERVISION_PERIOD_S), SUPERVISION_MAX_PERIOD_S)
 
-HEALTH_PERIOD_S = 0.15
-"""Arm health poll period (100-200 ms asked for): ``read_state`` reads ur_rtde's cached receive values."""
-GRIPPER_HANG_S = 2.0
-"""A gripper call (a status poll, a grip command) still running after this long has hung: the gripper is not answering.
-One status read with its retries takes at most (retries + 1) x packet timeout (80 ms at the defaults); without this
-rule a call stuck in the vendor library left the gripper "ok" for good, the grip frozen where it was."""
-GRIPPER_HEALTH_PERIOD_S = 0.5
-"""Slower for the gripper: its status block (83 bytes) takes ~20 ms at 57.6 kBd, and a tighten submitted
-while a status read is on the wire waits for it; 0.5 s keeps that chance small."""
-ARM_RECONNECT_INITIAL_S = 0.25
-ARM_RECONNECT_MAX_S = 5.0
-"""Back-off of the arm's reconnects, and of the gripper's (its port reopened after an unplugged adapter)."""
 NONFINITE_BRIDGE_S = 0.005
 """Non-finite samples the feature stage may bridge (it holds the last finite value): a few ms. Longer
 runs make every decision one on a frozen picture of the grasp, so liveness fails."""
-OWN_STOP_S = 10.0
-"""A control script that ends this soon after slipd issued an arm stop ended because of it (an INFO line, not an
-ERROR): a stop and the health poll that sees its end are well under a second apart."""
 KICKS_PER_WATCHDOG = 4
 """The arm's controller-side watchdog is kicked this many times per ``arm.watchdog_s`` while live: a
 late kick or two (a busy arm thread, a slow machine) must not halt the arm."""
@@ -201,7 +150,6 @@ class Daemon:
         self.health: dict[str, str] = {}
         """Last known device condition: ``{"arm": "ok" | "disconnected" | "protective_stop",
         "gripper": "ok" | reason}``; filled by the health poll."""
-        self._gripper_lost = False  # the gripper's port was dropped (an I/O error): the health task reopens it
         self.metrics = metrics or Metrics()
         self.ensemble = ensemble
         self.detector: SlipDetector = build_detector(cfg, ensemble)
@@ -222,6 +170,7 @@ class Daemon:
             grip=GripControlSettings.from_config(cfg.reaction),
         )
         self.notifier = notifier
+        self.device_health = DeviceHealth(self)
         self._crashed: BaseException | None = None  # a crash of supervision or the health task (``_on_task_end``)
         self.recorder: Recorder | None = None
         self.stats = LoopStats()
@@ -762,143 +711,6 @@ class Daemon:
             if self.notifier is not None:
                 self.notifier.ready(f"running: model {self.cfg.model.manifest.name}")
 
-    # ------------------------------------------------------------ device health
-    async def _health(self) -> None:
-        """Poll arm (every ``health_period_s``) and gripper (every ``gripper_health_period_s``) state on
-        their worker threads; react to changes on the loop thread.
-
-        At most one poll per device is in flight: a device that hangs delays only its own next poll.
-        A poll queued on the gripper thread can delay a tighten submitted behind it by one status read.
-        """
-        arm = self.arm if self.arm_worker is not None and hasattr(self.arm, "read_state") else None
-        grip = self.gripper if self.gripper_worker is not None and hasattr(self.gripper, "read_status") else None
-        if arm is None and grip is None:
-            return
-        arm_poll: Any = None
-        grip_poll: Any = None
-        arm_reconnect = grip_reconnect = None
-        if arm is not None and self.arm_worker is not None:
-            arm_reconnect = _Reconnects(self.arm_worker, arm.reconnect)
-        if grip is not None and self.gripper_worker is not None and hasattr(grip, "reconnect"):
-            grip_reconnect = _Reconnects(self.gripper_worker, grip.reconnect)
-        next_grip = grip_sent = 0.0
-        while not self._stop.is_set():
-            now = time.monotonic()
-            if arm is not None:
-                if arm_poll is not None and arm_poll.done():
-                    self._on_arm_health(arm_poll)
-                    arm_poll = None
-                assert arm_reconnect is not None
-                if arm_reconnect.outcome(now):
-                    self.metrics.reconnects.labels(device="arm").inc()
-                    log.warning("arm: reconnected")
-                    self.health["arm"] = "reconnected"  # the next poll says whether it is healthy
-                # A control script the watchdog ended (blind, frozen) is re-uploaded only while live: a blind
-                # daemon would let it expire again at once.
-                state = self.health.get("arm")
-                lost = state == "disconnected" or (self.live and state == "script_stopped")
-                if lost and arm_reconnect.due(now):
-                    arm_reconnect.attempt(now)
-                elif arm_poll is None and not arm_reconnect.pending:
-                    assert self.arm_worker is not None
-                    arm_poll = self.arm_worker.submit(self._probe_arm)
-            if grip is not None:
-                if grip_reconnect is not None and grip_reconnect.outcome(now):
-                    self._gripper_lost = False
-                    self.metrics.reconnects.labels(device="gripper").inc()
-                    next_grip = now  # the next poll says how it holds
-                if grip_poll is not None and grip_poll.done():
-                    self._on_gripper_health(grip_poll)
-                    grip_poll = None
-                elif grip_poll is not None and now - grip_sent > GRIPPER_HANG_S:
-                    # The poll queues behind whatever the gripper thread runs: either has hung.
-                    self._gripper_condition(f"not answering: a call has not returned for {now - grip_sent:.1f} s")
-                reconnecting = grip_reconnect is not None and grip_reconnect.pending
-                if self._gripper_lost and grip_reconnect is not None and grip_poll is None:
-                    # Its port was dropped (an unplugged adapter): reopen it, with back-off; nothing else is sent.
-                    grip_reconnect.attempt(now)
-                elif grip_poll is None and not reconnecting and now >= next_grip:
-                    assert self.gripper_worker is not None
-                    grip_poll = self.gripper_worker.submit(grip.read_status)
-                    grip_sent = now
-                    next_grip = now + self.gripper_health_period_s
-            self.stats.health_polls += 1
-            with contextlib.suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(self._stop.wait(), self.health_period_s)
-
-    def _probe_arm(self) -> str:
-        """On the arm thread: ``ok``, ``disconnected``, ``protective_stop`` or ``script_stopped`` (read_state
-        counts the metrics)."""
-        arm = self.arm
-        assert arm is not None
-        st = arm.read_state()
-        if not st.connected or not arm.is_connected():
-            return "disconnected"
-        if st.protective_stop:
-            return "protective_stop"
-        return "ok" if arm.control_script_running() else "script_stopped"
-
-    def _on_arm_health(self, fut: Any) -> None:
-        exc = fut.exception()
-        if exc is not None:
-            self.metrics.device_errors.labels(device="arm", kind="health").inc()
-            log.error("arm: health poll failed: %s", exc)
-            return
-        state, before = fut.result(), self.health.get("arm")
-        self.health["arm"] = state
-        if state == "protective_stop":
-            self.reaction.arm_halted()  # the controller halted it: a stop it refused is no longer owed
-        elif state != "disconnected":
-            self.reaction.retry_stop()  # a stop the controller refused or that failed, until one is taken
-        if state == before:
-            return
-        if state == "disconnected":
-            log.error("arm: RTDE link lost; reconnecting (slipd cannot stop the arm until the link is back)")
-        elif state == "protective_stop":
-            log.error("arm: protective stop; slipd does not unlock it: inspect the cell, unlock from the pendant")
-        elif state == "script_stopped":
-            stopped = self.reaction.last_arm_stop()
-            if self.blind is not None or (stopped is not None and time.monotonic() - stopped < OWN_STOP_S):
-                # slipd's own doing: a blind daemon stops kicking the controller's watchdog, and its stops end the
-                # control script. Nothing to alarm anyone about beyond the episode's own line.
-                log.info("arm: control script ended after slipd's stop; re-uploading it once decisions are live")
-            else:
-                log.error("arm: control script ended (watchdog expired or stopped from the pendant); "
-                          "re-uploading it once decisions are live")
-        elif before is not None:
-            log.warning("arm: healthy again (was %s)", before)
-
-    def _on_gripper_health(self, fut: Any) -> None:
-        exc = fut.exception()
-        if exc is not None:
-            problem = f"not answering: {exc}"
-            # A port the driver dropped after an I/O error, or never had: reconnected by the health task.
-            self._gripper_lost = getattr(exc, "kind", None) in ("io", "not_connected")
-        else:
-            st = fut.result()
-            if st.healthy:
-                problem = ""
-            elif st.hardware_error:
-                problem = f"hardware error {', '.join(st.hardware_errors)}"
-            else:
-                problem = "torque off"
-        self._gripper_condition(problem)
-
-    def _gripper_condition(self, problem: str) -> None:
-        """The gripper's condition ("" healthy): one fail-safe when it turns bad, an owed tighten sent when healthy."""
-        before = self.health.get("gripper")
-        self.health["gripper"] = problem or "ok"
-        if problem and (before is None or before == "ok"):
-            self.metrics.device_errors.labels(device="gripper", kind="unhealthy").inc()
-            log.error("gripper: %s", problem)
-            self._fail_safe("gripper_fault")
-        elif not problem:
-            if before not in (None, "ok"):
-                log.warning("gripper: healthy again (was: %s)", before)
-            # A tighten that failed is still owed, whether or not a poll saw the servo silent: a silence shorter
-            # than the poll period fails a tighten (its retries) unseen.
-            self.reaction.retry_tighten()
-
     # ---------------------------------------------------------------- lifecycle
     async def run(self, sensor_port: str | None = None, duration_s: float | None = None) -> LoopStats:
         """Open the sensor, run until ``stop()`` (or ``duration_s``), then close everything."""
@@ -935,7 +747,8 @@ class Daemon:
         gc.collect()
         gc.freeze()
         supervisor = asyncio.create_task(self._supervise(), name="supervision")
-        health = asyncio.create_task(self._health(), name="device health") if self.health_period_s > 0 else None
+        health = (asyncio.create_task(self.device_health.run(), name="device health") if self.health_period_s > 0
+                  else None)
         for task in (supervisor, health):
             if task is not None:
                 task.add_done_callback(self._on_task_end)

@@ -12,6 +12,7 @@ nothing can take the port between the check and the run.
 from __future__ import annotations
 
 import errno
+import os
 from typing import TYPE_CHECKING, Any
 
 from slipd.config import ConfigError
@@ -39,11 +40,23 @@ def open_recorder(cfg: SlipdConfig, source: str, meta: dict[str, Any],
     from slipd.daemon.recorder import Recorder
 
     try:
-        return Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz, sensors=cfg.sensor.sensors, meta=meta,
-                                    metrics=metrics)
+        recorder = Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz, sensors=cfg.sensor.sensors,
+                                        meta=meta, metrics=metrics)
     except OSError as exc:
         raise ConfigError([f"{source}: recorder.directory: {cfg.recorder.directory} cannot be used: "
                            f"{exc.strerror or exc}"]) from exc
+    try:
+        # A directory that exists with the right mode can still refuse files (a read-only mount, a full disk): write
+        # one and remove it.
+        probe = recorder.directory / f".slipd-write-check-{os.getpid()}"
+        with open(probe, "wb") as f:
+            f.write(b"slipd")
+        probe.unlink()
+    except OSError as exc:
+        recorder.close()
+        raise ConfigError([f"{source}: recorder.directory: {cfg.recorder.directory} is not writable: "
+                           f"{exc.strerror or exc}"]) from exc
+    return recorder
 
 
 def serve_metrics(cfg: SlipdConfig, metrics: Metrics) -> WSGIServer | None:

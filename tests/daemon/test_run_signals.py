@@ -276,3 +276,146 @@ def test_timestamps_that_jump_are_counted_and_logged_once_per_episode(tiny_model
     assert rc == 0, out[-3000:]
     logged = [line for line in out.splitlines() if "sensor: its timestamps" in line]
     assert len(logged) == 2 and "ran backwards" in logged[0] and "jumped ahead" in logged[1], out[-3000:]
+
+
+# ------------------------------------------------------------------------------------------ recordings lost
+def _mount_namespaces() -> bool:
+    """A private mount namespace can be made and entered here (root, util-linux): the read-only directory tests."""
+    import shutil
+
+    if os.geteuid() != 0 or not shutil.which("unshare") or not shutil.which("nsenter"):
+        return False
+    return subprocess.run(["unshare", "-m", "true"], capture_output=True).returncode == 0
+
+
+needs_mounts = pytest.mark.skipif(not _mount_namespaces(), reason="needs root and mount namespaces (unshare, nsenter)")
+
+
+def _in_namespace(directory: Path, cmd: list[str], read_only: bool = False) -> list[str]:
+    """``cmd`` in a mount namespace of its own where ``directory`` is a bind mount (read-only from the start when
+    asked); ``set_read_only`` remounts it read-only there later."""
+    ro = f" && mount -o remount,bind,ro {directory} {directory}" if read_only else ""
+    return ["unshare", "-m", "--propagation", "private", "sh", "-c",
+            f"mount --bind {directory} {directory}{ro} && exec \"$0\" \"$@\"", *cmd]
+
+
+def _set_read_only(pid: int, directory: Path, read_only: bool) -> None:
+    mode = "ro" if read_only else "rw"
+    subprocess.run(["nsenter", "-t", str(pid), "-m", "mount", "-o", f"remount,bind,{mode}", str(directory)],
+                   check=True, capture_output=True)
+
+
+@needs_mounts
+def test_a_read_only_recording_directory_at_start_up_exits_3_before_any_device(tiny_model_json: Path,
+                                                                              tmp_path: Path) -> None:
+    rec = tmp_path / "recordings"
+    rec.mkdir(mode=0o750)
+    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor:
+        cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port, recorder={"enabled": True,
+                                                                                    "directory": str(rec)})
+        path = _write(tmp_path / "ro.yaml", cfg)
+        r = subprocess.run(_in_namespace(rec, [sys.executable, "-m", "slipd", "run", "--config", str(path)],
+                                         read_only=True), capture_output=True, text=True, timeout=120)
+        packets = servo.packets_received
+    assert r.returncode == 3, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "recorder.directory" in lines[0] and "Read-only file system" in lines[0], r.stderr
+    assert packets == 0
+
+
+@needs_mounts
+def test_a_recording_directory_gone_read_only_counts_each_lost_recording_in_one_line_and_recovers(
+        tiny_model_json: Path, tmp_path: Path) -> None:
+    """Each lost recording was an ERROR with two tracebacks (about 25 lines) and no metric counted it."""
+    rec = tmp_path / "recordings"
+    rec.mkdir(mode=0o750)
+    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor:
+        cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port, recorder={"enabled": True,
+                                                                                    "directory": str(rec)})
+        path = _write(tmp_path / "slipd.yaml", cfg)
+        port = cfg["metrics"]["port"]
+        d = _Daemon.__new__(_Daemon)
+        d.port, d.log = port, path.with_suffix(".log")
+        d._out = open(d.log, "w")  # noqa: SIM115 -- closed by stop()
+        d.proc = subprocess.Popen(_in_namespace(rec, [sys.executable, "-m", "slipd", "run", "--config", str(path)]),
+                                  stdout=d._out, stderr=subprocess.STDOUT, text=True,
+                                  env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        lost = 'slipd_recordings_failed_total{reason="read_only"}'
+        try:
+            sensor.start()
+            d.wait_live()
+            _set_read_only(d.proc.pid, rec, True)
+            for k in (1, 2):  # a fail-safe's recording is written at once: two stalls, two lost recordings
+                sensor.stall(600)
+                d.wait_for(f"lost recording {k}", lambda k=k: d.metric(lost) == k)
+                d.wait_live()
+            _set_read_only(d.proc.pid, rec, False)
+            sensor.stall(600)  # room again: the next one is written
+            d.wait_for("a recording written", lambda: any(p.suffix == ".npz" for p in rec.iterdir()))
+            assert d.metric(lost) == 2
+            rc = d.stop()
+        finally:
+            if d.proc.poll() is None:
+                d.stop(signal.SIGKILL)
+        out = d.output()
+    assert rc == 0, out[-3000:]
+    assert "Traceback" not in out, out[-3000:]
+    lines = [line for line in out.splitlines() if "recorder:" in line and "lost" in line]
+    assert len(lines) == 2 and all("(read_only)" in line and "Read-only file system" in line for line in lines), out
+
+
+# ------------------------------------------------------------------------------------------ logs that tell the truth
+def test_a_fail_safe_episode_is_two_lines_and_slipds_own_stop_of_the_arm_is_no_error(tiny_model_json: Path,
+                                                                                    tmp_path: Path) -> None:
+    """Each fail-safe logged an ERROR "control script ended (watchdog expired or stopped from the pendant)" that
+    slipd's own stop had caused, beside two lines of its own: an unplug storm of 55 episodes gave 98 ERROR lines."""
+    from slipd.sim.devices.ur_controller import URControllerProcess
+
+    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor, \
+            URControllerProcess("127.0.0.13") as ur:
+        cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)
+        cfg["arm"].update(enabled=True, host=ur.host, watchdog_s=0.3)
+        cfg["reaction"].update(actions=["stop_arm", "tighten_gripper"], on_failsafe="stop_arm")
+        path = _write(tmp_path / "slipd.yaml", cfg)
+        with _running(path, cfg["metrics"]["port"]) as d:
+            sensor.start()
+            d.wait_live()
+            ur.wait_for(lambda s: s.control_script_running and s.watchdog_hz > 0, timeout=30.0, what="kicked")
+            mark = len(d.output().splitlines())
+            for k in (1, 2, 3):
+                sensor.unplug()
+                time.sleep(0.5)
+                sensor.replug()
+                d.wait_for(f"episode {k} over",
+                           lambda k=k: d.output().count("live again after") == k and d.metric("slipd_live") == 1.0)
+                ur.wait_for(lambda s: s.control_script_running, timeout=30.0, what="the script back")
+            time.sleep(1.0)
+            rc = d.stop()
+        out = d.output()
+    assert rc == 0, out[-3000:]
+    episode = out.splitlines()[mark:]
+    loud = [line for line in episode if " WARNING " in line or " ERROR " in line]
+    assert len(loud) == 6, "\n".join(loud)  # per episode: "blind: ...; fail-safe" and "live again after ..."
+    assert sum(" ERROR " in line for line in loud) == 3 and all("blind:" in line for line in loud if " ERROR " in line)
+    assert any("control script ended after slipd's stop" in line and " INFO " in line for line in episode), \
+        "\n".join(episode)
+
+
+def test_frames_missing_before_the_daemon_is_live_are_counted_apart_from_drops(tiny_model_json: Path,
+                                                                              tmp_path: Path) -> None:
+    """The controller streams before slipd reads the port: the frames it could not hold showed as ~1000 dropped
+    frames after every start, which tripped the dropped-frames alert on each restart."""
+    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True, max_pending_bytes=16 * 1024) as sensor:
+        sensor.start()  # before the daemon: its output piles up and overflows
+        time.sleep(1.0)
+        cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)
+        path = _write(tmp_path / "slipd.yaml", cfg)
+        with _running(path, cfg["metrics"]["port"]) as d:
+            d.wait_live()
+            time.sleep(1.0)
+            text = _scrape(d.port)
+            rc = d.stop()
+    assert rc == 0
+    assert sensor.frames_discarded > 0  # the emulator did lose frames before the port was read
+    assert _value(text, "slipd_frames_discarded_at_start_total") > 0, text
+    assert _value(text, "slipd_dropped_frames_total") == 0, text
