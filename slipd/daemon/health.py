@@ -223,8 +223,8 @@ class DeviceHealth:
         self.d.health["gripper"] = problem or "ok"
         if problem and (before is None or before == "ok"):
             self.d.metrics.device_errors.labels(device="gripper", kind="unhealthy").inc()
-            log.error("gripper: %s", problem)
-            self.d._fail_safe("gripper_fault")
+            log.error("gripper: %s; fail-safe (%s)", problem, self.d.reaction.on_failsafe)
+            self.d._fail_safe("gripper_fault", logged=True)
         elif not problem:
             if before not in (None, "ok"):
                 log.warning("gripper: healthy again (was: %s)", before)

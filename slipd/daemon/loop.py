@@ -11,11 +11,8 @@ one call and, on a rising alarm edge, ``Reaction`` hands the arm stop and the gr
 device threads at once. Nothing on this path blocks. With two sensors (``sensor.sensors: 2``, one array
 per finger) each finger has its own decisions and a rising edge on either reacts.
 
-A supervision task runs on absolute deadlines (``next = start + k * period``; a late tick is counted
-as an overrun and the schedule is not shifted); while live it skips the ticks before the earliest moment a
-blind cause can arise (the fresh-data and decision deadlines, the next ping or kick), and a non-finite burst
-wakes it at once. It owns **liveness**, defined once here
-(``Daemon._blind_cause``): a valid decision on a window of fresh samples within the stall timeout
+A supervision task (``slipd.daemon.liveness``) runs on absolute deadlines and owns **liveness**, defined once
+there (``Liveness.blind_cause``): a valid decision on a window of fresh samples within the stall timeout
 (``sensor.stall_timeout_ms``). A sample is fresh when its packet counter advanced (repeats are dropped by
 the reader), every value the detector reads is finite and it is not bit-identical to the one before (a real sensor is
 never noise-free). Blind causes, each failing safe (stop the arm, keep the grip) once per episode with
@@ -42,7 +39,6 @@ signals (``slipd.daemon.signals``) and reloads (``slipd.daemon.reload``).
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import contextlib
 import gc
 import logging
@@ -57,6 +53,7 @@ import numpy as np
 from slipd.daemon.devices import close_quietly
 from slipd.daemon.grip_control import GripControlSettings
 from slipd.daemon.health import GRIPPER_HEALTH_PERIOD_S, HEALTH_PERIOD_S, DeviceHealth
+from slipd.daemon.liveness import Liveness
 from slipd.daemon.rate import RateMonitor
 from slipd.daemon.reaction import Reaction
 from slipd.daemon.rezero import LoadedZero
@@ -87,28 +84,9 @@ DEVICE_CLOSE_TIMEOUT_S = 5.0
 (10 s), so that a hung device is left behind and the process still exits before it is killed."""
 
 
-def _settle(fut: asyncio.Future[None]) -> None:
-    if not fut.done():
-        fut.set_result(None)
-
-
-SUPERVISION_PERIOD_S = 0.005
-"""Supervision tick for short stall timeouts (up to 25 ms); longer ones allow up to SUPERVISION_MAX_PERIOD_S."""
-SUPERVISION_MAX_PERIOD_S = 0.010
-
-
-def supervision_period(stall_s: float) -> float:
-    """Supervision tick for a stall timeout: a fifth of it (a stall is seen at most 20 % late), kept within
-    [SUPERVISION_PERIOD_S, SUPERVISION_MAX_PERIOD_S]: 5 ms as before for timeouts up to 25 ms, 10 ms (half
-    the wake-ups) from 50 ms, the real sensor's default."""
-    return min(max(stall_s / 5, SUPERVISION_PERIOD_S), SUPERVISION_MAX_PERIOD_S)
-
 NONFINITE_BRIDGE_S = 0.005
 """Non-finite samples the feature stage may bridge (it holds the last finite value): a few ms. Longer
 runs make every decision one on a frozen picture of the grasp, so liveness fails."""
-KICKS_PER_WATCHDOG = 4
-"""The arm's controller-side watchdog is kicked this many times per ``arm.watchdog_s`` while live: a
-late kick or two (a busy arm thread, a slow machine) must not halt the arm."""
 MAX_KEPT = 1000
 """Alarms kept in ``LoopStats.alarms`` (the oldest are dropped): the daemon's state stays bounded."""
 
@@ -171,6 +149,7 @@ class Daemon:
         )
         self.notifier = notifier
         self.device_health = DeviceHealth(self)
+        self.liveness = Liveness(self)
         self._crashed: BaseException | None = None  # a crash of supervision or the health task (``_on_task_end``)
         self.recorder: Recorder | None = None
         self.stats = LoopStats()
@@ -202,7 +181,6 @@ class Daemon:
         self._decided_t: float | None = None  # latest valid decision on fresh data (None: none this episode)
         self._decision_due = now  # a valid decision is overdue after this (re-based on every restart)
         self._decision_frames = 0  # the reader's frame count by which that decision's frames are all in
-        self._wake: asyncio.Future[None] | None = None  # the supervision task's nap, while it naps
         self._nonfinite_seen = 0
         self._last_t_us: int | None = None  # sensor time of the latest frame handled (a fail-safe recording's end)
         self._bias_until: float | None = None  # after a reconnect: frames until then are the sensor zeroing itself
@@ -239,7 +217,7 @@ class Daemon:
         rate = self.rate
         rate.push(block.counter, block.t_us, block.discontinuity)  # also while the sensor zeroes itself
         if rate.outside and self.blind is None:
-            self._wake_supervisor()
+            self.liveness.wake()
         if self._bias_until is not None:
             if time.monotonic() < self._bias_until:
                 return  # the sensor zeroes itself after a reconnect: these frames are not decided on
@@ -430,7 +408,7 @@ class Daemon:
                 run = 0 if ok else run + 1
                 if run > self._nonfinite_bridge:
                     self._nonfinite_burst = True
-                    self._wake_supervisor()
+                    self.liveness.wake()
                     self._nonfinite_sensor = s
             self._nonfinite_run[s] = run
 
@@ -464,7 +442,7 @@ class Daemon:
     def _on_disconnect(self, reason: str) -> None:
         self._restart()
         self.rate.restart()
-        self._go_blind("sensor_lost", f"sensor lost: {reason}")
+        self.liveness.go_blind("sensor_lost", f"sensor lost: {reason}")
 
     def _on_reconnect(self) -> None:
         """The sensor is back, perhaps power-cycled: set its rate again and, with ``tare: bias_command``, zero it
@@ -531,7 +509,8 @@ class Daemon:
 
     def _expect_decision(self, now: float) -> None:
         """The next valid decision: due once the detector has its samples, plus the stall timeout; the reader's frame
-        count by which its frames are all in tells ``_blind_cause`` whether an overdue one is the stream's fault."""
+        count by which its frames are all in tells ``Liveness.blind_cause`` whether an overdue one is the stream's
+        fault."""
         need = self.detector.samples_to_decision()
         self._decision_due = now + self._stall_s + need / self.cfg.sensor.rate_hz
         self._decision_frames = need + (self.sensor.frames if self.sensor is not None else 0)
@@ -552,164 +531,12 @@ class Daemon:
         self.stats.failsafes += 1
         self.reaction.failsafe(reason, logged)
 
-    def _go_blind(self, cause: str, detail: str) -> None:
-        """Liveness lost: one log line and one fail-safe per episode, whatever follows inside it."""
-        self.live = False
-        self.metrics.live.set(0)
-        self._decided_t = None  # live again only after a new valid decision on fresh data
-        if self.blind is not None:
-            return
-        self.blind = cause
-        # The episode's one line at its start (its end: "live again after"); the reaction adds none.
-        log.error("blind: %s; fail-safe (%s)", detail, self.reaction.on_failsafe)
-        self._fail_safe(cause, logged=True)
-        if self.recorder is not None and self._last_t_us is not None:
-            # What led to the fault, written now: the frames after it may never come (a stalled or lost sensor).
-            self._note_offset()
-            self.recorder.trigger(self._last_t_us, "failsafe", wait_after=False, cause=cause, detail=detail)
-
     def _note_offset(self) -> None:
         """The recording about to start replays with the tare offset the daemon used (``slipd replay``): an alarm's,
         and a fail-safe's (without it replay re-tared from frames taken under load, and every decision differed)."""
         offset = getattr(self.detector, "offset", None)
         if offset is not None and self.recorder is not None:
             self.recorder.meta["tare_offset"] = np.asarray(offset).tolist()
-
-    def _blind_cause(self, now: float) -> tuple[str, str] | None:
-        """Liveness, defined once: (cause, detail) when the daemon cannot see, else None. Live means no
-        cause and a valid decision on fresh data since the last episode (``_decided_t``)."""
-        stall = self._stall_s
-        sensor = self.sensor
-        if sensor is not None and not sensor.connected:
-            return "sensor_lost", "sensor port closed"
-        if self.rate.outside:
-            return "rate", self.rate.describe()
-        if self._nonfinite_burst or (self._nonfinite_run > self._nonfinite_bridge).any():
-            worst = int(np.argmax(self._nonfinite_run)) if not self._nonfinite_burst else self._nonfinite_sensor
-            return "sensor_nonfinite", (f"non-finite samples for more than {self._nonfinite_bridge} frames"
-                                        + self._which(worst))
-        if now - self._fresh_t > stall:
-            ms = (now - self._fresh_t) * 1e3
-            last = sensor.last_frame_time if sensor is not None else None
-            if last is None:
-                return "sensor_silent", f"no frame for {ms:.0f} ms since start-up"
-            if now - last > stall:
-                return "sensor_stall", f"no frame for {(now - last) * 1e3:.0f} ms"
-            repeat = sensor.last_repeat_time
-            if repeat is not None and repeat >= self._fresh_t:
-                return "sensor_counter_stuck", f"packet counter not advancing for {ms:.0f} ms"
-            return "sensor_frozen", f"bit-identical frames for {ms:.0f} ms" + self._which(
-                int(np.argmin(self._fresh_ts)))
-        if now > self._decision_due:
-            if sensor is not None and sensor.frames < self._decision_frames:
-                # The stream stopped short of the frame that decision needed. Its last frames were stamped fresh when
-                # they were read, which on a busy machine can be well after they arrived, so the decision's
-                # deadline may pass first: it is still a stall (once seen as no_decisions in a CI run).
-                last = sensor.last_frame_time
-                since = "" if last is None else f" (none for {(now - last) * 1e3:.0f} ms)"
-                return "sensor_stall", f"the frames of the decision due never came{since}"
-            return "no_decisions", "frames arrive but no valid decision came when due"
-        return None
-
-    def _which(self, sensor: int) -> str:
-        """`` on sensor N`` when there are several (the log line says which finger is blind)."""
-        return f" on sensor {sensor}" if self.sensors > 1 else ""
-
-    # -------------------------------------------------------------- supervision
-    async def _supervise(self) -> None:
-        stall_s = self._stall_s
-        period = supervision_period(stall_s)
-        max_late = self.cfg.control.max_overrun_ms / 1e3
-        start = time.monotonic()
-        # The first frame, and the first decision, are due from now on (the tare wait is over).
-        self._fresh_t = start
-        self._fresh_ts[:] = start
-        self._expect_decision(start)
-        k = 0
-        last_ping = 0.0
-        ping_every = None
-        if self.notifier is not None and self.cfg.control.watchdog:
-            from slipd.daemon.sdnotify import watchdog_interval
-
-            wd = watchdog_interval()
-            ping_every = wd / 2 if wd else None
-        kick = self.arm if self.arm_worker is not None and self.arm is not None else None
-        kick_every = self.cfg.arm.watchdog_s / KICKS_PER_WATCHDOG
-        kicking: concurrent.futures.Future[None] | None = None
-        last_kick = 0.0
-        while not self._stop.is_set():
-            k += 1
-            deadline = start + k * period
-            if self.live and self.blind is None:
-                # Live: no cause can arise before the earliest of the fresh-data and decision deadlines (a
-                # disconnect and a non-finite burst wake this task themselves), so sleep until then, or until
-                # the next ping or kick, rather than every period: 1 wake-up per stall timeout, not 5.
-                due = min(self._fresh_t + stall_s, self._decision_due)
-                if ping_every:
-                    due = min(due, last_ping + ping_every)
-                if kick is not None:
-                    due = min(due, last_kick + kick_every)
-                if due > deadline:
-                    k = int((due - start) / period)
-                    deadline = max(deadline, due)
-            delay = deadline - time.monotonic()
-            if delay > 0:
-                await self._nap(delay)
-            now = time.monotonic()
-            if now - deadline > max_late:
-                self.stats.overruns += 1
-                self.metrics.overruns.inc()
-                # Absolute schedule: skip the ticks that are already past instead of bunching them.
-                k = int((now - start) / period)
-            fault = self._blind_cause(now)
-            self._nonfinite_burst = False
-            if fault is not None:
-                self._go_blind(*fault)
-                continue
-            if self._decided_t is None or not (self.started_live or self.rate.known):
-                continue  # starting (or the rate not measured yet), or an episode not over
-            if not self.live:
-                self._on_live()
-            if ping_every and now - last_ping >= ping_every:
-                self.notifier.watchdog()  # type: ignore[union-attr]
-                last_ping = now
-            if kick is not None and now - last_kick >= kick_every and (kicking is None or kicking.done()):
-                assert self.arm_worker is not None
-                kicking = self.arm_worker.submit(kick.kick_watchdog)
-                last_kick = now
-
-    async def _nap(self, delay: float) -> None:
-        """Sleep ``delay`` seconds, or until ``_wake_supervisor``."""
-        loop = asyncio.get_running_loop()
-        fut: asyncio.Future[None] = loop.create_future()
-        self._wake = fut
-        handle = loop.call_later(delay, _settle, fut)
-        try:
-            await fut
-        finally:
-            handle.cancel()
-            self._wake = None
-
-    def _wake_supervisor(self) -> None:
-        """A cause arose between two deadlines (a non-finite burst): let the supervision task look now."""
-        if self._wake is not None:
-            _settle(self._wake)
-
-    def _on_live(self) -> None:
-        """The first valid decision on fresh data: at start-up READY=1, after an episode one log line."""
-        self.live = True
-        self.metrics.live.set(1)
-        if self.blind is not None:
-            log.warning("live again after %s", self.blind)
-            self.blind = None
-        if not self.started_live:
-            # Also after a blind episode before it (a sensor that starts streaming late): under Type=notify systemd
-            # kills a daemon that never says READY=1.
-            self.started_live = True
-            if self.sensor is not None:
-                self.sensor.starting = False  # counter gaps from now on are losses (slipd_dropped_frames_total)
-            if self.notifier is not None:
-                self.notifier.ready(f"running: model {self.cfg.model.manifest.name}")
 
     # ---------------------------------------------------------------- lifecycle
     async def run(self, sensor_port: str | None = None, duration_s: float | None = None) -> LoopStats:
@@ -746,7 +573,7 @@ class Daemon:
         # loop for ~20 ms at the worst, tools/bench_daemon.py).
         gc.collect()
         gc.freeze()
-        supervisor = asyncio.create_task(self._supervise(), name="supervision")
+        supervisor = asyncio.create_task(self.liveness.run(), name="supervision")
         health = (asyncio.create_task(self.device_health.run(), name="device health") if self.health_period_s > 0
                   else None)
         for task in (supervisor, health):

@@ -298,10 +298,10 @@ def test_a_stream_that_stops_short_of_a_decision_is_a_stall_even_when_its_last_f
     daemon._fresh_ts[:] = read
     now = daemon._decision_due + 0.001
     assert now - daemon._fresh_t < daemon._stall_s  # by its stamp the data is not stale yet
-    cause = daemon._blind_cause(now)
+    cause = daemon.liveness.blind_cause(now)
     assert cause is not None and cause[0] == "sensor_stall", cause
     sensor.frames += 3  # every frame it needed came, and still no decision: the detector's fault
-    cause = daemon._blind_cause(now)
+    cause = daemon.liveness.blind_cause(now)
     assert cause is not None and cause[0] == "no_decisions", cause
 
 
@@ -600,7 +600,7 @@ def test_a_fail_safe_recording_carries_the_tare_offset_the_daemon_used(base_cfg,
     daemon.detector.push_many(force, np.arange(300) * 1000)  # the start-up tare: an offset of about (0.2, -0.1, 1.0)
     daemon.recorder.push_frames(np.arange(300) * 1000, force, np.zeros_like(force))
     daemon._last_t_us = 299_000
-    daemon._go_blind("sensor_stall", "no frame for 60 ms")
+    daemon.liveness.go_blind("sensor_stall", "no frame for 60 ms")
     (path,) = daemon.recorder.wait(5)
     rec = Recording.load(path)
     assert rec.meta["trigger"]["reason"] == "failsafe"
