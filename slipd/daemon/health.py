@@ -17,12 +17,9 @@ import concurrent.futures
 import contextlib
 import logging
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from slipd.daemon.worker import DeviceWorker
-
-if TYPE_CHECKING:
-    from slipd.daemon.loop import Daemon
 
 log = logging.getLogger("slipd.daemon.loop")  # the daemon's lines, as before the split
 
@@ -83,7 +80,9 @@ class _Reconnects:
 class DeviceHealth:
     """The health task of one daemon (``run``) and its reactions, on the loop's thread."""
 
-    def __init__(self, daemon: Daemon) -> None:
+    def __init__(self, daemon: Any) -> None:
+        # The ``slipd.daemon.loop.Daemon`` that owns this part of it; not imported for its type, which would tie the
+        # two modules in an import cycle.
         self.d = daemon
         self.gripper_lost = False
         """The gripper's port was dropped (an I/O error): the health task reopens it."""

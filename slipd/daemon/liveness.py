@@ -16,12 +16,9 @@ import asyncio
 import concurrent.futures
 import logging
 import time
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from slipd.daemon.loop import Daemon
 
 log = logging.getLogger("slipd.daemon.loop")  # the daemon's lines, as before the split
 
@@ -50,7 +47,9 @@ late kick or two (a busy arm thread, a slow machine) must not halt the arm."""
 class Liveness:
     """Blind causes, episodes and the supervision task of one daemon, on the loop's thread."""
 
-    def __init__(self, daemon: Daemon) -> None:
+    def __init__(self, daemon: Any) -> None:
+        # The ``slipd.daemon.loop.Daemon`` that owns this part of it; not imported for its type, which would tie the
+        # two modules in an import cycle.
         self.d = daemon
         self._wake: asyncio.Future[None] | None = None  # the supervision task's nap, while it naps
 
@@ -165,7 +164,7 @@ class Liveness:
             if not self.d.live:
                 self.on_live()
             if ping_every and now - last_ping >= ping_every:
-                self.d.notifier.watchdog()  # type: ignore[union-attr]
+                self.d.notifier.watchdog()
                 last_ping = now
             if kick is not None and now - last_kick >= kick_every and (kicking is None or kicking.done()):
                 assert self.d.arm_worker is not None
