@@ -549,7 +549,7 @@ def main(argv: list[str] | None = None) -> int:
 
     full = args.fuzz_pts >= 100_000 and args.fuzz_config >= 100_000 and args.soak_seconds >= 600
     cmd = (f"python tools/reliability_report.py --fuzz-pts {args.fuzz_pts} --fuzz-config {args.fuzz_config} "
-           + (f"--soak-json {args.soak_json.name}" if args.soak_json is not None
+           + (f"--soak-json {args.soak_json}" if args.soak_json is not None
               else f"--soak-seconds {args.soak_seconds:g}") + (" --random-model" if args.random_model else ""))
     lines = [
         "# slipd reliability report",
