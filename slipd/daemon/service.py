@@ -38,6 +38,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("slipd.service")
 
+
 @dataclass
 class Service:
     """A configured daemon with its model loaded and devices open, ready to ``run``."""
