@@ -7,7 +7,7 @@ one line on stderr and an exit code. Each subcommand imports its package only wh
 
 Exit codes (docs/configuration.md):
     0 success; 1 runtime failure; 2 usage error; 3 invalid configuration; 4 invalid model;
-    5 device failure at start-up.
+    5 device failure at start-up; 6 a resource of this machine unavailable at start-up (the metrics port in use).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import Any
 
 from slipd import __version__
 
-EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, EXIT_CONFIG, EXIT_MODEL, EXIT_DEVICE = 0, 1, 2, 3, 4, 5
+EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, EXIT_CONFIG, EXIT_MODEL, EXIT_DEVICE, EXIT_RESOURCE = 0, 1, 2, 3, 4, 5, 6
 
 
 def _err(text: object) -> None:
@@ -35,7 +35,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     import logging
 
     from slipd.config import ConfigError
-    from slipd.daemon.service import DeviceError, StopRequested, prepare
+    from slipd.daemon.service import DeviceError, ResourceError, StopRequested, prepare
     from slipd.detect.manifest import ModelError
     from slipd.io.sensor import SensorError
 
@@ -52,6 +52,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     except DeviceError as exc:
         _err(f"slipd: {exc}")
         return EXIT_DEVICE
+    except ResourceError as exc:
+        _err(f"slipd: {exc}")
+        return EXIT_RESOURCE
     try:
         service.run()
     except StopRequested:

@@ -22,6 +22,10 @@ FAST_BUCKETS = (
     1e-3, 1.5e-3, 2e-3, 3e-3, 5e-3, 7.5e-3, 10e-3, 25e-3, 50e-3, 0.1,
 )
 
+RECORDING_FAILURES = ("no_space", "read_only", "permission", "io", "backlog")
+"""Why a recording was lost (``slipd_recordings_failed_total{reason}``): the disk full, the file system read-only,
+no permission, another I/O error, or more writes pending than ``Recorder.max_pending``."""
+
 
 class Metrics:
     """All metric objects of one daemon, on one registry."""
@@ -36,6 +40,28 @@ class Metrics:
         self.dropped_frames = Counter(
             "slipd_dropped_frames", "Frames missing according to the packet counter", registry=r
         )
+        self.frames_discarded_at_start = Counter(
+            "slipd_frames_discarded_at_start",
+            "Frames missing by the packet counter before the first live decision (the controller streamed before the "
+            "port was open, or while the daemon started): not losses of a running daemon",
+            registry=r,
+        )
+        self.sensor_rate = Gauge(
+            "slipd_sensor_rate_hz", "Stream rate measured from the controller's clock and packet counter (0: not yet)",
+            registry=r,
+        )
+        self.timestamp_jumps = Counter(
+            "slipd_timestamp_jumps", "Controller timestamps that ran backwards or jumped ahead of the packet counter",
+            ["kind"], registry=r,
+        )
+        for kind in ("backwards", "forward"):
+            self.timestamp_jumps.labels(kind=kind)
+        self.recordings_failed = Counter(
+            "slipd_recordings_failed", "Recordings lost, by reason (no_space, read_only, permission, io, backlog)",
+            ["reason"], registry=r,
+        )
+        for reason in RECORDING_FAILURES:
+            self.recordings_failed.labels(reason=reason)
         self.reconnects = Counter("slipd_reconnects", "Sensor reconnections", ["device"], registry=r)
         self.rezeros = Counter(
             "slipd_sensor_rezeros", "Software zeros in free air after a bias the sensor took under a grasp", registry=r

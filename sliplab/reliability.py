@@ -2,6 +2,7 @@
 
     python tools/reliability_report.py                                   # fuzz 100 000 + 100 000, soak 600 s
     python tools/reliability_report.py --fuzz-pts 20000 --fuzz-config 5000 --soak-seconds 60 --random-model
+    python tools/reliability_report.py --soak-json soak.log   # the soak's figures from a finished soak_live --json run
 
 The fault table is data (``FAULTS`` below); each test node id in it is checked to exist in its file
 (parsed, not imported) before anything is written, so the report cannot cite a test that is gone. The
@@ -23,8 +24,12 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from sliplab.paths import ROOT
+
+if TYPE_CHECKING:
+    from sliplab.soak_live import SoakReport
 
 
 @dataclass(frozen=True)
@@ -40,6 +45,7 @@ class Fault:
 F = "tests/daemon/test_faults.py::"
 L = "tests/daemon/test_liveness.py::"
 R = "tests/daemon/test_reaction.py::"
+S = "tests/daemon/test_run_signals.py::"
 FAULTS: tuple[Fault, ...] = (
     Fault("Sensor stream stalls (no frame for `sensor.stall_timeout_ms`)",
           "Blind: one fail-safe per episode (stop the arm, policy `reaction.on_failsafe`; keep the grip), one "
@@ -356,6 +362,54 @@ FAULTS: tuple[Fault, ...] = (
            "tests/detect/test_detector.py::test_a_restart_keeps_the_drift_the_gate_followed_and_a_tare_under_way_starts_"
            "again",
            "tests/detect/test_detector.py::test_a_release_forgets_the_friction_estimate_even_after_a_drift")),
+    Fault("The metrics port in use, the recording directory read-only, a device path missing at start-up",
+          "Found before any device is touched (no servo packet, no control script on the arm): one line and an exit "
+          "code, 6 for the port, 3 for the directory (a file is written and removed to prove it writable), 5 for a "
+          "device; the port is bound there and kept for the run",
+          "(exit status)",
+          (S + "test_a_busy_metrics_port_exits_6_in_one_line_before_any_servo_packet_or_arm_script",
+           S + "test_a_read_only_recording_directory_at_start_up_exits_3_before_any_device",
+           "tests/daemon/test_cli_run.py::test_missing_sensor_port_exits_5_in_one_line_before_any_device_is_opened")),
+    Fault("SIGHUP (`systemctl reload`, a closed terminal)",
+          "The config file is read again and checked as `check-config` does; `decision.*`, `control.log_level`, "
+          "`recorder.*` and `sensor.rate_tolerance` are applied between two blocks of frames, any other changed key is "
+          "named in one line as needing a restart; a file that fails the check is refused in one line and the daemon "
+          "runs on, live",
+          "(log)",
+          (S + "test_sighup_applies_a_valid_config_names_what_needs_a_restart_and_refuses_an_invalid_one",)),
+    Fault("SIGQUIT, SIGUSR1, SIGUSR2 and the other signals whose default ends the process",
+          "The SIGTERM path: one log line naming the signal, the arm's control script ended, the grip held, "
+          "recordings written, exit 0. SIGPIPE and SIGXFSZ stay ignored (a failed write is handled where it happens); "
+          "SIGABRT stays systemd's watchdog abort",
+          "(exit status, log)",
+          (S + "test_other_stop_signals_take_the_sigterm_path_and_end_the_arms_control_script",)),
+    Fault("The sensor streams at another rate than the model's (500 Hz or 2 kHz for a 1 kHz model: it ignored the "
+          "rate command)",
+          "Measured from the controller's clock and packet counter over 0.2 s of device time, from the first frames "
+          "(during the start-up bias wait) and continuously; beyond `sensor.rate_tolerance` the daemon is blind with "
+          "cause `rate` (one fail-safe, one line naming both rates), not live and not `READY=1` at start-up; live "
+          "again once the rate is back, like any blind episode",
+          '`slipd_failsafe_stops_total{reason="rate"}`, `slipd_sensor_rate_hz`',
+          (S + "test_a_sensor_at_the_wrong_rate_fails_safe_with_cause_rate_and_is_never_ready",)),
+    Fault("The controller's timestamps run backwards (5 s) or jump ahead of its packet counter",
+          "Counted per frame, logged once per episode (an episode ends after 0.2 s of regular timestamps); the rate "
+          "measurement starts again after it; decisions go on (the counter, not the clock, orders the frames)",
+          '`slipd_timestamp_jumps_total{kind="backwards"|"forward"}`',
+          (S + "test_timestamps_that_jump_are_counted_and_logged_once_per_episode",)),
+    Fault("Frames the controller streamed before slipd read the port (every start)",
+          "Counted apart from losses until the first live decision; the dropped-frames alert does not see them",
+          "`slipd_frames_discarded_at_start_total` (not `slipd_dropped_frames_total`)",
+          (S + "test_frames_missing_before_the_daemon_is_live_are_counted_apart_from_drops",)),
+    Fault("The recording directory goes read-only (or the disk fills) while running",
+          "Each lost recording is counted by reason and logged in one line without a traceback; the next recording is "
+          "tried as usual and written once the directory takes files again",
+          "`slipd_recordings_failed_total{reason}` (alert `SlipdRecordingsLost`)",
+          (S + "test_a_recording_directory_gone_read_only_counts_each_lost_recording_in_one_line_and_recovers",)),
+    Fault("A fail-safe episode with the arm (sensor unplugged and back, three times)",
+          "Two lines at WARNING or above per episode (`blind: ...; fail-safe (policy)` and `live again after ...`); "
+          "the control script that slipd's own stop ended, and its upload again, are INFO",
+          "`slipd_failsafe_stops_total{reason}`",
+          (S + "test_a_fail_safe_episode_is_two_lines_and_slipds_own_stop_of_the_arm_is_no_error",)),
     Fault("Hours of 1 kHz input",
           "No frame lost, no decode error (soak below)",
           "`slipd_frames_received_total` vs frames sent",
@@ -389,6 +443,33 @@ def table(faults: tuple[Fault, ...] = FAULTS) -> list[str]:
     return out
 
 
+def soak_from_json(path: Path) -> SoakReport:
+    """The ``SoakReport`` of a finished ``tools/soak_live.py --json`` run (the last JSON line of its output)."""
+    import json
+
+    from sliplab.soak_live import SoakReport
+
+    line = [x for x in path.read_text().splitlines() if x.startswith("{")][-1]
+    d = json.loads(line)
+    d.pop("ok", None)
+    for k in ("fds", "threads"):
+        if k in d:
+            d[k] = tuple(d[k])
+    return SoakReport(**d)
+
+
+def soak_command(soak: SoakReport) -> str:
+    """The command that reproduces a soak's figures."""
+    cmd = f"tools/soak_live.py --seconds {soak.seconds:g}"
+    if soak.slip_every_s:
+        cmd += f" --slip-every {soak.slip_every_s:g}"
+    if soak.failsafe_every_s:
+        cmd += f" --failsafe-every {soak.failsafe_every_s:g}"
+    if soak.recordings:
+        cmd += " --record"
+    return cmd
+
+
 def _git_commit() -> str:
     try:
         return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
@@ -406,6 +487,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", type=Path, default=ROOT / "slipd" / "models" / "slip_ensemble.json",
                    help="model for the soak")
     p.add_argument("--random-model", action="store_true", help="soak a random-weight full-size ensemble")
+    p.add_argument("--soak-json", type=Path, default=None,
+                   help="take the live soak from this output of `tools/soak_live.py ... --json` (its last JSON line: "
+                        "a long soak run beforehand) instead of running one")
     p.add_argument("--note", default="", help="a line added to the report (e.g. why sizes are reduced)")
     p.add_argument("--out", type=Path, default=ROOT / "reports" / "reliability.md")
     args = p.parse_args(argv)
@@ -432,13 +516,17 @@ def main(argv: list[str] | None = None) -> int:
         cfg_counts, cfg_fail = None, repr(exc)
         ok = False
     cfg_s = time.perf_counter() - t0
-    print(f"soak_live --seconds {args.soak_seconds:g} ...", flush=True)
-    with tempfile.TemporaryDirectory(prefix="slipd-reliability-") as tmp:
-        if args.random_model:
-            model, threshold = soak_live.random_model(Path(tmp)), 0.999
-        else:
-            model, threshold = args.model, None
-        soak = soak_live.soak(args.soak_seconds, model, threshold=threshold)
+    if args.soak_json is not None:
+        soak = soak_from_json(args.soak_json)
+        args.soak_seconds = soak.seconds
+    else:
+        print(f"soak_live --seconds {args.soak_seconds:g} ...", flush=True)
+        with tempfile.TemporaryDirectory(prefix="slipd-reliability-") as tmp:
+            if args.random_model:
+                model, threshold = soak_live.random_model(Path(tmp)), 0.999
+            else:
+                model, threshold = args.model, None
+            soak = soak_live.soak(args.soak_seconds, model, threshold=threshold)
     if args.random_model:
         soak.model = "random weights, full-size SlipNet x5 (threshold 0.999; no trained model yet)"
     else:
@@ -448,7 +536,8 @@ def main(argv: list[str] | None = None) -> int:
 
     full = args.fuzz_pts >= 100_000 and args.fuzz_config >= 100_000 and args.soak_seconds >= 600
     cmd = (f"python tools/reliability_report.py --fuzz-pts {args.fuzz_pts} --fuzz-config {args.fuzz_config} "
-           f"--soak-seconds {args.soak_seconds:g}" + (" --random-model" if args.random_model else ""))
+           + (f"--soak-json {args.soak_json}" if args.soak_json is not None
+              else f"--soak-seconds {args.soak_seconds:g}") + (" --random-model" if args.random_model else ""))
     lines = [
         "# slipd reliability report",
         "",
@@ -477,7 +566,7 @@ def main(argv: list[str] | None = None) -> int:
         "fails safe once per episode with one log line and its own `reason`; only while live are the systemd "
         "watchdog pinged and the arm's watchdog kicked, and `READY=1` waits for the first live decision.",
         "",
-        "Corrections to the previous report: `slipd_nonfinite_values_total` is incremented (non-finite and "
+        "`slipd_nonfinite_values_total` is incremented (non-finite and "
         "clipped sensor values, once per block of frames); PTSCOM carries float32, so NaN and Inf do reach the "
         "daemon from a sensor. Model step errors still have no metric (`LoopStats.step_errors`).",
         "",
@@ -502,8 +591,14 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "## Live soak",
         "",
-        f"`tools/soak_live.py --seconds {args.soak_seconds:g}`: the daemon in-process at 1 kHz against the "
-        "emulated PapillArray, MX-28 and UR controller (quiet hold; arm and gripper health polls running).",
+        f"`{soak_command(soak)}`: the daemon in-process at 1 kHz against the emulated PapillArray, MX-28 and UR "
+        "controller (a quiet hold" + (f", the packaged sample slip every {soak.slip_every_s:g} s"
+                                      if soak.slip_every_s else "")
+        + (f", a fail-safe sensor stall every {soak.failsafe_every_s:g} s" if soak.failsafe_every_s else "")
+        + (", the recorder on" if soak.recordings else "") + "; arm and gripper health polls running)."
+        + (" Memory, descriptors and threads are the soak process's own (the emulated sensor and servo included), "
+           "read from /proc every 10 s after the warm-up; the slope is a least-squares line through the memory "
+           "samples." if soak.samples else ""),
         "",
         "```",
         *soak.lines(),

@@ -3,6 +3,15 @@
     python tools/soak_live.py                          # 600 s, slipd/models/slip_ensemble.json
     python tools/soak_live.py --seconds 30 --model M.json
     python tools/soak_live.py --random-model           # no trained model yet: random weights, full size
+    python tools/soak_live.py --seconds 3600 --slip-every 4 --failsafe-every 60 --json   # months, compressed
+
+``--slip-every S`` puts the packaged sample slip (``slipd/models/sample_slip.npz``, on the hold's load) into the
+looped stream every S seconds, so alarms, arm stops, gripper tightens and recordings keep coming; ``--failsafe-every
+S`` stalls the sensor for ``STALL_MS`` every S seconds (a ``sensor_stall`` fail-safe: the arm stopped, its control
+script ended and uploaded again once live). Every ``SAMPLE_S`` the process's resident memory, open file descriptors
+and threads are read from /proc; after the first ``WARMUP_SHARE`` of the run (at least ``WARMUP_MIN_S``) a least-squares
+line through the memory samples gives its slope in kB per hour (the process holds the emulated sensor and servo
+too; the emulated UR controller is a process of its own).
 
 The real ``Daemon`` (pyserial reader, ONNX ensemble, dynamixel-sdk, ur_rtde, device health poll) runs
 in this process against the emulated PapillArray (pty, quiet hold looped), MX-28 (pty) and UR
@@ -34,6 +43,11 @@ from sliplab.paths import ROOT
 
 DEFAULT_HOST = "127.0.0.6"  # tests use .2 .. .5
 TARE = 300
+STALL_MS = 600.0
+"""A fail-safe stall: well past the sim config's 250 ms stall timeout."""
+SAMPLE_S = 10.0
+WARMUP_SHARE = 0.1
+WARMUP_MIN_S = 60.0
 
 
 @dataclass
@@ -55,6 +69,18 @@ class SoakReport:
     decisions: int = 0
     step_errors: int = 0
     health_polls: int = 0
+    slip_every_s: float = 0.0
+    failsafe_every_s: float = 0.0
+    recordings: int = 0
+    recordings_failed: int = 0
+    rss_first_kb: int = 0
+    rss_last_kb: int = 0
+    rss_max_kb: int = 0
+    rss_slope_kb_per_h: float = 0.0
+    fds: tuple[int, int] = (0, 0)
+    threads: tuple[int, int] = (0, 0)
+    """(min, max) after warm-up."""
+    samples: int = 0
     loop_cpu_share: float = 0.0
     process_cpu_share: float = 0.0
     wall_s: float = 0.0
@@ -76,6 +102,13 @@ class SoakReport:
             f"reconnects      {self.reconnects}",
             f"fail-safes      {self.failsafes}   alarms {self.alarms}   decisions {self.decisions}"
             f"   step errors {self.step_errors}   health polls {self.health_polls}",
+            f"events          a slip every {self.slip_every_s:g} s, a fail-safe stall every "
+            f"{self.failsafe_every_s:g} s (0: none); recordings written {self.recordings}, "
+            f"failed {self.recordings_failed}",
+            f"memory          RSS {self.rss_first_kb} kB after warm-up -> {self.rss_last_kb} kB at the end "
+            f"(max {self.rss_max_kb}); slope {self.rss_slope_kb_per_h:+.0f} kB/hour over {self.samples} samples",
+            f"fds, threads    {self.fds[0]}..{self.fds[1]} open descriptors, {self.threads[0]}..{self.threads[1]} "
+            "threads after warm-up",
             f"CPU share       loop thread {self.loop_cpu_share * 100:.1f} %   "
             f"whole process (with the sensor and servo emulators) {self.process_cpu_share * 100:.1f} %",
         ]
@@ -88,6 +121,35 @@ def quiet_hold(seconds: float = 10.0, seed: int = 0) -> Recording:
     force = rng.normal(0.0, 0.01, (n, 9, 3)).astype(np.float32)
     force[:, :, 2] += 1.5
     return Recording(t_us=np.arange(n, dtype=np.int64) * 1000, force=force, disp=np.zeros((n, 9, 3), np.float32))
+
+
+def with_slips(every_s: float, hold: Recording) -> Recording:
+    """The hold followed by the packaged sample slip on the hold's load, ``every_s`` seconds in all (looped)."""
+    slip = Recording.load(ROOT / "slipd" / "models" / "sample_slip.npz")
+    n_hold = max(int(every_s * 1000) - len(slip), 1000)
+    reps = -(-n_hold // len(hold))
+    hf = np.concatenate([hold.force] * reps)[:n_hold]
+    sf = slip.force.astype(np.float32).copy()
+    sf[:, :, 2] += float(np.median(hold.force[:, :, 2]))
+    force = np.concatenate([hf, sf])
+    disp = np.zeros_like(force)
+    return Recording(t_us=np.arange(len(force), dtype=np.int64) * 1000, force=force, disp=disp)
+
+
+def _proc_sample() -> tuple[int, int, int]:
+    """(resident kB, open fds, threads) of this process, from /proc."""
+    import os
+
+    status = Path("/proc/self/status").read_text().splitlines()
+    fields = {line.split(":", 1)[0]: line.split(":", 1)[1].split() for line in status if ":" in line}
+    return int(fields["VmRSS"][0]), len(os.listdir("/proc/self/fd")), int(fields["Threads"][0])
+
+
+def slope_per_hour(t_s: list[float], values: list[int]) -> float:
+    """Least-squares slope of ``values`` against ``t_s``, per hour (0 with fewer than two samples)."""
+    if len(t_s) < 2:
+        return 0.0
+    return float(np.polyfit(np.asarray(t_s), np.asarray(values, float), 1)[0] * 3600.0)
 
 
 def random_model(out_dir: Path, members: int = 5, seed: int = 0) -> Path:
@@ -113,8 +175,11 @@ def random_model(out_dir: Path, members: int = 5, seed: int = 0) -> Path:
 
 
 def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=None,
-         threshold: float | None = None) -> SoakReport:
-    """Run the daemon live for ``seconds`` and count; ``controller`` reuses a running URControllerProcess."""
+         threshold: float | None = None, slip_every: float = 0.0, failsafe_every: float = 0.0,
+         record_dir: Path | None = None) -> SoakReport:
+    """Run the daemon live for ``seconds`` and count; ``controller`` reuses a running URControllerProcess.
+    ``slip_every``, ``failsafe_every``: seconds between slips and fail-safe stalls (0: none); ``record_dir``: the
+    recorder's directory (None: no recorder)."""
     from slipd.config import load_config, override
     from slipd.daemon.devices import build_devices
     from slipd.daemon.loop import Daemon
@@ -127,14 +192,16 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
     if own_ur:
         controller = URControllerProcess(host).start()
     host = controller.host
-    rep = SoakReport(seconds=seconds, model=str(model))
-    dev = EmulatedDevices(quiet_hold(), ur=False)
+    rep = SoakReport(seconds=seconds, model=str(model), slip_every_s=slip_every, failsafe_every_s=failsafe_every)
+    dev = EmulatedDevices(with_slips(slip_every, quiet_hold()) if slip_every > 0 else quiet_hold(), ur=False)
     dev.sensor.loop = True
     daemon = None
     try:
         updates = {**dev.overrides(), "arm.enabled": True, "arm.host": host, "model.manifest": str(model),
                    "model.detector": "onnx",
-                   "sensor.tare": "startup", "sensor.tare_samples": TARE, "recorder.enabled": False}
+                   "sensor.tare": "startup", "sensor.tare_samples": TARE, "recorder.enabled": record_dir is not None}
+        if record_dir is not None:
+            updates.update({"recorder.directory": str(record_dir), "recorder.max_total_mb": 50.0})
         if threshold is not None:
             updates["decision.threshold"] = threshold
         cfg = override(load_config(ROOT / "config" / "sim.yaml"), updates)
@@ -142,7 +209,16 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
         ens = Ensemble.load(cfg.model.manifest, threads=cfg.model.threads)
         arm, gripper = build_devices(cfg, metrics)
         daemon = Daemon(cfg, ens, metrics=metrics, arm=arm, gripper=gripper)
+        if record_dir is not None:
+            from slipd.daemon.preflight import open_recorder
+
+            daemon.recorder = open_recorder(cfg, "soak", {"model_sha256": ens.manifest.sha256}, metrics)
         d = daemon
+        warm_s = max(WARMUP_MIN_S, WARMUP_SHARE * seconds)
+        ts: list[float] = []
+        rss: list[int] = []
+        fds: list[int] = []
+        threads: list[int] = []
 
         async def main() -> None:
             task = asyncio.create_task(d.run())
@@ -150,8 +226,21 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
             dev.start_sensor()
             t0, c0, p0 = time.monotonic(), time.thread_time(), time.process_time()
             try:
+                next_sample = t0 + warm_s
+                next_stall = t0 + failsafe_every if failsafe_every > 0 else float("inf")
                 while time.monotonic() - t0 < seconds and not task.done():
                     await asyncio.sleep(0.2)
+                    now = time.monotonic()
+                    if now >= next_stall:
+                        dev.sensor.stall(STALL_MS)
+                        next_stall += failsafe_every
+                    if now >= next_sample:
+                        r, f, th = _proc_sample()
+                        ts.append(now - t0)
+                        rss.append(r)
+                        fds.append(f)
+                        threads.append(th)
+                        next_sample += SAMPLE_S
                 dev.sensor.stop()  # stop sending, then let the reader drain what is in flight
                 await asyncio.to_thread(dev.sensor.write_frames, [], 5.0)  # push out bytes still queued
                 rep.frames_sent = dev.sensor.frames_written + dev.sensor.frames_discarded
@@ -193,6 +282,14 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
     rep.decisions = st.decisions
     rep.step_errors = st.step_errors
     rep.health_polls = st.health_polls
+    if rss:
+        rep.rss_first_kb, rep.rss_last_kb, rep.rss_max_kb = rss[0], rss[-1], max(rss)
+        rep.rss_slope_kb_per_h = slope_per_hour(ts, rss)
+        rep.fds, rep.threads, rep.samples = (min(fds), max(fds)), (min(threads), max(threads)), len(rss)
+    rep.recordings_failed = int(sum(val("slipd_recordings_failed_total", reason=r)
+                                    for r in ("no_space", "read_only", "permission", "io", "backlog")))
+    if daemon.recorder is not None:
+        rep.recordings = len(daemon.recorder.written)
     return rep
 
 
@@ -204,6 +301,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="model manifest")
     p.add_argument("--random-model", action="store_true", help="soak a random-weight full-size ensemble instead")
     p.add_argument("--host", default=DEFAULT_HOST, help=f"loopback address of the emulated UR ({DEFAULT_HOST})")
+    p.add_argument("--slip-every", type=float, default=0.0, help="seconds between slips (default 0: none)")
+    p.add_argument("--failsafe-every", type=float, default=0.0,
+                   help="seconds between fail-safe sensor stalls (default 0: none)")
+    p.add_argument("--record", action="store_true", help="run the recorder (a temporary directory, 50 MB bound)")
     p.add_argument("--json", action="store_true", help="also print the counts as one JSON line")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -216,7 +317,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{model}: no such model manifest (pass --model, or --random-model before one is trained)",
                   file=sys.stderr)
             return 2
-        rep = soak(args.seconds, model, host=args.host, threshold=threshold)
+        rep = soak(args.seconds, model, host=args.host, threshold=threshold, slip_every=args.slip_every,
+                   failsafe_every=args.failsafe_every, record_dir=Path(tmp) / "recordings" if args.record else None)
     if args.random_model:
         rep.model = "random weights, full-size SlipNet x5 (threshold 0.999)"
     print("\n".join(rep.lines()))

@@ -29,7 +29,8 @@ from slipd.config.load import MAX_YAML_DEPTH, MAX_YAML_NODES
 # The meaning of each exit code. The numbers are read from slipd.cli; a new EXIT_* constant without a
 # line here fails the generator (and so the docs test).
 EXIT_MEANINGS = {
-    "EXIT_OK": ("success", "`check-config`: the config and its model are valid; `run`: stopped by SIGTERM/SIGINT"),
+    "EXIT_OK": ("success", "`check-config`: the config and its model are valid; `run`: stopped by SIGTERM, "
+                "SIGINT or another stop signal (SIGQUIT, SIGUSR1, SIGUSR2, ...)"),
     "EXIT_RUNTIME": ("runtime failure", "the loop failed after start-up; `replay`: an unreadable recording "
                                         "(one line naming the file and the part at fault)"),
     "EXIT_USAGE": ("usage error", "bad command line; `slipd sim` without the `sim` extra"),
@@ -39,6 +40,8 @@ EXIT_MEANINGS = {
                                     "feature layout)"),
     "EXIT_DEVICE": ("device failure at start-up", "a sensor or servo port missing or not openable, the arm's "
                                                   "controller not answering; one line, nothing opened"),
+    "EXIT_RESOURCE": ("resource unavailable at start-up", "`run`: the metrics port (`metrics.host`:`metrics.port`) "
+                      "cannot be bound, e.g. in use by another process; one line, before any device is opened"),
 }
 UNIT = Path(__file__).resolve().parents[1] / "systemd" / "slipd.service"
 

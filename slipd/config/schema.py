@@ -163,6 +163,11 @@ class SensorConfig(_Section):
     stall_timeout_ms: float = Field(
         50.0, ge=2.0, le=10_000.0, description="no frame for this long -> fail-safe (reaction.on_failsafe)"
     )
+    rate_tolerance: float = Field(
+        0.1, ge=0.01, le=0.5, description="how far the stream's rate, measured from the controller's own clock and "
+        "packet counter over 0.2 s, may stray from rate_hz (a share: 0.1 is 10 %); beyond it the daemon fails safe "
+        "with cause rate and is not live (nor READY at start-up) until the rate is back within it; applied by a reload"
+    )
     low_latency: bool = Field(True, description="set the serial port's ASYNC_LOW_LATENCY flag (ftdi/cdc latency)")
     coalesce_margin_ms: float | None = Field(
         1.0, ge=0.0, le=100.0, description="coalesce frame reads: between decisions the loop stops watching the "

@@ -11,17 +11,16 @@ one call and, on a rising alarm edge, ``Reaction`` hands the arm stop and the gr
 device threads at once. Nothing on this path blocks. With two sensors (``sensor.sensors: 2``, one array
 per finger) each finger has its own decisions and a rising edge on either reacts.
 
-A supervision task runs on absolute deadlines (``next = start + k * period``; a late tick is counted
-as an overrun and the schedule is not shifted); while live it skips the ticks before the earliest moment a
-blind cause can arise (the fresh-data and decision deadlines, the next ping or kick), and a non-finite burst
-wakes it at once. It owns **liveness**, defined once here
-(``Daemon._blind_cause``): a valid decision on a window of fresh samples within the stall timeout
+A supervision task (``slipd.daemon.liveness``) runs on absolute deadlines and owns **liveness**, defined once
+there (``Liveness.blind_cause``): a valid decision on a window of fresh samples within the stall timeout
 (``sensor.stall_timeout_ms``). A sample is fresh when its packet counter advanced (repeats are dropped by
 the reader), every value the detector reads is finite and it is not bit-identical to the one before (a real sensor is
 never noise-free). Blind causes, each failing safe (stop the arm, keep the grip) once per episode with
 one log line and ``slipd_failsafe_stops_total{reason=...}``: ``sensor_lost`` (port gone),
 ``sensor_silent`` (no frame since start-up), ``sensor_stall`` (frames stopped), ``sensor_counter_stuck``,
-``sensor_frozen`` (frames arrive, none fresh), ``sensor_nonfinite`` (non-finite samples for longer than
+``sensor_frozen`` (frames arrive, none fresh), ``rate`` (the stream's rate by the controller's own clock and
+counter is not the model's, ``slipd.daemon.rate``; at start-up the daemon is not live before it was measured),
+``sensor_nonfinite`` (non-finite samples for longer than
 ``NONFINITE_BRIDGE_S``, what the feature stage may bridge by holding the last value) and
 ``no_decisions`` (fresh frames, but no valid decision when one was due; when the frames that decision needed
 never all came, the stream stopped short of it: ``sensor_stall``). With two sensors every rule holds
@@ -31,19 +30,15 @@ valid decision on fresh data; a loss followed by a stall is one episode, one sto
 the systemd watchdog pinged and the arm's controller-side watchdog (ur_rtde ``kickWatchdog``) kicked, so
 a wedged or dead loop, or a blind one, halts the arm; ``READY=1`` goes out with the first live decision.
 
-A device health task polls the arm (``read_state``, every 150 ms) and the gripper
-(``read_status``, every 500 ms) on their own worker threads; the loop only looks at finished futures, so a slow or
-dead device never blocks it. An arm link that drops is logged and reconnected with backoff (the
-arm's own metrics count ``disconnected`` / ``protective_stop``); a protective stop is logged, never
-unlocked automatically. A gripper that stops answering or reports a hardware error or torque off
-fails safe (stop the arm) once per occurrence and is counted as
-``slipd_device_errors{device="gripper", kind="unhealthy"}``.
+Beside the loop, in modules of their own: the device health task (``slipd.daemon.health``: polls, reconnects, a
+gripper fault), the stream's rate and timestamps (``slipd.daemon.rate``: the ``rate`` cause above), the software zero
+after a bias under a grasp (``slipd.daemon.rezero``); around it, the start-up checks (``slipd.daemon.preflight``),
+signals (``slipd.daemon.signals``) and reloads (``slipd.daemon.reload``).
 """
 
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import contextlib
 import gc
 import logging
@@ -57,6 +52,9 @@ import numpy as np
 
 from slipd.daemon.devices import close_quietly
 from slipd.daemon.grip_control import GripControlSettings
+from slipd.daemon.health import GRIPPER_HEALTH_PERIOD_S, HEALTH_PERIOD_S, DeviceHealth
+from slipd.daemon.liveness import Liveness
+from slipd.daemon.rate import RateMonitor
 from slipd.daemon.reaction import Reaction
 from slipd.daemon.rezero import LoadedZero
 from slipd.daemon.worker import DeviceWorker
@@ -68,6 +66,7 @@ from slipd.metrics import Metrics
 
 if TYPE_CHECKING:
     from slipd.config import SlipdConfig
+    from slipd.config.schema import DecisionConfig
     from slipd.daemon.recorder import Recorder
     from slipd.daemon.sdnotify import Notifier
     from slipd.daemon.taps import Tap
@@ -86,76 +85,9 @@ DEVICE_CLOSE_TIMEOUT_S = 5.0
 (10 s), so that a hung device is left behind and the process still exits before it is killed."""
 
 
-def _settle(fut: asyncio.Future[None]) -> None:
-    if not fut.done():
-        fut.set_result(None)
-
-
-class _Reconnects:
-    """One device's reconnects on its worker thread: at most one in flight, the back-off doubling after each failure
-    (``ARM_RECONNECT_INITIAL_S`` to ``ARM_RECONNECT_MAX_S``) and starting over after a success."""
-
-    def __init__(self, worker: DeviceWorker, reconnect: Any) -> None:
-        self._worker, self._reconnect = worker, reconnect
-        self._fut: concurrent.futures.Future[Any] | None = None
-        self._delay = ARM_RECONNECT_INITIAL_S
-        self._next = 0.0
-
-    @property
-    def pending(self) -> bool:
-        return self._fut is not None
-
-    def outcome(self, now: float) -> bool | None:
-        """Whether the reconnect in flight succeeded, once it has ended (None until then, or with none in flight)."""
-        if self._fut is None or not self._fut.done():
-            return None
-        fut, self._fut = self._fut, None
-        ok = fut.exception() is None and bool(fut.result())
-        if ok:
-            self._delay = ARM_RECONNECT_INITIAL_S
-        else:
-            self._next = now + self._delay
-            self._delay = min(2 * self._delay, ARM_RECONNECT_MAX_S)
-        return ok
-
-    def due(self, now: float) -> bool:
-        """None in flight and the back-off has passed."""
-        return self._fut is None and now >= self._next
-
-    def attempt(self, now: float) -> None:
-        """Start one when it is due."""
-        if self.due(now):
-            self._fut = self._worker.submit(self._reconnect)
-
-SUPERVISION_PERIOD_S = 0.005
-"""Supervision tick for short stall timeouts (up to 25 ms); longer ones allow up to SUPERVISION_MAX_PERIOD_S."""
-SUPERVISION_MAX_PERIOD_S = 0.010
-
-
-def supervision_period(stall_s: float) -> float:
-    """Supervision tick for a stall timeout: a fifth of it (a stall is seen at most 20 % late), kept within
-    [SUPERVISION_PERIOD_S, SUPERVISION_MAX_PERIOD_S]: 5 ms as before for timeouts up to 25 ms, 10 ms (half
-    the wake-ups) from 50 ms, the real sensor's default."""
-    return min(max(stall_s / 5, SUPERVISION_PERIOD_S), SUPERVISION_MAX_PERIOD_S)
-
-HEALTH_PERIOD_S = 0.15
-"""Arm health poll period (100-200 ms asked for): ``read_state`` reads ur_rtde's cached receive values."""
-GRIPPER_HANG_S = 2.0
-"""A gripper call (a status poll, a grip command) still running after this long has hung: the gripper is not answering.
-One status read with its retries takes at most (retries + 1) x packet timeout (80 ms at the defaults); without this
-rule a call stuck in the vendor library left the gripper "ok" for good, the grip frozen where it was."""
-GRIPPER_HEALTH_PERIOD_S = 0.5
-"""Slower for the gripper: its status block (83 bytes) takes ~20 ms at 57.6 kBd, and a tighten submitted
-while a status read is on the wire waits for it; 0.5 s keeps that chance small."""
-ARM_RECONNECT_INITIAL_S = 0.25
-ARM_RECONNECT_MAX_S = 5.0
-"""Back-off of the arm's reconnects, and of the gripper's (its port reopened after an unplugged adapter)."""
 NONFINITE_BRIDGE_S = 0.005
 """Non-finite samples the feature stage may bridge (it holds the last finite value): a few ms. Longer
 runs make every decision one on a frozen picture of the grasp, so liveness fails."""
-KICKS_PER_WATCHDOG = 4
-"""The arm's controller-side watchdog is kicked this many times per ``arm.watchdog_s`` while live: a
-late kick or two (a busy arm thread, a slow machine) must not halt the arm."""
 MAX_KEPT = 1000
 """Alarms kept in ``LoopStats.alarms`` (the oldest are dropped): the daemon's state stays bounded."""
 
@@ -197,7 +129,6 @@ class Daemon:
         self.health: dict[str, str] = {}
         """Last known device condition: ``{"arm": "ok" | "disconnected" | "protective_stop",
         "gripper": "ok" | reason}``; filled by the health poll."""
-        self._gripper_lost = False  # the gripper's port was dropped (an I/O error): the health task reopens it
         self.metrics = metrics or Metrics()
         self.ensemble = ensemble
         self.detector: SlipDetector = build_detector(cfg, ensemble)
@@ -218,6 +149,8 @@ class Daemon:
             grip=GripControlSettings.from_config(cfg.reaction),
         )
         self.notifier = notifier
+        self.device_health = DeviceHealth(self)
+        self.liveness = Liveness(self)
         self._crashed: BaseException | None = None  # a crash of supervision or the health task (``_on_task_end``)
         self.recorder: Recorder | None = None
         self.taps: list[Tap] = []
@@ -234,6 +167,9 @@ class Daemon:
         self.blind: str | None = None
         """The cause of the current blind episode (one fail-safe each), None while live or starting."""
         self._stall_s = cfg.sensor.stall_timeout_ms / 1e3
+        self.rate = RateMonitor(cfg.sensor.rate_hz, cfg.sensor.rate_tolerance, self.metrics)
+        """The stream's rate by the controller's clock and counter: outside its tolerance the daemon is blind
+        (``rate``); at start-up it is live only once the rate was measured."""
         self._nonfinite_bridge = max(1, round(NONFINITE_BRIDGE_S * cfg.sensor.rate_hz))
         self.sensors = cfg.sensor.sensors
         ns = self.sensors
@@ -248,7 +184,6 @@ class Daemon:
         self._decided_t: float | None = None  # latest valid decision on fresh data (None: none this episode)
         self._decision_due = now  # a valid decision is overdue after this (re-based on every restart)
         self._decision_frames = 0  # the reader's frame count by which that decision's frames are all in
-        self._wake: asyncio.Future[None] | None = None  # the supervision task's nap, while it naps
         self._nonfinite_seen = 0
         self._last_t_us: int | None = None  # sensor time of the latest frame handled (a fail-safe recording's end)
         self._bias_until: float | None = None  # after a reconnect: frames until then are the sensor zeroing itself
@@ -282,6 +217,10 @@ class Daemon:
     # ----------------------------------------------------------------- hot path
     def _on_frames(self, block: FrameBlock) -> None:
         t0 = time.perf_counter()
+        rate = self.rate
+        rate.push(block.counter, block.t_us, block.discontinuity)  # also while the sensor zeroes itself
+        if rate.outside and self.blind is None:
+            self.liveness.wake()
         if self._bias_until is not None:
             if time.monotonic() < self._bias_until:
                 return  # the sensor zeroes itself after a reconnect: these frames are not decided on
@@ -476,7 +415,7 @@ class Daemon:
                 run = 0 if ok else run + 1
                 if run > self._nonfinite_bridge:
                     self._nonfinite_burst = True
-                    self._wake_supervisor()
+                    self.liveness.wake()
                     self._nonfinite_sensor = s
             self._nonfinite_run[s] = run
 
@@ -509,7 +448,8 @@ class Daemon:
 
     def _on_disconnect(self, reason: str) -> None:
         self._restart()
-        self._go_blind("sensor_lost", f"sensor lost: {reason}")
+        self.rate.restart()
+        self.liveness.go_blind("sensor_lost", f"sensor lost: {reason}")
 
     def _on_reconnect(self) -> None:
         """The sensor is back, perhaps power-cycled: set its rate again and, with ``tare: bias_command``, zero it
@@ -576,29 +516,27 @@ class Daemon:
 
     def _expect_decision(self, now: float) -> None:
         """The next valid decision: due once the detector has its samples, plus the stall timeout; the reader's frame
-        count by which its frames are all in tells ``_blind_cause`` whether an overdue one is the stream's fault."""
+        count by which its frames are all in tells ``Liveness.blind_cause`` whether an overdue one is the stream's
+        fault."""
         need = self.detector.samples_to_decision()
         self._decision_due = now + self._stall_s + need / self.cfg.sensor.rate_hz
         self._decision_frames = need + (self.sensor.frames if self.sensor is not None else 0)
 
-    def _fail_safe(self, reason: str) -> None:
-        self.stats.failsafes += 1
-        self.reaction.failsafe(reason)
+    def set_decision_rule(self, rule: DecisionConfig) -> None:
+        """A reload's decision section (``slipd.daemon.reload``), applied between two blocks: threshold, hysteresis,
+        decisions in a row and the press hold of every sensor's decision rule (the heuristics have none)."""
+        threshold = rule.effective_threshold(self.ensemble.threshold)
+        for det in getattr(self.detector, "detectors", [self.detector]):
+            decision = getattr(det, "decision", None)
+            if decision is None:
+                continue
+            decision.threshold, decision.hysteresis = float(threshold), float(rule.hysteresis)
+            decision.min_consecutive = int(rule.min_consecutive)
+            det.press_rise = rule.press_rise
 
-    def _go_blind(self, cause: str, detail: str) -> None:
-        """Liveness lost: one log line and one fail-safe per episode, whatever follows inside it."""
-        self.live = False
-        self.metrics.live.set(0)
-        self._decided_t = None  # live again only after a new valid decision on fresh data
-        if self.blind is not None:
-            return
-        self.blind = cause
-        log.error("blind: %s; fail-safe", detail)
-        self._fail_safe(cause)
-        if self.recorder is not None and self._last_t_us is not None:
-            # What led to the fault, written now: the frames after it may never come (a stalled or lost sensor).
-            self._note_offset()
-            self.recorder.trigger(self._last_t_us, "failsafe", wait_after=False, cause=cause, detail=detail)
+    def _fail_safe(self, reason: str, logged: bool = False) -> None:
+        self.stats.failsafes += 1
+        self.reaction.failsafe(reason, logged)
 
     def _note_offset(self) -> None:
         """The recording about to start replays with the tare offset the daemon used (``slipd replay``): an alarm's,
@@ -606,269 +544,6 @@ class Daemon:
         offset = getattr(self.detector, "offset", None)
         if offset is not None and self.recorder is not None:
             self.recorder.meta["tare_offset"] = np.asarray(offset).tolist()
-
-    def _blind_cause(self, now: float) -> tuple[str, str] | None:
-        """Liveness, defined once: (cause, detail) when the daemon cannot see, else None. Live means no
-        cause and a valid decision on fresh data since the last episode (``_decided_t``)."""
-        stall = self._stall_s
-        sensor = self.sensor
-        if sensor is not None and not sensor.connected:
-            return "sensor_lost", "sensor port closed"
-        if self._nonfinite_burst or (self._nonfinite_run > self._nonfinite_bridge).any():
-            worst = int(np.argmax(self._nonfinite_run)) if not self._nonfinite_burst else self._nonfinite_sensor
-            return "sensor_nonfinite", (f"non-finite samples for more than {self._nonfinite_bridge} frames"
-                                        + self._which(worst))
-        if now - self._fresh_t > stall:
-            ms = (now - self._fresh_t) * 1e3
-            last = sensor.last_frame_time if sensor is not None else None
-            if last is None:
-                return "sensor_silent", f"no frame for {ms:.0f} ms since start-up"
-            if now - last > stall:
-                return "sensor_stall", f"no frame for {(now - last) * 1e3:.0f} ms"
-            repeat = sensor.last_repeat_time
-            if repeat is not None and repeat >= self._fresh_t:
-                return "sensor_counter_stuck", f"packet counter not advancing for {ms:.0f} ms"
-            return "sensor_frozen", f"bit-identical frames for {ms:.0f} ms" + self._which(
-                int(np.argmin(self._fresh_ts)))
-        if now > self._decision_due:
-            if sensor is not None and sensor.frames < self._decision_frames:
-                # The stream stopped short of the frame that decision needed. Its last frames were stamped fresh when
-                # they were read, which on a busy machine can be well after they arrived, so the decision's
-                # deadline may pass first: it is still a stall (once seen as no_decisions in a CI run).
-                last = sensor.last_frame_time
-                since = "" if last is None else f" (none for {(now - last) * 1e3:.0f} ms)"
-                return "sensor_stall", f"the frames of the decision due never came{since}"
-            return "no_decisions", "frames arrive but no valid decision came when due"
-        return None
-
-    def _which(self, sensor: int) -> str:
-        """`` on sensor N`` when there are several (the log line says which finger is blind)."""
-        return f" on sensor {sensor}" if self.sensors > 1 else ""
-
-    # -------------------------------------------------------------- supervision
-    async def _supervise(self) -> None:
-        stall_s = self._stall_s
-        period = supervision_period(stall_s)
-        max_late = self.cfg.control.max_overrun_ms / 1e3
-        start = time.monotonic()
-        # The first frame, and the first decision, are due from now on (the tare wait is over).
-        self._fresh_t = start
-        self._fresh_ts[:] = start
-        self._expect_decision(start)
-        k = 0
-        last_ping = 0.0
-        ping_every = None
-        if self.notifier is not None and self.cfg.control.watchdog:
-            from slipd.daemon.sdnotify import watchdog_interval
-
-            wd = watchdog_interval()
-            ping_every = wd / 2 if wd else None
-        kick = self.arm if self.arm_worker is not None and self.arm is not None else None
-        kick_every = self.cfg.arm.watchdog_s / KICKS_PER_WATCHDOG
-        kicking: concurrent.futures.Future[None] | None = None
-        last_kick = 0.0
-        while not self._stop.is_set():
-            k += 1
-            deadline = start + k * period
-            if self.live and self.blind is None:
-                # Live: no cause can arise before the earliest of the fresh-data and decision deadlines (a
-                # disconnect and a non-finite burst wake this task themselves), so sleep until then, or until
-                # the next ping or kick, rather than every period: 1 wake-up per stall timeout, not 5.
-                due = min(self._fresh_t + stall_s, self._decision_due)
-                if ping_every:
-                    due = min(due, last_ping + ping_every)
-                if kick is not None:
-                    due = min(due, last_kick + kick_every)
-                if due > deadline:
-                    k = int((due - start) / period)
-                    deadline = max(deadline, due)
-            delay = deadline - time.monotonic()
-            if delay > 0:
-                await self._nap(delay)
-            now = time.monotonic()
-            if now - deadline > max_late:
-                self.stats.overruns += 1
-                self.metrics.overruns.inc()
-                # Absolute schedule: skip the ticks that are already past instead of bunching them.
-                k = int((now - start) / period)
-            fault = self._blind_cause(now)
-            self._nonfinite_burst = False
-            if fault is not None:
-                self._go_blind(*fault)
-                continue
-            if self._decided_t is None:
-                continue  # starting, or an episode not over: no valid decision on fresh data yet
-            if not self.live:
-                self._on_live()
-            if ping_every and now - last_ping >= ping_every:
-                self.notifier.watchdog()  # type: ignore[union-attr]
-                last_ping = now
-            if kick is not None and now - last_kick >= kick_every and (kicking is None or kicking.done()):
-                assert self.arm_worker is not None
-                kicking = self.arm_worker.submit(kick.kick_watchdog)
-                last_kick = now
-
-    async def _nap(self, delay: float) -> None:
-        """Sleep ``delay`` seconds, or until ``_wake_supervisor``."""
-        loop = asyncio.get_running_loop()
-        fut: asyncio.Future[None] = loop.create_future()
-        self._wake = fut
-        handle = loop.call_later(delay, _settle, fut)
-        try:
-            await fut
-        finally:
-            handle.cancel()
-            self._wake = None
-
-    def _wake_supervisor(self) -> None:
-        """A cause arose between two deadlines (a non-finite burst): let the supervision task look now."""
-        if self._wake is not None:
-            _settle(self._wake)
-
-    def _on_live(self) -> None:
-        """The first valid decision on fresh data: at start-up READY=1, after an episode one log line."""
-        self.live = True
-        self.metrics.live.set(1)
-        if self.blind is not None:
-            log.warning("live again after %s", self.blind)
-            self.blind = None
-        if not self.started_live:
-            # Also after a blind episode before it (a sensor that starts streaming late): under Type=notify systemd
-            # kills a daemon that never says READY=1.
-            self.started_live = True
-            if self.notifier is not None:
-                self.notifier.ready(f"running: model {self.cfg.model.manifest.name}")
-
-    # ------------------------------------------------------------ device health
-    async def _health(self) -> None:
-        """Poll arm (every ``health_period_s``) and gripper (every ``gripper_health_period_s``) state on
-        their worker threads; react to changes on the loop thread.
-
-        At most one poll per device is in flight: a device that hangs delays only its own next poll.
-        A poll queued on the gripper thread can delay a tighten submitted behind it by one status read.
-        """
-        arm = self.arm if self.arm_worker is not None and hasattr(self.arm, "read_state") else None
-        grip = self.gripper if self.gripper_worker is not None and hasattr(self.gripper, "read_status") else None
-        if arm is None and grip is None:
-            return
-        arm_poll: Any = None
-        grip_poll: Any = None
-        arm_reconnect = grip_reconnect = None
-        if arm is not None and self.arm_worker is not None:
-            arm_reconnect = _Reconnects(self.arm_worker, arm.reconnect)
-        if grip is not None and self.gripper_worker is not None and hasattr(grip, "reconnect"):
-            grip_reconnect = _Reconnects(self.gripper_worker, grip.reconnect)
-        next_grip = grip_sent = 0.0
-        while not self._stop.is_set():
-            now = time.monotonic()
-            if arm is not None:
-                if arm_poll is not None and arm_poll.done():
-                    self._on_arm_health(arm_poll)
-                    arm_poll = None
-                assert arm_reconnect is not None
-                if arm_reconnect.outcome(now):
-                    self.metrics.reconnects.labels(device="arm").inc()
-                    log.warning("arm: reconnected")
-                    self.health["arm"] = "reconnected"  # the next poll says whether it is healthy
-                # A control script the watchdog ended (blind, frozen) is re-uploaded only while live: a blind
-                # daemon would let it expire again at once.
-                state = self.health.get("arm")
-                lost = state == "disconnected" or (self.live and state == "script_stopped")
-                if lost and arm_reconnect.due(now):
-                    arm_reconnect.attempt(now)
-                elif arm_poll is None and not arm_reconnect.pending:
-                    assert self.arm_worker is not None
-                    arm_poll = self.arm_worker.submit(self._probe_arm)
-            if grip is not None:
-                if grip_reconnect is not None and grip_reconnect.outcome(now):
-                    self._gripper_lost = False
-                    self.metrics.reconnects.labels(device="gripper").inc()
-                    next_grip = now  # the next poll says how it holds
-                if grip_poll is not None and grip_poll.done():
-                    self._on_gripper_health(grip_poll)
-                    grip_poll = None
-                elif grip_poll is not None and now - grip_sent > GRIPPER_HANG_S:
-                    # The poll queues behind whatever the gripper thread runs: either has hung.
-                    self._gripper_condition(f"not answering: a call has not returned for {now - grip_sent:.1f} s")
-                reconnecting = grip_reconnect is not None and grip_reconnect.pending
-                if self._gripper_lost and grip_reconnect is not None and grip_poll is None:
-                    # Its port was dropped (an unplugged adapter): reopen it, with back-off; nothing else is sent.
-                    grip_reconnect.attempt(now)
-                elif grip_poll is None and not reconnecting and now >= next_grip:
-                    assert self.gripper_worker is not None
-                    grip_poll = self.gripper_worker.submit(grip.read_status)
-                    grip_sent = now
-                    next_grip = now + self.gripper_health_period_s
-            self.stats.health_polls += 1
-            with contextlib.suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(self._stop.wait(), self.health_period_s)
-
-    def _probe_arm(self) -> str:
-        """On the arm thread: ``ok``, ``disconnected``, ``protective_stop`` or ``script_stopped`` (read_state
-        counts the metrics)."""
-        arm = self.arm
-        assert arm is not None
-        st = arm.read_state()
-        if not st.connected or not arm.is_connected():
-            return "disconnected"
-        if st.protective_stop:
-            return "protective_stop"
-        return "ok" if arm.control_script_running() else "script_stopped"
-
-    def _on_arm_health(self, fut: Any) -> None:
-        exc = fut.exception()
-        if exc is not None:
-            self.metrics.device_errors.labels(device="arm", kind="health").inc()
-            log.error("arm: health poll failed: %s", exc)
-            return
-        state, before = fut.result(), self.health.get("arm")
-        self.health["arm"] = state
-        if state == "protective_stop":
-            self.reaction.arm_halted()  # the controller halted it: a stop it refused is no longer owed
-        elif state != "disconnected":
-            self.reaction.retry_stop()  # a stop the controller refused or that failed, until one is taken
-        if state == before:
-            return
-        if state == "disconnected":
-            log.error("arm: RTDE link lost; reconnecting (slipd cannot stop the arm until the link is back)")
-        elif state == "protective_stop":
-            log.error("arm: protective stop; slipd does not unlock it: inspect the cell, unlock from the pendant")
-        elif state == "script_stopped":
-            log.error("arm: control script ended (watchdog expired or stopped from the pendant); "
-                      "re-uploading it once decisions are live")
-        elif before is not None:
-            log.warning("arm: healthy again (was %s)", before)
-
-    def _on_gripper_health(self, fut: Any) -> None:
-        exc = fut.exception()
-        if exc is not None:
-            problem = f"not answering: {exc}"
-            # A port the driver dropped after an I/O error, or never had: reconnected by the health task.
-            self._gripper_lost = getattr(exc, "kind", None) in ("io", "not_connected")
-        else:
-            st = fut.result()
-            if st.healthy:
-                problem = ""
-            elif st.hardware_error:
-                problem = f"hardware error {', '.join(st.hardware_errors)}"
-            else:
-                problem = "torque off"
-        self._gripper_condition(problem)
-
-    def _gripper_condition(self, problem: str) -> None:
-        """The gripper's condition ("" healthy): one fail-safe when it turns bad, an owed tighten sent when healthy."""
-        before = self.health.get("gripper")
-        self.health["gripper"] = problem or "ok"
-        if problem and (before is None or before == "ok"):
-            self.metrics.device_errors.labels(device="gripper", kind="unhealthy").inc()
-            log.error("gripper: %s", problem)
-            self._fail_safe("gripper_fault")
-        elif not problem:
-            if before not in (None, "ok"):
-                log.warning("gripper: healthy again (was: %s)", before)
-            # A tighten that failed is still owed, whether or not a poll saw the servo silent: a silence shorter
-            # than the poll period fails a tighten (its retries) unseen.
-            self.reaction.retry_tighten()
 
     # ---------------------------------------------------------------- lifecycle
     async def run(self, sensor_port: str | None = None, duration_s: float | None = None) -> LoopStats:
@@ -890,6 +565,7 @@ class Daemon:
             metrics=self.metrics,
             low_latency=cfg.low_latency,
         )
+        self.sensor.starting = not self.started_live
         await self.sensor.start()
         if self._set_up_sensor(start_up=True):
             # The frames while the sensor zeroes itself are neither zeroed nor its steady output: not decided on (no
@@ -904,8 +580,9 @@ class Daemon:
         # loop for ~20 ms at the worst, tools/bench_daemon.py).
         gc.collect()
         gc.freeze()
-        supervisor = asyncio.create_task(self._supervise(), name="supervision")
-        health = asyncio.create_task(self._health(), name="device health") if self.health_period_s > 0 else None
+        supervisor = asyncio.create_task(self.liveness.run(), name="supervision")
+        health = (asyncio.create_task(self.device_health.run(), name="device health") if self.health_period_s > 0
+                  else None)
         for task in (supervisor, health):
             if task is not None:
                 task.add_done_callback(self._on_task_end)

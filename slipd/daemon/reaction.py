@@ -175,14 +175,16 @@ class Reaction:
         self.records.append(rec)
         self._submit(rec, "stop_arm", self.arm_worker, self.arm.stop, why)
 
-    def failsafe(self, reason: str) -> Future[Any] | None:
+    def failsafe(self, reason: str, logged: bool = False) -> Future[Any] | None:
         """Fail safe (sensor stalled, model failed, reaction failed): by default stop the arm, keep the grip.
 
         ``on_failsafe="stop_arm_and_tighten"`` also tightens to the secure setting; ``"log_only"`` only
-        logs and counts (for bench tests, never production).
+        logs and counts (for bench tests, never production). ``logged``: the caller's own line says so (a blind
+        episode's, which names the policy), so none here.
         """
         self.failsafe_count += 1
-        log.warning("fail-safe: %s: policy %s", reason, self.on_failsafe)
+        if not logged:
+            log.warning("fail-safe: %s: policy %s", reason, self.on_failsafe)
         if self.metrics is not None:
             self.metrics.failsafe.labels(reason=reason).inc()
         if not self.enabled or self.on_failsafe == "log_only":
@@ -202,6 +204,13 @@ class Reaction:
         if self.arm is None:
             return None
         return self._submit(rec, "stop_arm", self.arm_worker, self.arm.stop, f"fail-safe: {reason}")
+
+    def last_arm_stop(self) -> float | None:
+        """When slipd last issued an arm stop (monotonic; an alarm's, a fail-safe's or grip control's), or None."""
+        for rec in reversed(self.records):
+            if "stop_arm" in rec.issued:
+                return rec.issued["stop_arm"]
+        return None
 
     def retry_tighten(self) -> Future[Any] | None:
         """Send a tighten that failed again (the servo answers again); None when none is owed."""

@@ -36,6 +36,7 @@ then ends with the frames it has, and the next one starts after the break, so no
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import math
 import os
@@ -58,6 +59,7 @@ from slipd.recording_mcap import write_mcap
 
 if TYPE_CHECKING:
     from slipd.detect.contact import ContactState
+    from slipd.metrics import Metrics
 
 log = logging.getLogger("slipd.daemon.recorder")
 
@@ -123,6 +125,7 @@ class Recorder:
         max_pending: int = 4,
         max_episode_s: float = MAX_EPISODE_S,
         sensors: int = 1,
+        metrics: Metrics | None = None,
     ) -> None:
         if rate_hz <= 0 or seconds_before < 0 or seconds_after < 0:
             raise ValueError(f"rate_hz > 0 and non-negative seconds required, got {rate_hz}, "
@@ -185,6 +188,8 @@ class Recorder:
         self.extra_meta: Callable[[int, int], dict[str, Any]] | None = None
         """Called on the loop thread when a recording is cut, with its first and last t_us: what the daemon adds to its
         meta (``slipd.daemon.recording_context``: the reactions)."""
+        self.metrics = metrics
+        """Counts each lost recording by reason (``slipd_recordings_failed_total{reason}``)."""
         self._own_worker = worker is None
         self.worker = worker or DeviceWorker("recorder")
         self._prepare_directory()
@@ -192,7 +197,7 @@ class Recorder:
     @classmethod
     def from_config(
         cls, cfg: Any, rate_hz: float, meta: Mapping[str, Any] | None = None, worker: DeviceWorker | None = None,
-        sensors: int = 1,
+        sensors: int = 1, metrics: Metrics | None = None,
     ) -> Recorder:
         """Build from a ``slipd.config.RecorderConfig``."""
         return cls(
@@ -205,6 +210,7 @@ class Recorder:
             meta=meta,
             worker=worker,
             sensors=sensors,
+            metrics=metrics,
         )
 
     # ------------------------------------------------------------------ control-loop side
@@ -370,6 +376,7 @@ class Recorder:
         if len(self._futures) >= self.max_pending:
             # The disk cannot keep up; losing a recording is better than growing memory without bound.
             self.dropped += 1
+            self._count_loss("backlog")
             log.warning("recorder: %d writes pending, recording of %s dropped", len(self._futures), trig)
             return
         t, force, disp = (np.concatenate(a) for a in zip(*chunks))
@@ -414,10 +421,17 @@ class Recorder:
         paths: list[Path] = []
         try:
             self._write(snap, paths)
-        except Exception:
+        except Exception as exc:
             with self._lock:
                 self.failures += 1
-            log.exception("recorder: writing %s failed", snap.name)
+            reason = loss_reason(exc)
+            self._count_loss(reason)
+            if isinstance(exc, OSError):
+                # The disk's state, not a bug: one line (a full disk logged ~25 lines of tracebacks per recording). The
+                # next recording is tried as usual, and succeeds once there is room again.
+                log.error("recorder: recording %s lost (%s): %s", snap.name, reason, exc.strerror or exc)
+            else:
+                log.exception("recorder: writing %s failed", snap.name)
             # What the failed format left half-written goes (a full disk kept every episode's staging file, outside
             # the size bound, until a restart); the formats written before it are complete recordings.
             for p in self.directory.glob(f"{snap.name}.*"):
@@ -429,10 +443,14 @@ class Recorder:
                 self.written.extend(paths)
             try:
                 self._enforce_bound(keep=snap.name)  # after a failure too: the disk is what fills
-            except OSError:
-                log.exception("recorder: enforcing max_total_mb failed")
+            except OSError as exc:
+                log.error("recorder: enforcing max_total_mb failed: %s", exc.strerror or exc)
         log.info("recorder: wrote %s", ", ".join(str(p) for p in paths))
         return paths
+
+    def _count_loss(self, reason: str) -> None:
+        if self.metrics is not None:
+            self.metrics.recordings_failed.labels(reason=reason).inc()
 
     def _write(self, snap: _Snapshot, paths: list[Path]) -> None:
         """Write ``snap`` in every format, appending each finished file to ``paths`` (a failure leaves the ones
@@ -491,6 +509,15 @@ class Recorder:
             log.info("recorder: deleted %s (max_total_mb)", stem)
         if total > self.max_total_bytes:
             log.warning("recorder: newest recording alone (%d bytes) exceeds max_total_mb", total)
+
+
+_LOSS_REASONS = {errno.ENOSPC: "no_space", errno.EDQUOT: "no_space", errno.EROFS: "read_only",
+                 errno.EACCES: "permission", errno.EPERM: "permission"}
+
+
+def loss_reason(exc: BaseException) -> str:
+    """The ``reason`` label of a lost recording (``slipd.metrics.RECORDING_FAILURES``)."""
+    return _LOSS_REASONS.get(exc.errno or 0, "io") if isinstance(exc, OSError) else "io"
 
 
 def _size(p: Path) -> int:

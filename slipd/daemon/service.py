@@ -1,10 +1,11 @@
 """``slipd run``: the daemon's start-up order, its run and its shutdown.
 
-Order (fail-safe): the config, then the model (manifest, hash, shapes, feature layout, warm-up), then a
-check that every device is there (``check_devices``: the sensor and servo ports exist and may be opened,
-the arm's controller answers), and only then are the devices opened. A broken config or model, or a
-missing device, therefore never touches hardware. Each step raises its own typed error (``ConfigError``,
-``ModelError``, ``DeviceError``); ``slipd.cli`` turns them into exit codes (5: one line, no traceback).
+Order (fail-safe): the config, then the model (manifest, hash, shapes, feature layout, warm-up), then what this
+machine must provide (``slipd.daemon.preflight``: the recording directory writable, every device path there and
+accessible, the arm's controller answering, the metrics port bound), and only then are the devices opened. A broken
+config or model, a missing device or a busy port therefore never touches hardware. Each step raises its own typed
+error (``ConfigError``, ``ModelError``, ``DeviceError``, ``ResourceError``); ``slipd.cli`` turns them into exit codes
+(one line, no traceback). Signals: ``slipd.daemon.signals``; SIGHUP reloads the config (``slipd.daemon.reload``).
 """
 
 from __future__ import annotations
@@ -14,60 +15,28 @@ import contextlib
 import ipaddress
 import logging
 import os
-import signal
 import sys
 import threading
-from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from slipd.config import ConfigError, SlipdConfig, load_config
-from slipd.daemon.devices import DeviceError, build_devices, check_devices, close_quietly
+from slipd.daemon import signals
+from slipd.daemon.devices import DeviceError, build_devices, close_quietly
 from slipd.daemon.loop import Daemon
+from slipd.daemon.preflight import ResourceError, preflight
+from slipd.daemon.reload import Reloader
 from slipd.daemon.sdnotify import Notifier
+from slipd.daemon.signals import StopRequested
 from slipd.detect.build import config_problems
 from slipd.detect.ensemble import Ensemble
 from slipd.metrics import Metrics
 
+if TYPE_CHECKING:
+    from wsgiref.simple_server import WSGIServer
+
 log = logging.getLogger("slipd.service")
-
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-
-class StopRequested(BaseException):  # a request, like KeyboardInterrupt, not an error
-    """SIGTERM or SIGINT before the loop runs (start-up: devices being opened, the model warming up): unwinds
-    ``prepare`` like KeyboardInterrupt, so that whatever was opened is closed again. The loop installs its own
-    handlers (``Daemon.stop``); ``slipd run`` then exits 0."""
-
-
-def _stop_requested(signum: int, _frame: object) -> None:
-    raise StopRequested(signal.Signals(signum).name)
-
-
-def _ignored_while_closing(signum: int, _frame: object) -> None:
-    log.warning("%s while closing the devices: ignored, the shutdown goes on", signal.Signals(signum).name)
-
-
-@contextlib.contextmanager
-def _signals_held() -> Iterator[None]:
-    """Hold SIGINT and SIGTERM back while the devices open: a stop that lands inside a driver's connect (ur_rtde
-    uploading its control script) would unwind before the driver object was kept, and nothing could end that script.
-    Delivered when the devices are open and known, so that ``prepare`` closes them."""
-    main = threading.current_thread() is threading.main_thread()
-    if main:
-        signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-    try:
-        yield
-    finally:
-        if main:
-            signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
-
-
-def _on_signals(handler: Callable[[int, Any], None]) -> None:
-    """Install ``handler`` for SIGINT and SIGTERM (the main thread alone may; elsewhere, as in tests, nothing)."""
-    if threading.current_thread() is threading.main_thread():
-        for sig in STOP_SIGNALS:
-            signal.signal(sig, handler)
 
 
 @dataclass
@@ -78,34 +47,41 @@ class Service:
     daemon: Daemon
     metrics: Metrics
     native: NativeOutput | None = None
+    server: WSGIServer | None = None
+    """The metrics endpoint, bound before any device was opened (``slipd.daemon.preflight``)."""
+    config_path: Path | None = None
+    """The file a SIGHUP reads again (None: reloads are refused)."""
 
     def run(self) -> None:
-        """Serve metrics and run the loop until SIGINT/SIGTERM; always releases the devices."""
+        """Run the loop until a stop signal; SIGHUP reloads the config; always releases the devices."""
         m = self.cfg.metrics
         if m.enabled:
             exposure = metrics_exposure(m.host)
             if exposure:
                 log.warning("metrics.host %s: /metrics (model hash, alarm and fail-safe counts) is served %s; "
                             "keep it on 127.0.0.1 unless a firewall limits who can scrape it", m.host, exposure)
-        server = None
+        reloader = Reloader(self.config_path, self.daemon) if self.config_path is not None else None
+
+        def reload() -> None:
+            if reloader is None:
+                log.warning("SIGHUP: no configuration file to read again; ignored")
+            else:
+                reloader.reload()
 
         async def _main() -> None:
-            loop = asyncio.get_running_loop()
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                loop.add_signal_handler(sig, self.daemon.stop)
+            signals.while_running(asyncio.get_running_loop(), self.daemon.stop, reload)
+            if signals.reload_pending():  # a SIGHUP during start-up: the file may have changed since it was read
+                reload()
             await self.daemon.run()
 
         try:
-            # Inside: a metrics port in use must still release the devices (the arm's control script stopped).
-            server = self.metrics.serve(m.host, m.port) if m.enabled else None
             asyncio.run(_main())
         finally:
-            # The loop's handlers went with it (back to the default: die at once); a second SIGTERM must not cut the
-            # shutdown short, before the arm's control script has ended.
-            _on_signals(_ignored_while_closing)
+            signals.while_closing()
             self.daemon.close()
-            if server is not None:
-                server.shutdown()
+            if self.server is not None:
+                self.server.shutdown()
+                self.server.server_close()
             if self.native is not None:
                 self.native.close()
 
@@ -227,11 +203,12 @@ def start_taps(cfg: SlipdConfig, daemon: Daemon, config_path: str) -> None:
 
 
 def prepare(config_path: str | os.PathLike[str]) -> Service:
-    """Load and check everything, then open the devices (in that order). Raises ConfigError, ModelError or
-    DeviceError; nothing is opened when the config or the model is refused or a device is missing."""
-    _on_signals(_stop_requested)  # a stop during start-up unwinds it, closing what is open (StopRequested)
+    """Load and check everything, then open the devices (in that order). Raises ConfigError, ModelError,
+    DeviceError or ResourceError; nothing is opened when the config or the model is refused, a device is missing or a
+    resource unavailable."""
+    signals.during_start_up()  # a stop during start-up unwinds it, closing what is open (StopRequested)
     native = NativeOutput()  # first: the log handler must take the original stderr, not the pipe
-    arm = gripper = None
+    arm = gripper = recorder = server = None
     try:
         cfg = load_config(config_path)
         logging.basicConfig(level=cfg.control.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -239,21 +216,9 @@ def prepare(config_path: str | os.PathLike[str]) -> Service:
         problems = config_problems(cfg, ensemble.manifest, str(config_path))
         if problems:  # as check-config says, before any device is opened
             raise ConfigError(problems)
-        check_devices(cfg)
-        recorder = None
-        if cfg.recorder.enabled:
-            # Before the devices: a directory that cannot be made or written is a config problem (exit 3), not a
-            # traceback after the gripper was told to hold.
-            from slipd.daemon.recorder import Recorder
-
-            try:
-                recorder = Recorder.from_config(cfg.recorder, rate_hz=cfg.sensor.rate_hz, sensors=cfg.sensor.sensors,
-                                                meta=recording_meta(cfg, ensemble.manifest))
-            except OSError as exc:
-                raise ConfigError([f"{config_path}: recorder.directory: {cfg.recorder.directory} cannot be used: "
-                                   f"{exc.strerror or exc}"]) from exc
         metrics = Metrics()
-        with _signals_held():
+        recorder, server = preflight(cfg, metrics, str(config_path), recording_meta(cfg, ensemble.manifest))
+        with signals.held():
             arm, gripper = build_devices(cfg, metrics)
         daemon = Daemon(cfg, ensemble, metrics=metrics, arm=arm, gripper=gripper, notifier=Notifier())
         daemon.recorder = recorder
@@ -264,9 +229,14 @@ def prepare(config_path: str | os.PathLike[str]) -> Service:
         start_taps(cfg, daemon, str(config_path))
     except BaseException:
         close_quietly(arm, gripper)  # opened, then a stop or a failure before the daemon took them over
+        if recorder is not None:
+            recorder.close()
+        if server is not None:
+            server.shutdown()
+            server.server_close()
         native.close()
         raise
-    return Service(cfg, daemon, metrics, native)
+    return Service(cfg, daemon, metrics, native, server, Path(config_path))
 
 
-__all__ = ["DeviceError", "Service", "StopRequested", "prepare"]
+__all__ = ["DeviceError", "ResourceError", "Service", "StopRequested", "prepare"]

@@ -196,6 +196,11 @@ class SerialSensor:
         # Counters (cumulative over reconnects).
         self.frames = 0
         self.dropped_frames = 0
+        self.starting = False
+        """Set by a consumer that is not live yet (the daemon before its first live decision): counter gaps meanwhile
+        are frames the controller streamed before the port was read, counted in ``discarded_at_start``
+        (``slipd_frames_discarded_at_start_total``), not as losses."""
+        self.discarded_at_start = 0
         self.discontinuities = 0
         self.repeated_frames = 0
         self.last_repeat_time: float | None = None
@@ -438,7 +443,9 @@ class SerialSensor:
         self._close()
         self.disconnects += 1
         self._after_reconnect = True
-        log.warning("%s: sensor disconnected (%s)", self.port, reason)
+        # A consumer that is told (the daemon's blind line names the reason) makes this a detail.
+        log.log(logging.INFO if self.on_disconnect is not None else logging.WARNING, "%s: sensor disconnected (%s)",
+                self.port, reason)
         if self.on_disconnect is not None:
             try:
                 self.on_disconnect(reason)
@@ -640,13 +647,16 @@ class SerialSensor:
                 keep = None
         self._last_counter = last
         self.frames += k
-        self.dropped_frames += dropped
+        if self.starting:
+            self.discarded_at_start += dropped
+        else:
+            self.dropped_frames += dropped
         self.discontinuities += breaks
         m = self._metrics
         if m is not None:
             m.frames.inc(k)
             if dropped:
-                m.dropped_frames.inc(dropped)
+                (m.frames_discarded_at_start if self.starting else m.dropped_frames).inc(dropped)
             if breaks:
                 self._m_errors["discontinuity"].inc(breaks)
             if repeats:

@@ -431,10 +431,10 @@ def test_check_config_and_run_read_a_heuristics_parameters_before_any_device(tmp
     assert code == 3 and "model.baseline_params" in err and "missing.json" in err
 
     from slipd.config import ConfigError
-    from slipd.daemon import service
+    from slipd.daemon import preflight, service
 
     opened: list[str] = []
-    monkeypatch.setattr(service, "check_devices", lambda cfg: opened.append("checked"))
+    monkeypatch.setattr(preflight, "check_devices", lambda cfg: opened.append("checked"))
     monkeypatch.setattr(service, "build_devices", lambda cfg, m: opened.append("built") or (None, None))
     with pytest.raises(ConfigError, match=r"model\.baseline_params"):
         service.prepare(path)
@@ -574,7 +574,7 @@ def test_an_unusable_recorder_directory_is_refused_before_any_device(tmp_path, m
     """A recorder directory that cannot be made (here under a regular file) raised a traceback after the gripper
     was told to hold; it is a config problem naming the key, found before the devices are opened."""
     from slipd.config import ConfigError
-    from slipd.daemon import service
+    from slipd.daemon import preflight, service
 
     tiny_model(tmp_path / "models")
     (tmp_path / "afile").write_text("")
@@ -582,7 +582,7 @@ def test_an_unusable_recorder_directory_is_refused_before_any_device(tmp_path, m
                  recorder={"enabled": True, "directory": str(tmp_path / "afile" / "rec")})
     path = write(tmp_path, text, "r.yaml")
     opened: list[str] = []
-    monkeypatch.setattr(service, "check_devices", lambda cfg: None)
+    monkeypatch.setattr(preflight, "check_devices", lambda cfg: None)
     monkeypatch.setattr(service, "build_devices", lambda cfg, m: opened.append("built") or (None, None))
     with pytest.raises(ConfigError, match=r"recorder\.directory"):
         service.prepare(path)

@@ -147,34 +147,6 @@ def test_metrics_exposure_names_who_can_scrape() -> None:
     assert "beyond this machine" in metrics_exposure("cell-pc.local")
 
 
-def test_a_metrics_port_in_use_still_releases_the_devices() -> None:
-    """The metrics server starts inside the run's clean-up: a port already taken must still close the daemon (its
-    arm's control script stopped, the gripper's port closed), not leave them to the interpreter's exit."""
-    import pytest
-
-    from slipd.config import load_config, override
-    from slipd.daemon.service import Service
-    from slipd.metrics import Metrics
-
-    taken = socket.socket()
-    taken.bind(("127.0.0.1", 0))
-    taken.listen()
-    try:
-        cfg = override(load_config(ROOT / "config" / "sim.yaml"), {
-            "metrics.enabled": True, "metrics.host": "127.0.0.1", "metrics.port": taken.getsockname()[1]})
-        closed: list[bool] = []
-
-        class _Daemon:
-            def close(self) -> None:
-                closed.append(True)
-
-        with pytest.raises(OSError):
-            Service(cfg, _Daemon(), Metrics()).run()  # type: ignore[arg-type]
-        assert closed == [True]
-    finally:
-        taken.close()
-
-
 def test_a_stop_during_start_up_ends_the_arms_control_script(tiny_model_json: Path, tmp_path: Path) -> None:
     """SIGINT or SIGTERM right after ur_rtde uploaded its control script (start-up, before the loop's handlers): the
     process died at once (SIGTERM) or with a traceback (SIGINT), the script left running with no watchdog armed, so

@@ -298,10 +298,10 @@ def test_a_stream_that_stops_short_of_a_decision_is_a_stall_even_when_its_last_f
     daemon._fresh_ts[:] = read
     now = daemon._decision_due + 0.001
     assert now - daemon._fresh_t < daemon._stall_s  # by its stamp the data is not stale yet
-    cause = daemon._blind_cause(now)
+    cause = daemon.liveness.blind_cause(now)
     assert cause is not None and cause[0] == "sensor_stall", cause
     sensor.frames += 3  # every frame it needed came, and still no decision: the detector's fault
-    cause = daemon._blind_cause(now)
+    cause = daemon.liveness.blind_cause(now)
     assert cause is not None and cause[0] == "no_decisions", cause
 
 
@@ -356,19 +356,19 @@ def test_the_health_polls_retry_an_owed_tighten_and_an_owed_arm_stop(base_cfg) -
     # The alarm's stop, and the fail-safe's for the failed tighten: both refused.
     assert daemon.reaction._owed and grip.calls == 1 and arm.calls == 2 and daemon.reaction.stop_owed
     grip.fail = False
-    daemon._on_gripper_health(done(healthy))  # healthy before and after: no transition
+    daemon.device_health.on_gripper_health(done(healthy))  # healthy before and after: no transition
     assert grip.calls == 2 and not daemon.reaction._owed
-    daemon._on_arm_health(done("ok"))
+    daemon.device_health.on_arm_health(done("ok"))
     assert arm.calls == 3 and daemon.reaction.stop_owed  # refused again
-    daemon._on_arm_health(done("disconnected"))
+    daemon.device_health.on_arm_health(done("disconnected"))
     assert arm.calls == 3  # nothing to send it to
     arm.refuse = False
-    daemon._on_arm_health(done("ok"))
+    daemon.device_health.on_arm_health(done("ok"))
     assert arm.calls == 4 and daemon.reaction.stop_owed is None
     arm.refuse = True
     daemon.reaction.failsafe("sensor_stall")
     assert daemon.reaction.stop_owed
-    daemon._on_arm_health(done("protective_stop"))
+    daemon.device_health.on_arm_health(done("protective_stop"))
     assert daemon.reaction.stop_owed is None
 
 
@@ -409,7 +409,7 @@ def test_a_tighten_owed_to_a_grasp_that_let_go_is_not_sent_to_the_next(base_cfg)
                 assert daemon.reaction._owed and grip.calls == 1 and daemon.reaction.stop_owed
         assert daemon._grasp_held is not release
         grip.fail = False
-        daemon._on_gripper_health(done)  # the servo answers again
+        daemon.device_health.on_gripper_health(done)  # the servo answers again
         assert grip.calls == (1 if release else 2)
         assert daemon.reaction.stop_owed  # the arm stays owed its stop
 
@@ -548,9 +548,9 @@ def test_a_gripper_call_that_hangs_is_a_gripper_fault(base_cfg, monkeypatch) -> 
     """A call stuck in the vendor library (the status poll, or a grip command it queues behind) never returned, so
     the gripper stayed 'ok' for good with the grip frozen; past GRIPPER_HANG_S it is a gripper fault (one fail-safe),
     and healthy again once the call returns."""
-    from slipd.daemon import loop as loop_mod
+    from slipd.daemon import health
 
-    monkeypatch.setattr(loop_mod, "GRIPPER_HANG_S", 0.3)
+    monkeypatch.setattr(health, "GRIPPER_HANG_S", 0.3)
     release = threading.Event()
 
     class Grip:
@@ -568,7 +568,7 @@ def test_a_gripper_call_that_hangs_is_a_gripper_fault(base_cfg, monkeypatch) -> 
     seen: dict[str, object] = {}
 
     async def main() -> None:
-        task = asyncio.create_task(daemon._health())
+        task = asyncio.create_task(daemon.device_health.run())
         await asyncio.sleep(0.8)
         seen["hung"] = (daemon.health.get("gripper"), daemon.stats.failsafes)
         release.set()
@@ -600,7 +600,7 @@ def test_a_fail_safe_recording_carries_the_tare_offset_the_daemon_used(base_cfg,
     daemon.detector.push_many(force, np.arange(300) * 1000)  # the start-up tare: an offset of about (0.2, -0.1, 1.0)
     daemon.recorder.push_frames(np.arange(300) * 1000, force, np.zeros_like(force))
     daemon._last_t_us = 299_000
-    daemon._go_blind("sensor_stall", "no frame for 60 ms")
+    daemon.liveness.go_blind("sensor_stall", "no frame for 60 ms")
     (path,) = daemon.recorder.wait(5)
     rec = Recording.load(path)
     assert rec.meta["trigger"]["reason"] == "failsafe"
@@ -640,7 +640,7 @@ def test_an_unplugged_gripper_adapter_is_reopened_and_the_owed_tighten_sent(base
     seen: dict[str, object] = {}
 
     async def main() -> None:
-        task = asyncio.create_task(daemon._health())
+        task = asyncio.create_task(daemon.device_health.run())
         await until(lambda: daemon.health.get("gripper") == "ok", what="healthy at first")
         first.close()  # unplugged
         daemon.reaction.on_alarm(1.0)
@@ -690,7 +690,7 @@ def test_a_crash_of_the_health_task_fails_safe_and_stops_the_daemon(base_cfg) ->
                     health_period_s=0.05, gripper_health_period_s=0.05)
 
     async def main() -> None:
-        task = asyncio.create_task(daemon._health(), name="device health")
+        task = asyncio.create_task(daemon.device_health.run(), name="device health")
         task.add_done_callback(daemon._on_task_end)
         await until(lambda: daemon._stop.is_set(), what="the daemon asked to stop")
         with contextlib.suppress(AttributeError):

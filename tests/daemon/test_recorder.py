@@ -358,8 +358,8 @@ def test_a_fail_safe_writes_what_led_to_it_at_once(tmp_path):
     t_us = np.arange(n, dtype=np.int64) * 1000
     for k in range(0, n, 10):
         daemon._on_block(t_us[k : k + 10], force[k : k + 10], np.zeros_like(force[k : k + 10]))
-    daemon._go_blind("sensor_stalled", "no frame for 250 ms")
-    daemon._go_blind("sensor_stalled", "still none")  # the same episode: no second recording
+    daemon.liveness.go_blind("sensor_stalled", "no frame for 250 ms")
+    daemon.liveness.go_blind("sensor_stalled", "still none")  # the same episode: no second recording
     daemon.recorder.close()
     (f,) = list_recordings(tmp_path)
     r = Recording.load(f)

@@ -79,8 +79,14 @@ class EmulatedPapillArray:
         reset_counter_on_replug: bool = True,
         seed: int = 0,
         sensors: int | None = None,
+        fixed_rate_hz: int | None = None,
     ) -> None:
-        if rate_hz not in RATES_HZ:
+        self.fixed_rate_hz = fixed_rate_hz
+        """A controller that streams at this rate whatever it is told (another firmware, a faulty controller): any
+        rate, rate commands recorded and ignored (``force_rate``). None: rate_hz, and rate commands obeyed."""
+        if fixed_rate_hz is not None:
+            rate_hz = fixed_rate_hz
+        elif rate_hz not in RATES_HZ:
             raise ValueError(f"rate_hz {rate_hz} not supported by the PapillArray; choose one of {RATES_HZ}")
         self._source = source
         self.sensors = sensors or (source.sensors if isinstance(source, Recording) else 1)
@@ -108,6 +114,7 @@ class EmulatedPapillArray:
         self._stop = threading.Event()
         self._stall_until = 0.0
         self._counter = 0
+        self._clock_offset_s = 0.0  # added to the device clock from a ``jump_clock`` on
         self._bias_force = np.zeros((self.sensors, N_PILLARS, 3), np.float32)
         self._bias_disp = np.zeros((self.sensors, N_PILLARS, 3), np.float32)
         self._last_raw: tuple[np.ndarray, np.ndarray] | None = None
@@ -225,9 +232,20 @@ class EmulatedPapillArray:
         """Insert a stray byte before the next frame's checksum, so its end marker is not where it belongs."""
         self._faults.append(("length", None))
 
+    def force_rate(self, rate_hz: int | None) -> None:
+        """Stream at ``rate_hz`` from now on whatever the host commands (None: obey rate commands again)."""
+        self.fixed_rate_hz = rate_hz
+        if rate_hz is not None:
+            self.rate_hz = rate_hz
+
     def jump_counter(self, delta: int) -> None:
         """Add ``delta`` to the next frame's counter (delta > 0: frames look lost; < 0: counter goes back)."""
         self._faults.append(("jump", int(delta)))
+
+    def jump_clock(self, seconds: float) -> None:
+        """From the next frame on, the device clock reads ``seconds`` later (< 0: it went back); the counter and the
+        samples go on as before."""
+        self._faults.append(("clock", float(seconds)))
 
     def stall(self, ms: float) -> None:
         """Send nothing for ``ms`` milliseconds, then resume on fresh deadlines (no burst, counter continuous)."""
@@ -322,12 +340,14 @@ class EmulatedPapillArray:
                 prefix += value  # type: ignore[operator]
             elif kind == "jump":
                 counter += value  # type: ignore[operator]
+            elif kind == "clock":
+                self._clock_offset_s += value  # type: ignore[operator]
             else:
                 mode = kind
                 break  # one corruption per frame; the rest wait for later frames
         frame = Frame(
             counter=counter % 2**32,
-            t_us=round(t_s * 1e6),
+            t_us=max(0, round((t_s + self._clock_offset_s) * 1e6)),
             force=force,
             disp=disp,
             wrench=global_wrench(force[None])[0].astype(np.float32),
@@ -444,6 +464,6 @@ class EmulatedPapillArray:
                     self._bias_force = self._last_raw[0].copy()
                     self._bias_disp = self._last_raw[1].copy()
             elif cmd.kind == "rate":
-                self.rate_hz = int(cmd.value)  # type: ignore[arg-type]
+                self.rate_hz = self.fixed_rate_hz or int(cmd.value)  # type: ignore[arg-type]
             elif cmd.kind == "slip":
                 self.slip_detection = bool(cmd.value)

@@ -1,0 +1,119 @@
+"""The sensor's stream rate, measured from the controller's own clock and packet counter, and its timestamps' sanity.
+
+A controller that streams at another rate than the model was trained at (it ignored the rate command, another
+firmware, a second controller on the port) feeds windows of the right length in samples but not in time: at 500 Hz
+each window spans twice the time the model learnt, at 2 kHz half. The rate is measured over ``WINDOW_S`` of device
+time as packets counted (the counter, so a lost frame does not lower it) per second of the controller's clock
+(``t_us``); outside ``sensor.rate_tolerance`` of the configured rate (which equals the model's: ``check-config``) the
+daemon is blind with cause ``rate`` (``slipd.daemon.loop``), at start-up before ``READY=1`` and at any time after.
+
+Timestamps: between two frames the controller's clock should advance by the packets counted times the period. One
+that runs backwards or stands still, or jumps ahead by more than ``JUMP_S`` beyond that, is counted
+(``slipd_timestamp_jumps_total{kind}``) and logged once per episode (an episode ends after a whole measuring window
+of regular timestamps); the measurement restarts after it.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from slipd.metrics import Metrics
+
+log = logging.getLogger("slipd.daemon.rate")
+
+WINDOW_S = 0.2
+"""Device time per measurement: 200 frames at 1 kHz, 20 at 100 Hz; the counter and clock are exact, so a short
+window is precise, and a wrong rate is known well before the start-up bias wait ends."""
+JUMP_S = 0.05
+"""A timestamp step this much beyond what the counter says is a jump (a 500 Hz stream's 1 ms extra per frame is not)."""
+_MASK = 0xFFFFFFFF  # the packet counter wraps at 2**32
+
+
+class RateMonitor:
+    """Fed every block of frames (``push``); ``measured`` is the latest window's rate, ``outside`` its verdict."""
+
+    def __init__(self, rate_hz: float, tolerance: float, metrics: Metrics | None = None) -> None:
+        self.rate_hz = float(rate_hz)
+        self.tolerance = float(tolerance)
+        self.measured: float | None = None
+        """Frames per second of the controller's clock over the latest window (None before the first)."""
+        self.jumps = 0
+        self._anchor: tuple[int, int] | None = None  # (counter, t_us) where the current window began
+        self._last: tuple[int, int] | None = None  # the latest frame's (counter, t_us)
+        self._jumping = False  # inside a timestamp episode (logged once)
+        self._metrics = metrics
+        if metrics is not None:
+            metrics.sensor_rate.set_function(lambda: self.measured or 0.0)
+            self._m_jumps = {k: metrics.timestamp_jumps.labels(kind=k) for k in ("backwards", "forward")}
+
+    @property
+    def known(self) -> bool:
+        return self.measured is not None
+
+    @property
+    def outside(self) -> bool:
+        """The latest measurement is beyond the tolerance."""
+        return self.measured is not None and abs(self.measured / self.rate_hz - 1.0) > self.tolerance
+
+    def describe(self) -> str:
+        """The line of a ``rate`` episode: both rates."""
+        return (f"the sensor streams at {self.measured or 0.0:.0f} Hz by its own clock and counter, the model's rate "
+                f"is {self.rate_hz:.0f} Hz (sensor.rate_tolerance {self.tolerance:.0%})")
+
+    def restart(self) -> None:
+        """The stream broke (a reconnect, the counter went backwards): the next frame starts a new window."""
+        self._anchor = self._last = None
+
+    def push(self, counter: np.ndarray, t_us: np.ndarray, discontinuity: np.ndarray) -> None:
+        """One block's counters and timestamps (vectorised; the loop over frames runs only at a break)."""
+        k = len(counter)
+        if not k:
+            return
+        c = counter.astype(np.int64)
+        t = t_us.astype(np.int64)
+        if discontinuity.any():
+            cut = int(np.flatnonzero(discontinuity)[-1])  # the window starts again at the last break
+            self.restart()
+            c, t = c[cut:], t[cut:]
+        if self._last is not None:
+            c = np.concatenate(([self._last[0]], c))
+            t = np.concatenate(([self._last[1]], t))
+        if len(c) > 1:
+            dc = (c[1:] - c[:-1]) & _MASK
+            dt = t[1:] - t[:-1]
+            expected = dc * (1e6 / self.rate_hz)
+            back = dt <= 0  # backwards, or not advancing while the counter does
+            ahead = dt - expected > JUMP_S * 1e6
+            if back.any() or ahead.any():
+                self._jump(int(back.sum()), int(ahead.sum()), int(np.flatnonzero(back | ahead)[-1]) + 1, c, t)
+                return
+        self._last = (int(c[-1]), int(t[-1]))
+        if self._anchor is None:
+            self._anchor = (int(c[0]), int(t[0]))
+            return
+        span = self._last[1] - self._anchor[1]
+        if span >= WINDOW_S * 1e6:
+            self.measured = ((self._last[0] - self._anchor[0]) & _MASK) / (span / 1e6)
+            self._anchor = self._last
+            self._jumping = False  # a whole window of regular timestamps: the episode is over
+
+    def _jump(self, back: int, ahead: int, at: int, c: np.ndarray, t: np.ndarray) -> None:
+        """Count and (once per episode) log timestamps that run backwards or jump; measure again after the last."""
+        self.jumps += back + ahead
+        if self._metrics is not None:
+            if back:
+                self._m_jumps["backwards"].inc(back)
+            if ahead:
+                self._m_jumps["forward"].inc(ahead)
+        if not self._jumping:
+            self._jumping = True
+            step = (int(t[at]) - int(t[at - 1])) / 1e6
+            log.warning("sensor: its timestamps %s (a step of %+.3f s over %d packet(s)); counted in "
+                        "slipd_timestamp_jumps_total, logged once until they run regularly again",
+                        "ran backwards" if back else "jumped ahead", step, int((c[at] - c[at - 1]) & _MASK))
+        self._anchor = None
+        self._last = (int(c[-1]), int(t[-1]))
+        if at < len(c) - 1:
+            self._anchor = (int(c[at]), int(t[at]))
