@@ -13,10 +13,10 @@ from mcap.reader import make_reader
 
 from slipd.cli import main
 from slipd.recording_mcap import SCHEMAS
-from slipd.sim.rig import run_rig
+from slipd.sim.rig import DEFAULT_SCENE, run_rig
 from slipd.sim.rig_mcap import write_run_mcap
 
-SCENE = ROOT / "config" / "scenes" / "default.yaml"
+SCENE = DEFAULT_SCENE
 CONFIG = ROOT / "config" / "sim.yaml"
 LAYOUT = ROOT / "deploy" / "foxglove" / "slipd.json"
 
