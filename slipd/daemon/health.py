@@ -196,7 +196,7 @@ class DeviceHealth:
                           "re-uploading it once decisions are live")
         elif before is not None:
             routine = before == "reconnected" and self.own_stop
-            log.log(logging.INFO if routine else logging.WARNING, "arm: healthy again (was %s)", before)
+            log.log(logging.INFO if routine else logging.WARNING, "arm: healthy again (after: %s)", before)
         if state == "ok":
             self.own_stop = False
 
@@ -226,7 +226,7 @@ class DeviceHealth:
             self.d._fail_safe("gripper_fault", logged=True)
         elif not problem:
             if before not in (None, "ok"):
-                log.warning("gripper: healthy again (was: %s)", before)
+                log.warning("gripper: healthy again (after: %s)", before)
             # A tighten that failed is still owed, whether or not a poll saw the servo silent: a silence shorter
             # than the poll period fails a tighten (its retries) unseen.
             self.d.reaction.retry_tighten()
