@@ -67,6 +67,12 @@ IDLE_HZ = 100.0
 """The ``idle_loop`` baseline's wake-up rate: the daemon's decisions per second at stride 10."""
 
 
+def write_json(path: Path, text: str) -> None:
+    """Write a ``--json`` report, making its folder first (``out/`` does not exist in a fresh clone)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+
+
 def quiet_hold(n: int, sensors: int = 1, seed: int = 0) -> Recording:
     """A steady grasp with sensor noise on every finger: the daemon's everyday input."""
     rng = np.random.default_rng(seed)
@@ -537,7 +543,7 @@ def compare_trees(args: argparse.Namespace) -> int:
                   f"{[round(x, 1) for x in got['this tree']]}", flush=True)
     print(f"load average at the end {os.getloadavg()[0]:.2f}")
     if args.json:
-        args.json.write_text(json.dumps({"ab": out, "baseline": str(trees["baseline"]), "seconds": args.seconds},
+        write_json(args.json, json.dumps({"ab": out, "baseline": str(trees["baseline"]), "seconds": args.seconds},
                                         indent=1))
     return 0
 
@@ -576,7 +582,7 @@ def compare_viz(args: argparse.Namespace) -> int:
                   f"CPU {', '.join(f'{x:.1f}' for x in g['cpu_percent'])}]")
             out.append({"sensors": sensors, "stride": stride, "viz": viz, **g})
     if args.json:
-        args.json.write_text(json.dumps({"viz": out, "load_average": [load0, load1], "seconds": args.seconds}))
+        write_json(args.json, json.dumps({"viz": out, "load_average": [load0, load1], "seconds": args.seconds}))
     return 0
 
 
@@ -719,7 +725,7 @@ def main(argv: list[str] | None = None) -> int:
                "machine": {"copy_bytes_per_s": bw, "flops_per_s": flops_rate, "load_average": [load0, load1],
                            "cores": os.cpu_count()},
                "seconds": args.seconds, "model": str(args.model)}
-        args.json.write_text(json.dumps(out, indent=1))
+        write_json(args.json, json.dumps(out, indent=1))
     return 0
 
 
