@@ -140,6 +140,15 @@ def make_scene(
     )
 
 
+def still_hold(n: int = 5000) -> Recording:
+    """A steady press with sensor noise on every pillar (1.5 N each): a stream the daemon stays live on, quiet."""
+    rng = np.random.default_rng(0)
+    force = np.zeros((n, 9, 3), np.float32)
+    force[:, :, 2] = 1.5
+    force += rng.normal(0, 0.01, force.shape).astype(np.float32)
+    return Recording(t_us=np.arange(n) * 1000, force=force, disp=np.zeros((n, 9, 3)))
+
+
 def run_streamed(daemon: Any, dev: Any, seconds: float, settle_s: float) -> tuple[Any, list[Any]]:
     """Run ``daemon`` for ``seconds``, the emulated devices ``dev`` streaming from the moment it is ready; then give
     its device threads ``settle_s`` to finish what the run sent. Returns (the loop's stats, the servo's writes)."""

@@ -15,12 +15,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
-from conftest import ROOT
+from conftest import ROOT, still_hold
 
-from slipd.recording import Recording
 from slipd.sim.devices.mx28 import EmulatedMX28
 from slipd.sim.devices.papillarray import EmulatedPapillArray
 
@@ -31,14 +29,6 @@ def _free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         return int(probe.getsockname()[1])
-
-
-def _still(n: int = 5000) -> Recording:
-    rng = np.random.default_rng(0)
-    force = np.zeros((n, 9, 3), np.float32)
-    force[:, :, 2] = 1.5
-    force += rng.normal(0, 0.01, force.shape).astype(np.float32)
-    return Recording(t_us=np.arange(n) * 1000, force=force, disp=np.zeros((n, 9, 3)))
 
 
 def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str, **sections: dict) -> dict:
@@ -137,7 +127,7 @@ def test_a_busy_metrics_port_exits_6_in_one_line_before_any_servo_packet_or_arm_
     taken.bind(("127.0.0.1", 0))
     taken.listen()
     try:
-        with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor, \
+        with EmulatedMX28() as servo, EmulatedPapillArray(still_hold(), loop=True) as sensor, \
                 URControllerProcess("127.0.0.11") as ur:
             cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)
             cfg["metrics"]["port"] = taken.getsockname()[1]
@@ -162,7 +152,7 @@ def test_a_busy_metrics_port_exits_6_in_one_line_before_any_servo_packet_or_arm_
 def test_sighup_applies_a_valid_config_names_what_needs_a_restart_and_refuses_an_invalid_one(
         tiny_model_json: Path, tmp_path: Path) -> None:
     """SIGHUP (``systemctl reload``, a closed terminal) killed the daemon at once, devices not closed."""
-    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor:
+    with EmulatedMX28() as servo, EmulatedPapillArray(still_hold(), loop=True) as sensor:
         cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)
         path = _write(tmp_path / "slipd.yaml", cfg)
         with _running(path, cfg["metrics"]["port"]) as d:
@@ -203,7 +193,7 @@ def test_other_stop_signals_take_the_sigterm_path_and_end_the_arms_control_scrip
     from slipd.sim.devices.ur_controller import URControllerProcess
 
     results, outs = [], []
-    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor, \
+    with EmulatedMX28() as servo, EmulatedPapillArray(still_hold(), loop=True) as sensor, \
             URControllerProcess("127.0.0.12") as ur:
         sensor.start()
         for sig in (signal.SIGQUIT, signal.SIGUSR1):
@@ -231,7 +221,7 @@ def test_a_sensor_at_the_wrong_rate_fails_safe_with_cause_rate_and_is_never_read
         tiny_model_json: Path, tmp_path: Path, rate: int) -> None:
     """At 500 Hz the daemon went live and decided on windows twice as long in time as the model learnt; at 2 kHz it
     dropped frames, still live. The controller here ignores the rate command."""
-    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True, fixed_rate_hz=rate) as sensor:
+    with EmulatedMX28() as servo, EmulatedPapillArray(still_hold(), loop=True, fixed_rate_hz=rate) as sensor:
         cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)
         path = _write(tmp_path / "slipd.yaml", cfg)
         with _running(path, cfg["metrics"]["port"]) as d:
@@ -254,7 +244,7 @@ def test_a_sensor_at_the_wrong_rate_fails_safe_with_cause_rate_and_is_never_read
 # ------------------------------------------------------------------------------------------ timestamps
 def test_timestamps_that_jump_are_counted_and_logged_once_per_episode(tiny_model_json: Path, tmp_path: Path) -> None:
     """A device clock running back 5 s passed unflagged."""
-    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor:
+    with EmulatedMX28() as servo, EmulatedPapillArray(still_hold(), loop=True) as sensor:
         cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)
         path = _write(tmp_path / "slipd.yaml", cfg)
         with _running(path, cfg["metrics"]["port"]) as d:
@@ -310,7 +300,7 @@ def test_a_read_only_recording_directory_at_start_up_exits_3_before_any_device(t
                                                                               tmp_path: Path) -> None:
     rec = tmp_path / "recordings"
     rec.mkdir(mode=0o750)
-    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor:
+    with EmulatedMX28() as servo, EmulatedPapillArray(still_hold(), loop=True) as sensor:
         cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port, recorder={"enabled": True,
                                                                                     "directory": str(rec)})
         path = _write(tmp_path / "ro.yaml", cfg)
@@ -329,7 +319,7 @@ def test_a_recording_directory_gone_read_only_counts_each_lost_recording_in_one_
     """Each lost recording was an ERROR with two tracebacks (about 25 lines) and no metric counted it."""
     rec = tmp_path / "recordings"
     rec.mkdir(mode=0o750)
-    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor:
+    with EmulatedMX28() as servo, EmulatedPapillArray(still_hold(), loop=True) as sensor:
         cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port, recorder={"enabled": True,
                                                                                     "directory": str(rec)})
         path = _write(tmp_path / "slipd.yaml", cfg)
@@ -371,7 +361,7 @@ def test_a_fail_safe_episode_is_two_lines_and_slipds_own_stop_of_the_arm_is_no_e
     slipd's own stop had caused, beside two lines of its own: an unplug storm of 55 episodes gave 98 ERROR lines."""
     from slipd.sim.devices.ur_controller import URControllerProcess
 
-    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor, \
+    with EmulatedMX28() as servo, EmulatedPapillArray(still_hold(), loop=True) as sensor, \
             URControllerProcess("127.0.0.13") as ur:
         cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)
         cfg["arm"].update(enabled=True, host=ur.host, watchdog_s=0.3)
@@ -405,7 +395,7 @@ def test_frames_missing_before_the_daemon_is_live_are_counted_apart_from_drops(t
                                                                               tmp_path: Path) -> None:
     """The controller streams before slipd reads the port: the frames it could not hold showed as ~1000 dropped
     frames after every start, which tripped the dropped-frames alert on each restart."""
-    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True, max_pending_bytes=16 * 1024) as sensor:
+    with EmulatedMX28() as servo, EmulatedPapillArray(still_hold(), loop=True, max_pending_bytes=16 * 1024) as sensor:
         sensor.start()  # before the daemon: its output piles up and overflows
         time.sleep(1.0)
         cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)

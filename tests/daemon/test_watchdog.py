@@ -17,12 +17,10 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
-from conftest import ROOT
+from conftest import ROOT, still_hold
 
-from slipd.recording import Recording
 from slipd.sim.devices.mx28 import EmulatedMX28
 from slipd.sim.devices.papillarray import EmulatedPapillArray
 from slipd.sim.devices.ur_controller import URControllerProcess
@@ -32,14 +30,6 @@ WATCHDOG_S = 0.3
 FAR = (0.30, -0.20, 1.40, 0.0, 3.1416, 0.0)  # 1 m above the start: the move outlasts the test
 
 pytestmark = pytest.mark.timeout(120)
-
-
-def _still(n: int = 5000) -> Recording:
-    rng = np.random.default_rng(0)
-    force = np.zeros((n, 9, 3), np.float32)
-    force[:, :, 2] = 1.5
-    force += rng.normal(0, 0.01, force.shape).astype(np.float32)
-    return Recording(t_us=np.arange(n) * 1000, force=force, disp=np.zeros((n, 9, 3)))
 
 
 def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str) -> Path:
@@ -77,7 +67,7 @@ def controller():
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP, signal.SIGABRT], ids=lambda s: s.name)
 def test_a_dead_or_frozen_daemon_halts_the_moving_arm_within_the_watchdog_period(
         controller: URControllerProcess, tiny_model_json: Path, tmp_path: Path, sig: signal.Signals) -> None:
-    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor:
+    with EmulatedMX28() as servo, EmulatedPapillArray(still_hold(), loop=True) as sensor:
         cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)
         proc = subprocess.Popen([sys.executable, "-m", "slipd", "run", "--config", str(cfg)],
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -117,7 +107,7 @@ def test_a_dead_or_frozen_daemon_halts_the_moving_arm_within_the_watchdog_period
 def test_ur_rtde_output_goes_through_the_log(controller: URControllerProcess, tiny_model_json: Path,
                                              tmp_path: Path) -> None:
     """ur_rtde's own prints (std::cout/cerr on a dropped link) come out as log lines, in the log format."""
-    with EmulatedMX28() as servo, EmulatedPapillArray(_still(), loop=True) as sensor:
+    with EmulatedMX28() as servo, EmulatedPapillArray(still_hold(), loop=True) as sensor:
         cfg = _config(tmp_path, tiny_model_json, sensor.port, servo.port)
         proc = subprocess.Popen([sys.executable, "-m", "slipd", "run", "--config", str(cfg)],
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
