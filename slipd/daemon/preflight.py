@@ -31,6 +31,14 @@ class ResourceError(RuntimeError):
     key and the reason."""
 
 
+def recording_meta(cfg: SlipdConfig, manifest: Any) -> dict[str, Any]:
+    """What every recording carries about the daemon that made it: the model (sha256 and manifest), the configuration
+    and the alarm threshold in force (the MCAP recordings show them as metadata, and the threshold with p_slip)."""
+    threshold = cfg.decision.threshold if cfg.decision.threshold is not None else manifest.threshold
+    return {"model_sha256": manifest.sha256, "threshold": float(threshold),
+            "config": cfg.model_dump(mode="json"), "model": manifest.model_dump(mode="json")}
+
+
 def open_recorder(cfg: SlipdConfig, source: str, meta: dict[str, Any],
                   metrics: Metrics | None = None) -> Recorder | None:
     """The recorder, its directory made and checked writable (None when ``recorder.enabled`` is false); a directory

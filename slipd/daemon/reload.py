@@ -95,15 +95,18 @@ class Reloader:
 
     def _apply(self, new: SlipdConfig, live: list[str]) -> None:
         """Everything that can fail first (the recorder's directory), then the changes, none of which can."""
-        from slipd.daemon.preflight import open_recorder
+        from slipd.daemon.preflight import open_recorder, recording_meta
 
         d = self.daemon
         old = d.cfg
         recorder_changed = any(k.startswith("recorder.") for k in live)
         recorder = d.recorder
+        # What every recording carries (the config and the threshold in force) follows the reloaded file.
+        meta = recording_meta(new, d.ensemble.manifest)
         if recorder_changed:
-            meta = dict(d.recorder.meta) if d.recorder is not None else {"model_sha256": d.ensemble.manifest.sha256}
             recorder = open_recorder(new, str(self.path), meta, d.metrics)
+        elif recorder is not None:
+            recorder.meta = meta
         d.set_decision_rule(new.decision)
         if new.control.log_level != old.control.log_level:
             logging.getLogger().setLevel(new.control.log_level)

@@ -19,13 +19,13 @@ import sys
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from slipd.config import ConfigError, SlipdConfig, load_config
 from slipd.daemon import signals
 from slipd.daemon.devices import DeviceError, build_devices, close_quietly
 from slipd.daemon.loop import Daemon
-from slipd.daemon.preflight import ResourceError, preflight
+from slipd.daemon.preflight import ResourceError, preflight, recording_meta
 from slipd.daemon.reload import Reloader
 from slipd.daemon.sdnotify import Notifier
 from slipd.daemon.signals import StopRequested
@@ -153,14 +153,6 @@ def metrics_exposure(host: str) -> str:
     if ip.is_unspecified:
         return "on every network interface of this machine"
     return f"on the network interface {host}, beyond this machine"
-
-
-def recording_meta(cfg: SlipdConfig, manifest: Any) -> dict[str, Any]:
-    """What every recording carries about the daemon that made it: the model (sha256 and manifest), the configuration
-    and the alarm threshold in force (the MCAP recordings show them as metadata, and the threshold with p_slip)."""
-    threshold = cfg.decision.threshold if cfg.decision.threshold is not None else manifest.threshold
-    return {"model_sha256": manifest.sha256, "threshold": float(threshold),
-            "config": cfg.model_dump(mode="json"), "model": manifest.model_dump(mode="json")}
 
 
 def start_taps(cfg: SlipdConfig, daemon: Daemon, config_path: str) -> None:
