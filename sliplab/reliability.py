@@ -460,6 +460,8 @@ def soak_from_json(path: Path) -> SoakReport:
 
 def soak_command(soak: SoakReport) -> str:
     """The command that reproduces a soak's figures."""
+    from sliplab.soak_live import WARMUP_MIN_S, WARMUP_SHARE
+
     cmd = f"tools/soak_live.py --seconds {soak.seconds:g}"
     if soak.slip_every_s:
         cmd += f" --slip-every {soak.slip_every_s:g}"
@@ -467,6 +469,8 @@ def soak_command(soak: SoakReport) -> str:
         cmd += f" --failsafe-every {soak.failsafe_every_s:g}"
     if soak.recordings:
         cmd += " --record"
+    if soak.warmup_s and soak.warmup_s != max(WARMUP_MIN_S, WARMUP_SHARE * soak.seconds):
+        cmd += f" --warmup {soak.warmup_s:g}"
     return cmd
 
 

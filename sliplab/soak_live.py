@@ -73,6 +73,7 @@ class SoakReport:
     failsafe_every_s: float = 0.0
     recordings: int = 0
     recordings_failed: int = 0
+    warmup_s: float = 0.0
     rss_first_kb: int = 0
     rss_last_kb: int = 0
     rss_max_kb: int = 0
@@ -105,7 +106,8 @@ class SoakReport:
             f"events          a slip every {self.slip_every_s:g} s, a fail-safe stall every "
             f"{self.failsafe_every_s:g} s (0: none); recordings written {self.recordings}, "
             f"failed {self.recordings_failed}",
-            f"memory          RSS {self.rss_first_kb} kB after warm-up -> {self.rss_last_kb} kB at the end "
+            f"memory          RSS {self.rss_first_kb} kB after {self.warmup_s:.0f} s of warm-up -> "
+            f"{self.rss_last_kb} kB at the end "
             f"(max {self.rss_max_kb}); slope {self.rss_slope_kb_per_h:+.0f} kB/hour over {self.samples} samples",
             f"fds, threads    {self.fds[0]}..{self.fds[1]} open descriptors, {self.threads[0]}..{self.threads[1]} "
             "threads after warm-up",
@@ -176,10 +178,11 @@ def random_model(out_dir: Path, members: int = 5, seed: int = 0) -> Path:
 
 def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=None,
          threshold: float | None = None, slip_every: float = 0.0, failsafe_every: float = 0.0,
-         record_dir: Path | None = None) -> SoakReport:
+         record_dir: Path | None = None, warmup_s: float | None = None) -> SoakReport:
     """Run the daemon live for ``seconds`` and count; ``controller`` reuses a running URControllerProcess.
     ``slip_every``, ``failsafe_every``: seconds between slips and fail-safe stalls (0: none); ``record_dir``: the
-    recorder's directory (None: no recorder)."""
+    recorder's directory (None: no recorder); ``warmup_s``: seconds before the memory samples start (None: the first
+    ``WARMUP_SHARE`` of the run, at least ``WARMUP_MIN_S``)."""
     from slipd.config import load_config, override
     from slipd.daemon.devices import build_devices
     from slipd.daemon.loop import Daemon
@@ -214,7 +217,8 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
 
             daemon.recorder = open_recorder(cfg, "soak", {"model_sha256": ens.manifest.sha256}, metrics)
         d = daemon
-        warm_s = max(WARMUP_MIN_S, WARMUP_SHARE * seconds)
+        warm_s = max(WARMUP_MIN_S, WARMUP_SHARE * seconds) if warmup_s is None else warmup_s
+        rep.warmup_s = warm_s
         ts: list[float] = []
         rss: list[int] = []
         fds: list[int] = []
@@ -278,7 +282,7 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
                                 for k in ("bad_checksum", "bad_length", "bad_structure", "discontinuity")))
     rep.reconnects = int(val("slipd_reconnects_total", device="sensor") + val("slipd_reconnects_total", device="arm"))
     rep.failsafes = st.failsafes
-    rep.alarms = len(st.alarms)
+    rep.alarms = st.alarm_count
     rep.decisions = st.decisions
     rep.step_errors = st.step_errors
     rep.health_polls = st.health_polls
@@ -289,7 +293,7 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
     rep.recordings_failed = int(sum(val("slipd_recordings_failed_total", reason=r)
                                     for r in ("no_space", "read_only", "permission", "io", "backlog")))
     if daemon.recorder is not None:
-        rep.recordings = len(daemon.recorder.written)
+        rep.recordings = daemon.recorder.files_written
     return rep
 
 
@@ -305,6 +309,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--failsafe-every", type=float, default=0.0,
                    help="seconds between fail-safe sensor stalls (default 0: none)")
     p.add_argument("--record", action="store_true", help="run the recorder (a temporary directory, 50 MB bound)")
+    p.add_argument("--warmup", type=float, default=None,
+                   help="seconds before the memory samples start (default: a tenth of the run, at least 60); "
+                        "past the time the daemon's bounded histories fill, the slope shows what still grows")
     p.add_argument("--json", action="store_true", help="also print the counts as one JSON line")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -318,7 +325,8 @@ def main(argv: list[str] | None = None) -> int:
                   file=sys.stderr)
             return 2
         rep = soak(args.seconds, model, host=args.host, threshold=threshold, slip_every=args.slip_every,
-                   failsafe_every=args.failsafe_every, record_dir=Path(tmp) / "recordings" if args.record else None)
+                   failsafe_every=args.failsafe_every, record_dir=Path(tmp) / "recordings" if args.record else None,
+                   warmup_s=args.warmup)
     if args.random_model:
         rep.model = "random weights, full-size SlipNet x5 (threshold 0.999)"
     print("\n".join(rep.lines()))

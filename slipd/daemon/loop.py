@@ -88,8 +88,9 @@ DEVICE_CLOSE_TIMEOUT_S = 5.0
 NONFINITE_BRIDGE_S = 0.005
 """Non-finite samples the feature stage may bridge (it holds the last finite value): a few ms. Longer
 runs make every decision one on a frozen picture of the grasp, so liveness fails."""
-MAX_KEPT = 1000
-"""Alarms kept in ``LoopStats.alarms`` (the oldest are dropped): the daemon's state stays bounded."""
+MAX_KEPT = 256
+"""Alarms kept in ``LoopStats.alarms`` (the oldest are dropped): the daemon's state stays bounded. A recording's
+context needs only the alarms of its own few seconds; ``alarm_count`` and ``slipd_alarms_total`` count them all."""
 
 
 @dataclass
@@ -100,7 +101,8 @@ class LoopStats:
     decisions: int = 0
     alarms: deque[tuple[int, int, float, int]] = field(default_factory=lambda: deque(maxlen=MAX_KEPT))
     """(sample index since start, sensor t_us, monotonic time of the decision, sensor) per rising edge; the
-    latest ``MAX_KEPT`` (``slipd_alarms_total`` counts them all)."""
+    latest ``MAX_KEPT`` (``alarm_count`` and ``slipd_alarms_total`` count them all)."""
+    alarm_count: int = 0
     overruns: int = 0
     failsafes: int = 0
     restarts: int = 0
@@ -299,6 +301,7 @@ class Daemon:
                 self.reaction.on_alarm(det.risk, t_dec)
                 m_alarms.inc()
                 self.stats.alarms.append((det.index, det.t_us, t_dec, s))
+                self.stats.alarm_count += 1
                 log.warning("ALARM: incipient slip on sensor %d (p=%.3f risk=%.2f) at t=%.3f s", s, det.p_slip,
                             det.risk, det.t_us / 1e6)
                 if rec is not None:

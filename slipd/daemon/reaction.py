@@ -52,8 +52,9 @@ log = logging.getLogger("slipd.daemon.reaction")
 ACTIONS = ("stop_arm", "tighten_gripper")
 STOP_RETRY_LOG_EVERY = 20
 """An owed arm stop is retried on every arm health poll (0.15 s); one log line per this many tries."""
-MAX_RECORDS = 1000
-"""Reactions kept in ``Reaction.records`` (the oldest are dropped): bounded state for a long-running daemon."""
+MAX_RECORDS = 256
+"""Reactions kept in ``Reaction.records`` (the oldest are dropped): bounded state for a long-running daemon. A
+recording's context reads only the reactions of its own few seconds; the metrics count them all."""
 
 
 @dataclass

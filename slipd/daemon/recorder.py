@@ -70,7 +70,7 @@ STAGING_SUFFIXES = (".part", ".tmp")
 FORMATS = ("npz", "csv", "mcap")
 MAX_TRIGGER_EVENTS = 100
 """Fail-safe events one recording names beside its trigger (bounded: one per blind episode, but an episode may last)."""
-MAX_KEPT_PATHS = 1000
+MAX_KEPT_PATHS = 256
 MAX_EPISODE_S = 30.0
 """Longest recording of one alarm episode (after its onset); a latched alarm records no more than this."""
 
@@ -183,6 +183,8 @@ class Recorder:
         # The latest paths only: a daemon that runs for months keeps bounded state (the files are the record).
         self.written: deque[Path] = deque(maxlen=MAX_KEPT_PATHS)
         self.deleted: deque[Path] = deque(maxlen=MAX_KEPT_PATHS)
+        self.files_written = 0
+        """Every file written (``written`` keeps only the latest)."""
         self.failures = 0
         self.dropped = 0
         self.extra_meta: Callable[[int, int], dict[str, Any]] | None = None
@@ -441,6 +443,7 @@ class Recorder:
         finally:
             with self._lock:
                 self.written.extend(paths)
+                self.files_written += len(paths)
             try:
                 self._enforce_bound(keep=snap.name)  # after a failure too: the disk is what fills
             except OSError as exc:

@@ -323,7 +323,7 @@ def daemon_health(daemon: Any) -> Health:
     """The daemon's liveness for the diagnostics (attributes the loop writes; read here without a lock: each read is
     one attribute, and a stale value is one diagnostics period old)."""
     stats = daemon.stats
-    values = {"decisions": str(stats.decisions), "alarms": str(len(stats.alarms)), "failsafes": str(stats.failsafes),
+    values = {"decisions": str(stats.decisions), "alarms": str(stats.alarm_count), "failsafes": str(stats.failsafes),
               "frames": str(stats.frames)}
     if daemon.live:
         return Health(LEVEL_OK, "live", values)
