@@ -297,7 +297,8 @@ def sliding_median(hist: np.ndarray, width: int) -> np.ndarray:
         np.minimum(t, hi, out=t)
         np.minimum(e, lo, out=lo)
         np.maximum(lo, t, out=lo)
-        return lo.astype(np.float32, copy=False)
+        med: np.ndarray = lo.astype(np.float32, copy=False)
+        return med
     out: np.ndarray = np.median(sliding_window_view(hist, width, axis=0), axis=-1).astype(np.float32)
     return out
 
