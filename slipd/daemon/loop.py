@@ -170,6 +170,7 @@ class Daemon:
         self.blind: str | None = None
         """The cause of the current blind episode (one fail-safe each), None while live or starting."""
         self._stall_s = cfg.sensor.stall_timeout_ms / 1e3
+        self._rate_hz = cfg.sensor.rate_hz  # (sensor.* other than its tolerance takes a restart to change)
         self.rate = RateMonitor(cfg.sensor.rate_hz, cfg.sensor.rate_tolerance, self.metrics)
         """The stream's rate by the controller's clock and counter: outside its tolerance the daemon is blind
         (``rate``); at start-up it is live only once the rate was measured."""
@@ -331,7 +332,9 @@ class Daemon:
             self._decided_t = now
             self._expect_decision(now)
         if self._feature_streams:
-            bad = sum(f.nonfinite_count + f.clipped_count for f in self._feature_streams)
+            bad = 0
+            for f in self._feature_streams:
+                bad += f.nonfinite_count + f.clipped_count
             if bad != self._nonfinite_seen:  # counted once per block, not per sample
                 m.nonfinite.inc(bad - self._nonfinite_seen)
                 self._nonfinite_seen = bad
@@ -547,7 +550,7 @@ class Daemon:
         count by which its frames are all in tells ``Liveness.blind_cause`` whether an overdue one is the stream's
         fault."""
         need = self.detector.samples_to_decision()
-        self._decision_due = now + self._stall_s + need / self.cfg.sensor.rate_hz
+        self._decision_due = now + self._stall_s + need / self._rate_hz
         self._decision_frames = need + (self.sensor.frames if self.sensor is not None else 0)
 
     def set_decision_rule(self, rule: DecisionConfig) -> None:

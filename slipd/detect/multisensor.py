@@ -32,6 +32,8 @@ class MultiDetector:
             raise ValueError("detectors must be rows 0..S-1 of S sharing one ensemble")
         self.detectors = list(detectors)
         self.sensors = len(detectors)
+        self._all_rows = np.ones(self.sensors, bool)
+        self._all_rows.flags.writeable = False  # handed to every call where all sensors step: nobody may change it
         self.ensemble = detectors[0].ensemble
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
@@ -118,10 +120,12 @@ class MultiDetector:
             kk = i + j
             t, idx = int(t_us[kk]), base + kk
             gated = [d._gate(x[kk, s], t, idx) for s, d in enumerate(subs)]
-            active = np.array([g is None for g in gated])
+            stepping = [g is None for g in gated]
+            # Every sensor in contact (a grasp, decision after decision): one array made once, no new one per call.
+            active = self._all_rows if all(stepping) else np.array(stepping)
             p = ok = None
             step_s: float | None = None
-            if active.any():
+            if any(stepping):
                 if shared:
                     batch = subs[0].derive_rows(np.stack([cast(np.ndarray, w[m][2]) for w in wins]))
                 else:
@@ -134,14 +138,15 @@ class MultiDetector:
                 det = gated[s]
                 if det is None:
                     assert p is not None and ok is not None
-                    det = d._finish(float(p[s]), bool(ok[s]), t, idx)
                     rows = self.ensemble.pillar_rows
                     d.set_pillars(rows[s] if bool(ok[s]) and rows is not None else None)
+                    det = d._finish(float(p[s]), bool(ok[s]), t, idx, d.contact_state(wins[s][m][2], wins[s][m][3]))
                     d.last_step_s = step_s
                     self.step_seconds.append(step_s)
                     step_s = None
                 else:
                     self.step_seconds.append(None)
                     d.pillar_p = None
-                out.append((kk, det.with_contact(d.contact_state(wins[s][m][2], wins[s][m][3]))))
+                    det = det.with_contact(d.contact_state(wins[s][m][2], wins[s][m][3]))
+                out.append((kk, det))
         return out
