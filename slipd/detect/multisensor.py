@@ -34,11 +34,22 @@ class MultiDetector:
         self.sensors = len(detectors)
         self._all_rows = np.ones(self.sensors, bool)
         self._all_rows.flags.writeable = False  # handed to every call where all sensors step: nobody may change it
+        self._rows: np.ndarray | None = None  # ``_rows_of``'s buffer
         self.ensemble = detectors[0].ensemble
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
         """Model call time behind each returned detection: on the first stepped sensor of a call, None on
         the others (one call, one observation)."""
+
+    def _rows_of(self, windows: list[np.ndarray]) -> np.ndarray:
+        """The sensors' windows side by side [S, len]: ``np.stack`` into one buffer kept for the next call (the model
+        call copies it into its own input; ``derive_rows`` makes a new array of it)."""
+        rows = self._rows
+        if rows is None or rows.shape[1] != len(windows[0]):
+            rows = self._rows = np.empty((self.sensors, len(windows[0])), np.float32)
+        for s, w in enumerate(windows):
+            rows[s] = w
+        return rows
 
     @property
     def windows(self) -> int:
@@ -126,10 +137,9 @@ class MultiDetector:
             p = ok = None
             step_s: float | None = None
             if any(stepping):
+                batch = self._rows_of([cast(np.ndarray, w[m][2 if shared else 1]) for w in wins])
                 if shared:
-                    batch = subs[0].derive_rows(np.stack([cast(np.ndarray, w[m][2]) for w in wins]))
-                else:
-                    batch = np.stack([cast(np.ndarray, w[m][1]) for w in wins])
+                    batch = subs[0].derive_rows(batch)
                 t0 = time.perf_counter()  # the model call alone (the inference metric)
                 p, _, ok = self.ensemble.step_rows(batch, subs[0].phase(n0 + j + 1), active)
                 step_s = time.perf_counter() - t0
