@@ -166,8 +166,8 @@ def start_taps(cfg: SlipdConfig, daemon: Daemon, config_path: str) -> None:
             from slipd.daemon.ros2 import Ros2Publisher, daemon_health
 
             try:
-                daemon.taps.append(Ros2Publisher(cfg.ros2, cfg.sensor.sensors,
-                                                 health=lambda: daemon_health(daemon)).start())
+                daemon.taps.append(Ros2Publisher(cfg.ros2, cfg.sensor.sensors, health=lambda: daemon_health(daemon),
+                                                 metrics=daemon.metrics).start())
             except Exception as exc:  # zenoh's own errors (a client that reaches no router)
                 raise DeviceError(f"ros2: cannot open the zenoh session: {' '.join(str(exc).split())}") from exc
         if cfg.viz.enabled:
@@ -175,7 +175,8 @@ def start_taps(cfg: SlipdConfig, daemon: Daemon, config_path: str) -> None:
 
             threshold = cfg.decision.threshold or daemon.ensemble.manifest.threshold
             try:
-                daemon.taps.append(LiveView(cfg.viz, cfg.sensor.sensors, cfg.sensor.rate_hz, threshold).start())
+                daemon.taps.append(LiveView(cfg.viz, cfg.sensor.sensors, cfg.sensor.rate_hz, threshold,
+                                            metrics=daemon.metrics).start())
             except Exception as exc:  # the SDK's own errors (the port is taken)
                 raise DeviceError(f"viz: cannot start the Foxglove server on {cfg.viz.host}:{cfg.viz.port}: "
                                   f"{' '.join(str(exc).split())}") from exc
