@@ -70,8 +70,10 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------------------------- check-config
 def cmd_check_config(args: argparse.Namespace) -> int:
-    """``slipd check-config FILE``: 0 valid, 3 invalid config, 4 invalid model. Touches no hardware."""
+    """``slipd check-config FILE``: 0 valid, 3 invalid config (an enabled section's extra not installed included),
+    4 invalid model. Touches no hardware."""
     from slipd.config import ConfigError, load_config, permission_warnings, summary
+    from slipd.daemon.preflight import extra_problems
     from slipd.detect.build import config_problems
     from slipd.detect.manifest import ModelError, load_manifest
 
@@ -88,7 +90,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     except ModelError as exc:
         _err(f"{path}: model.manifest: {exc}")
         return EXIT_MODEL
-    problems = config_problems(cfg, manifest, str(path))
+    problems = config_problems(cfg, manifest, str(path)) + extra_problems(cfg, str(path))
     if problems:
         _err("\n".join(problems))
         return EXIT_CONFIG

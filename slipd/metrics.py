@@ -22,6 +22,8 @@ FAST_BUCKETS = (
     1e-3, 1.5e-3, 2e-3, 3e-3, 5e-3, 7.5e-3, 10e-3, 25e-3, 50e-3, 0.1,
 )
 
+TAPS = ("ros2", "viz")
+"""The live taps (``slipd_tap_dropped_total{tap}``): the ROS 2 publisher and the live view in Foxglove."""
 RECORDING_FAILURES = ("no_space", "read_only", "permission", "io", "backlog")
 """Why a recording was lost (``slipd_recordings_failed_total{reason}``): the disk full, the file system read-only,
 no permission, another I/O error, or more writes pending than ``Recorder.max_pending``."""
@@ -62,6 +64,12 @@ class Metrics:
         )
         for reason in RECORDING_FAILURES:
             self.recordings_failed.labels(reason=reason)
+        self.tap_dropped = Counter(
+            "slipd_tap_dropped", "Messages a live tap (ros2, viz) dropped from its full queue: its thread fell behind "
+            "the loop (the loop itself loses nothing)", ["tap"], registry=r,
+        )
+        for tap in TAPS:
+            self.tap_dropped.labels(tap=tap)
         self.reconnects = Counter("slipd_reconnects", "Sensor reconnections", ["device"], registry=r)
         self.rezeros = Counter(
             "slipd_sensor_rezeros", "Software zeros in free air after a bias the sensor took under a grasp", registry=r

@@ -35,7 +35,9 @@ EXIT_MEANINGS = {
                                         "(one line naming the file and the part at fault)"),
     "EXIT_USAGE": ("usage error", "bad command line; `slipd sim` without the `sim` extra"),
     "EXIT_CONFIG": ("invalid configuration", "one line per problem: `file:line: key.path: reason`; also a config "
-                                             "refused as input (alias bomb, nesting, size)"),
+                                             "refused as input (alias bomb, nesting, size), and `ros2` or `viz` "
+                                             "enabled without its extra installed (`check-config` and `run`, before "
+                                             "any device is opened)"),
     "EXIT_MODEL": ("invalid model", "manifest missing or inconsistent with its ONNX file (sha256, opset, shapes, "
                                     "feature layout)"),
     "EXIT_DEVICE": ("device failure at start-up", "a sensor or servo port missing or not openable, the arm's "

@@ -42,6 +42,7 @@ import asyncio
 import contextlib
 import gc
 import logging
+import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -169,6 +170,7 @@ class Daemon:
         self.blind: str | None = None
         """The cause of the current blind episode (one fail-safe each), None while live or starting."""
         self._stall_s = cfg.sensor.stall_timeout_ms / 1e3
+        self._rate_hz = cfg.sensor.rate_hz  # (sensor.* other than its tolerance takes a restart to change)
         self.rate = RateMonitor(cfg.sensor.rate_hz, cfg.sensor.rate_tolerance, self.metrics)
         """The stream's rate by the controller's clock and counter: outside its tolerance the daemon is blind
         (``rate``); at start-up it is live only once the rate was measured."""
@@ -178,7 +180,8 @@ class Daemon:
         self._nonfinite_run = np.zeros(ns, np.int64)  # per sensor: consecutive non-finite samples up to now
         self._nonfinite_burst = False  # a run beyond the bridge since the supervisor last looked
         self._nonfinite_sensor = 0  # the sensor of the latest such run (the log line names it)
-        self._prev_sample: np.ndarray | None = None  # the latest frame's values read, [S, 27 or 54]
+        self._nonfinite_open = False  # some sensor's run of non-finite samples is under way
+        self._prev_bits: list[bytes] | None = None  # per sensor, the latest frame's values read (27 or 54 float32)
         self._reads_disp = cfg.model.detector != "onnx"  # the ensemble reads forces only
         now = time.monotonic()
         self._fresh_ts = np.full(ns, now)  # per sensor: when its latest fresh sample was handled
@@ -220,7 +223,9 @@ class Daemon:
     def _on_frames(self, block: FrameBlock) -> None:
         t0 = time.perf_counter()
         rate = self.rate
-        rate.push(block.counter, block.t_us, block.discontinuity)  # also while the sensor zeroes itself
+        disc = block.discontinuity
+        broken = bool(np.count_nonzero(disc))  # (the cheapest test of a short bool array)
+        rate.push(block.counter, block.t_us, disc, broken)  # also while the sensor zeroes itself
         if rate.outside and self.blind is None:
             self.liveness.wake()
         if self._bias_until is not None:
@@ -228,16 +233,18 @@ class Daemon:
                 return  # the sensor zeroes itself after a reconnect: these frames are not decided on
             self._bias_until = None
             self._restart(retare=True)  # the history starts after the bias, on a sensor zeroed again
-        n = len(block)
-        breaks = np.flatnonzero(block.discontinuity) if block.discontinuity.any() else ()
-        start = 0
-        for end in (*(int(b) for b in breaks if b > 0), n):
-            # A block runs to the next discontinuity (counter went backwards or the sensor reconnected):
-            # the history is not continuous there, so the detector restarts before that frame.
-            if block.discontinuity[start]:
-                self._restart()
-            self._on_block(block.t_us[start:end], block.force[start:end], block.disp[start:end])
-            start = end
+        if not broken:
+            self._on_block(block.t_us, block.force, block.disp)
+        else:
+            n = len(block)
+            start = 0
+            for end in (*(int(b) for b in np.flatnonzero(disc) if b > 0), n):
+                # A block runs to the next discontinuity (counter went backwards or the sensor reconnected):
+                # the history is not continuous there, so the detector restarts before that frame.
+                if disc[start]:
+                    self._restart()
+                self._on_block(block.t_us[start:end], block.force[start:end], block.disp[start:end])
+                start = end
         self.metrics.loop_seconds.observe(time.perf_counter() - t0)
         self._coalesce()
 
@@ -325,7 +332,9 @@ class Daemon:
             self._decided_t = now
             self._expect_decision(now)
         if self._feature_streams:
-            bad = sum(f.nonfinite_count + f.clipped_count for f in self._feature_streams)
+            bad = 0
+            for f in self._feature_streams:
+                bad += f.nonfinite_count + f.clipped_count
             if bad != self._nonfinite_seen:  # counted once per block, not per sample
                 m.nonfinite.inc(bad - self._nonfinite_seen)
                 self._nonfinite_seen = bad
@@ -377,42 +386,60 @@ class Daemon:
         return 0.0 if c is None else float(c.pillar_slip[pillar])
 
     def _check_samples(self, force: np.ndarray, disp: np.ndarray) -> None:
-        """Freshness of a block, per sensor (vectorised, once per block): finite, and not bit-identical to the
-        sample before, in what the detector reads (forces; displacements too for the heuristics). Updates
-        each sensor's fresh time and its run of non-finite samples up to the block's end."""
+        """Freshness of a block, per sensor (once per block): finite, and not bit-identical to the sample before, in
+        what the detector reads (forces; displacements too for the heuristics). Updates each sensor's fresh time and
+        its run of non-finite samples up to the block's end."""
         n = len(force)
-        vals = force.reshape(n, self.sensors, -1)
+        ns = self.sensors
+        vals = force.reshape(n, ns, -1)
         if self._reads_disp:
-            vals = np.concatenate([vals, disp.reshape(n, self.sensors, -1)], axis=2)
-        prev = self._prev_sample
-        finite = None
-        if np.isfinite(vals).all():
-            # The common block, all finite: a sensor is fresh when any of its samples differs from the one before
-            # (the first block always is; one sample alone compares only with the block before).
-            fresh = (vals[1:] != vals[:-1]).any(axis=(0, 2))
-            if prev is None:
-                fresh[:] = True
-            elif not fresh.all():
-                fresh |= (vals[0] != prev).any(axis=1)
-        else:
-            finite = np.isfinite(vals).all(axis=2)  # [n, S]
-            changed = np.empty((n, self.sensors), bool)
-            changed[0] = True if prev is None else (vals[0] != prev).any(axis=1)
-            if n > 1:
-                changed[1:] = (vals[1:] != vals[:-1]).any(axis=2)
-            fresh = (finite & changed).any(axis=0)
-        self._prev_sample = vals[-1].copy()
-        if fresh.any():
-            # When the data arrived (a held block can be handed over up to half a stall timeout later).
-            arrived = self.sensor.last_frame_time if self.sensor is not None else None
-            self._fresh_ts[fresh] = time.monotonic() if arrived is None else arrived
-            self._fresh_t = float(self._fresh_ts.min())
-        if finite is None:
-            self._nonfinite_run[:] = 0
+            vals = np.concatenate([vals, disp.reshape(n, ns, -1)], axis=2)
+        prev = self._prev_bits
+        last = [vals[-1, s].tobytes() for s in range(ns)]
+        self._prev_bits = last
+        if not math.isfinite(vals.sum()):  # a non-finite value makes the sum so (a finite overflow: checked exactly)
+            self._check_nonfinite(vals, prev)
             return
-        # Rare (a fault): follow each sensor's run of non-finite samples across blocks; a run longer than the
-        # bridge is remembered until the supervisor has seen it, even when it ended inside this block.
-        for s in range(self.sensors):
+        # The common block, all finite: a sensor is fresh unless every sample is bit-identical to the one before (the
+        # first block always is). Its last sample differing from the block before's answers at once; if it does not,
+        # one comparison of the block's bytes does.
+        if self._nonfinite_open:
+            self._nonfinite_run[:] = 0
+            self._nonfinite_open = False
+        arrived = None
+        for s in range(ns):
+            if prev is not None and last[s] == prev[s] and vals[:, s].tobytes() == last[s] * n:
+                continue
+            if arrived is None:
+                arrived = self._arrived()
+            self._fresh_ts[s] = arrived
+        if arrived is not None:
+            self._fresh_t = arrived if ns == 1 else float(self._fresh_ts.min())
+
+    def _arrived(self) -> float:
+        """When the data of the block at hand arrived (a held block can be handed over up to half a stall timeout
+        later)."""
+        arrived = self.sensor.last_frame_time if self.sensor is not None else None
+        return time.monotonic() if arrived is None else float(arrived)
+
+    def _check_nonfinite(self, vals: np.ndarray, prev: list[bytes] | None) -> None:
+        """``_check_samples`` on a block with a non-finite value (a fault: sample by sample). Follows each sensor's run
+        of non-finite samples across blocks; a run longer than the bridge is remembered until the supervisor has seen
+        it, even when it ended inside this block."""
+        n, ns = len(vals), self.sensors
+        bits = vals.view(np.uint32)  # bit-identical, as the common block's test
+        finite = np.isfinite(vals).all(axis=2)  # [n, S]
+        changed = np.empty((n, ns), bool)
+        if prev is None:
+            changed[0] = True
+        else:
+            changed[0] = (bits[0] != np.frombuffer(b"".join(prev), np.uint32).reshape(ns, -1)).any(axis=1)
+        changed[1:] = (bits[1:] != bits[:-1]).any(axis=2)
+        fresh = (finite & changed).any(axis=0)
+        if fresh.any():
+            self._fresh_ts[fresh] = self._arrived()
+            self._fresh_t = float(self._fresh_ts.min())
+        for s in range(ns):
             run = int(self._nonfinite_run[s])
             for ok in finite[:, s].tolist():
                 run = 0 if ok else run + 1
@@ -421,6 +448,7 @@ class Daemon:
                     self.liveness.wake()
                     self._nonfinite_sensor = s
             self._nonfinite_run[s] = run
+        self._nonfinite_open = bool(self._nonfinite_run.any())
 
     def _coalesce(self) -> None:
         """Pause the sensor reader until shortly before the next decision's last sample is due, and have it
@@ -514,7 +542,7 @@ class Daemon:
         if self.recorder is not None:
             self.recorder.restart()  # no recording glues the streams either side of the break
         self.stats.restarts += 1
-        self._prev_sample = None
+        self._prev_bits = None
         self._expect_decision(time.monotonic())
 
     def _expect_decision(self, now: float) -> None:
@@ -522,7 +550,7 @@ class Daemon:
         count by which its frames are all in tells ``Liveness.blind_cause`` whether an overdue one is the stream's
         fault."""
         need = self.detector.samples_to_decision()
-        self._decision_due = now + self._stall_s + need / self.cfg.sensor.rate_hz
+        self._decision_due = now + self._stall_s + need / self._rate_hz
         self._decision_frames = need + (self.sensor.frames if self.sensor is not None else 0)
 
     def set_decision_rule(self, rule: DecisionConfig) -> None:

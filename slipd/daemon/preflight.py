@@ -2,8 +2,10 @@
 
 A resource that is not there is found before the gripper is torqued and set to hold, and before ur_rtde's
 control script replaces the user's program: otherwise each start that fails on it re-grips the object, and
-systemd's restarts do so again each time. The checks, in order: the recording directory can be made and
-written (``recorder.directory``; a config problem, exit 3), each device path exists and may be opened
+systemd's restarts do so again each time. The checks, in order: the packages of the optional sections the
+configuration enables can be imported (``ros2.enabled`` needs the ``ros2`` extra, ``viz.enabled`` the ``viz`` one,
+``extra_problems``; a config problem, exit 3, which ``slipd check-config`` reports too), the recording directory can
+be made and written (``recorder.directory``; exit 3), each device path exists and may be opened
 (``slipd.daemon.devices.check_devices``; exit 5), and the metrics port can be bound (``metrics.host`` and
 ``metrics.port``; exit 6). The port is bound here and kept: the server that answers scrapes is this one, so
 nothing can take the port between the check and the run.
@@ -12,6 +14,7 @@ nothing can take the port between the check and the run.
 from __future__ import annotations
 
 import errno
+import importlib
 import os
 from typing import TYPE_CHECKING, Any
 
@@ -24,6 +27,28 @@ if TYPE_CHECKING:
     from slipd.config import SlipdConfig
     from slipd.daemon.recorder import Recorder
     from slipd.metrics import Metrics
+
+
+EXTRAS: dict[str, tuple[str, ...]] = {"ros2": ("zenoh", "rosbags"), "viz": ("foxglove",)}
+"""The packages each optional section needs, by its name, which is also its extra's (``slipd[ros2]``,
+``slipd[viz]``)."""
+
+
+def extra_problems(cfg: SlipdConfig, source: str) -> list[str]:
+    """One line per section the configuration enables whose extra cannot be imported (``EXTRAS``): the file, the key,
+    what to install and why the import failed. Imports the packages of the enabled sections only."""
+    problems = []
+    for section, packages in EXTRAS.items():
+        if not getattr(cfg, section).enabled:
+            continue
+        for name in packages:
+            try:
+                importlib.import_module(name)
+            except ImportError as exc:
+                problems.append(f"{source}: {section}.enabled: needs the {section} extra: pip install "
+                                f"'slipd[{section}]' ({' '.join(str(exc).split())})")
+                break
+    return problems
 
 
 class ResourceError(RuntimeError):
@@ -84,6 +109,9 @@ def preflight(cfg: SlipdConfig, metrics: Metrics, source: str,
               meta: dict[str, Any]) -> tuple[Recorder | None, WSGIServer | None]:
     """Every check of the module docstring, in its order; returns the recorder and the metrics server, both ready.
     Raises ``ConfigError``, ``DeviceError`` or ``ResourceError``; what was opened before a failure is released."""
+    problems = extra_problems(cfg, source)
+    if problems:
+        raise ConfigError(problems)
     recorder = open_recorder(cfg, source, meta, metrics)
     try:
         check_devices(cfg)

@@ -46,6 +46,7 @@ from slipd.geometry import PILLAR_XY_MM
 if TYPE_CHECKING:
     from slipd.config import Ros2Config
     from slipd.detect.decision import Detection
+    from slipd.metrics import Metrics
 
 log = logging.getLogger("slipd.daemon.ros2")
 
@@ -187,13 +188,15 @@ def session_config(mode: str, connect: list[str], listen: list[str]) -> Any:
 class Ros2Publisher:
     """A tap (``slipd.daemon.taps``) that publishes the loop's decisions as ROS 2 messages on its own thread."""
 
-    def __init__(self, cfg: Ros2Config, sensors: int = 1, health: Callable[[], Health] | None = None) -> None:
+    def __init__(self, cfg: Ros2Config, sensors: int = 1, health: Callable[[], Health] | None = None,
+                 metrics: Metrics | None = None) -> None:
         self.cfg = cfg
         self.sensors = sensors
         self.health = health
         self.queue: deque[tuple[Any, ...]] = deque(maxlen=cfg.queue)
         self.dropped = 0
-        """Decisions dropped from a full queue (the ``slipd-ros2`` thread fell behind)."""
+        """Decisions dropped from a full queue (the ``slipd-ros2`` thread fell behind; ``slipd_tap_dropped_total``)."""
+        self._m_dropped = metrics.tap_dropped.labels(tap="ros2") if metrics is not None else None
         self.published = 0
         self.errors = 0
         self._wake = threading.Event()
@@ -252,6 +255,8 @@ class Ros2Publisher:
         """Queue one decision (a copy of its frame's forces); ``on_block`` wakes the ``slipd-ros2`` thread."""
         if len(self.queue) == self.queue.maxlen:
             self.dropped += 1  # the deque drops its oldest on append
+            if self._m_dropped is not None:
+                self._m_dropped.inc()
         pill = det.contact.pillar_slip if det.contact is not None else None
         self.queue.append((time.time_ns(), det.sensor, det.p_slip, det.alarm, pill, force.copy()))
 

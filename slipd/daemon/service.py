@@ -25,7 +25,7 @@ from slipd.config import ConfigError, SlipdConfig, load_config
 from slipd.daemon import signals
 from slipd.daemon.devices import DeviceError, build_devices, close_quietly
 from slipd.daemon.loop import Daemon
-from slipd.daemon.preflight import ResourceError, preflight, recording_meta
+from slipd.daemon.preflight import ResourceError, extra_problems, preflight, recording_meta
 from slipd.daemon.reload import Reloader
 from slipd.daemon.sdnotify import Notifier
 from slipd.daemon.signals import StopRequested
@@ -158,32 +158,25 @@ def metrics_exposure(host: str) -> str:
 def start_taps(cfg: SlipdConfig, daemon: Daemon, config_path: str) -> None:
     """The ROS 2 publisher and the live view where the configuration enables them (each needs its extra); a failure
     closes the ones already started."""
+    problems = extra_problems(cfg, config_path)  # (preflight refused these already, before any device was opened)
+    if problems:
+        raise ConfigError(problems)
     try:
         if cfg.ros2.enabled:
-            try:
-                import rosbags  # noqa: F401
-                import zenoh  # noqa: F401
+            from slipd.daemon.ros2 import Ros2Publisher, daemon_health
 
-                from slipd.daemon.ros2 import Ros2Publisher, daemon_health
-            except ImportError as exc:
-                raise ConfigError([f"{config_path}: ros2.enabled: needs the ros2 extra: pip install 'slipd[ros2]' "
-                                   f"({exc})"]) from None
             try:
-                daemon.taps.append(Ros2Publisher(cfg.ros2, cfg.sensor.sensors,
-                                                 health=lambda: daemon_health(daemon)).start())
+                daemon.taps.append(Ros2Publisher(cfg.ros2, cfg.sensor.sensors, health=lambda: daemon_health(daemon),
+                                                 metrics=daemon.metrics).start())
             except Exception as exc:  # zenoh's own errors (a client that reaches no router)
                 raise DeviceError(f"ros2: cannot open the zenoh session: {' '.join(str(exc).split())}") from exc
         if cfg.viz.enabled:
-            try:
-                import foxglove  # noqa: F401
+            from slipd.daemon.viz import LiveView
 
-                from slipd.daemon.viz import LiveView
-            except ImportError as exc:
-                raise ConfigError([f"{config_path}: viz.enabled: needs the viz extra: pip install 'slipd[viz]' "
-                                   f"({exc})"]) from None
             threshold = cfg.decision.threshold or daemon.ensemble.manifest.threshold
             try:
-                daemon.taps.append(LiveView(cfg.viz, cfg.sensor.sensors, cfg.sensor.rate_hz, threshold).start())
+                daemon.taps.append(LiveView(cfg.viz, cfg.sensor.sensors, cfg.sensor.rate_hz, threshold,
+                                            metrics=daemon.metrics).start())
             except Exception as exc:  # the SDK's own errors (the port is taken)
                 raise DeviceError(f"viz: cannot start the Foxglove server on {cfg.viz.host}:{cfg.viz.port}: "
                                   f"{' '.join(str(exc).split())}") from exc

@@ -38,6 +38,7 @@ from slipd.recording_mcap import (
 if TYPE_CHECKING:
     from slipd.config import VizConfig
     from slipd.detect.decision import Detection
+    from slipd.metrics import Metrics
 
 log = logging.getLogger("slipd.daemon.viz")
 
@@ -55,7 +56,7 @@ class LiveView:
     """A tap (``slipd.daemon.taps``) that serves frames and decisions to Foxglove from its own thread."""
 
     def __init__(self, cfg: VizConfig, sensors: int = 1, rate_hz: float = 1000.0,
-                 threshold: float | None = None) -> None:
+                 threshold: float | None = None, metrics: Metrics | None = None) -> None:
         self.cfg = cfg
         self.sensors = sensors
         self.threshold = threshold
@@ -66,7 +67,8 @@ class LiveView:
         more to build and draw than a plot's points)."""
         self.queue: deque[tuple[Any, ...]] = deque(maxlen=cfg.queue)
         self.dropped = 0
-        """Items dropped from a full queue (the ``slipd-viz`` thread fell behind)."""
+        """Items dropped from a full queue (the ``slipd-viz`` thread fell behind; ``slipd_tap_dropped_total``)."""
+        self._m_dropped = metrics.tap_dropped.labels(tap="viz") if metrics is not None else None
         self.sent = 0
         self.errors = 0
         self._samples = 0
@@ -99,6 +101,8 @@ class LiveView:
     def _put(self, item: tuple[Any, ...]) -> None:
         if len(self.queue) == self.queue.maxlen:
             self.dropped += 1  # the deque drops its oldest on append
+            if self._m_dropped is not None:
+                self._m_dropped.inc()
         self.queue.append(item)
 
     def on_block(self, t_us: np.ndarray, force: np.ndarray, disp: np.ndarray) -> None:

@@ -203,10 +203,15 @@ class ContactStream:
         load = math.hypot(fx, fy)
         # Only sliding pillars near the contact's top utilisation are samples of mu, and only they put the grip at
         # risk (``RISK_TOP_SHARE``, ``FRICTION_TOP_SHARE``).
-        p_top = [q if u >= RISK_TOP_SHARE * top else 0.0 for q, u in zip(p, util, strict=True)]
+        cut = RISK_TOP_SHARE * top
+        p_top = [q if u >= cut else 0.0 for q, u in zip(p, util, strict=True)]
         pressing = grip > (1.0 + FRICTION_PRESS_RISE) * sum(z for _, _, z in first if z > CONTACT_THRESHOLD_N)
-        self.friction.update(util, fz, [q if u >= FRICTION_TOP_SHARE * top and not pressing else 0.0
-                                        for q, u in zip(p, util, strict=True)])
+        if pressing:
+            samples = [0.0] * N_PILLARS
+        else:
+            cut = FRICTION_TOP_SHARE * top
+            samples = [q if u >= cut else 0.0 for q, u in zip(p, util, strict=True)]
+        self.friction.add(util, fz, samples)
         est = self.friction.refute(util, fz, p, FRICTION_REFUTE)
         mu = None if est is None else est.mu
         state = ContactState(

@@ -324,8 +324,7 @@ class Detector:
         for j, window, filtered, state in self.feature_windows(force[i:]):
             k = i + j
             assert window is not None
-            det = self._decide(window, force[k], int(t_us[k]), base + k)
-            out.append((k, det.with_contact(self.contact_state(filtered, state))))
+            out.append((k, self._decide(window, force[k], int(t_us[k]), base + k, filtered, state)))
             self.step_seconds.append(self.last_step_s)
         return out
 
@@ -372,15 +371,16 @@ class Detector:
         filtered = None
         if self._shared:
             filtered, window = window, self._derive(window)
-        det = self._decide(window, force, t_us, index)
-        return det.with_contact(self.contact_state(filtered, state))
+        return self._decide(window, force, t_us, index, filtered, state)
 
-    def _decide(self, window: np.ndarray, force: np.ndarray, t_us: int, index: int) -> Detection:
-        """A completed window (its last sample ``force``, ``index``): contact gate, model step, decision."""
+    def _decide(self, window: np.ndarray, force: np.ndarray, t_us: int, index: int, filtered: np.ndarray | None,
+                state: ContactState | None) -> Detection:
+        """A completed window (its last sample ``force``, ``index``): contact gate, model step, decision, and the
+        window's contact state (``contact_state`` of ``filtered`` or ``state``)."""
         self.pillar_p = None
         det = self._gate(force, t_us, index)
         if det is not None:
-            return det
+            return det.with_contact(self.contact_state(filtered, state))
         t0 = time.perf_counter()
         if self.row is None:
             stream = self.windows % self.n_streams
@@ -401,7 +401,7 @@ class Detector:
             if valid and rows is not None:
                 self.set_pillars(rows[self.row])
         self.last_step_s = time.perf_counter() - t0
-        return self._finish(float(p), valid, t_us, index)
+        return self._finish(float(p), valid, t_us, index, self.contact_state(filtered, state))
 
     def set_pillars(self, p_pillars: np.ndarray | None) -> None:
         """The model's per-pillar P(slip) on the window just stepped, for the contact state; None where the graph
@@ -457,18 +457,20 @@ class Detector:
         rise = load - before
         self.pressing = bool(rise > PRESS_MIN_N and rise > press_rise * before)
 
-    def _finish(self, p_slip: float, valid: bool, t_us: int, index: int) -> Detection:
-        """The decision on a model step's output (``valid`` False: refused input or non-finite output)."""
+    def _finish(self, p_slip: float, valid: bool, t_us: int, index: int,
+                contact: ContactState | None = None) -> Detection:
+        """The decision on a model step's output (``valid`` False: refused input or non-finite output), with the
+        window's ``contact`` state."""
         self.windows += 1
         if not valid:
             # Refused (non-finite window: state kept) or non-finite output (stream reset): no decision.
             self.step_errors += 1
             return Detection(index, t_us, float("nan"), 0.0, bool(self.decision.alarm), False, valid=False,
-                             sensor=self.sensor)
+                             sensor=self.sensor, contact=contact)
         # The members' agreement (``DecisionResult.members_alarming``) is evaluation's: a Detection does not carry it.
         d = self.decision.update(float(p_slip), None, may_raise=not self.pressing)
         return Detection(index, t_us, float(p_slip), float(d.risk), bool(d.alarm), bool(d.rising_edge),
-                         sensor=self.sensor)
+                         sensor=self.sensor, contact=contact)
 
 
 class HeuristicDetector:

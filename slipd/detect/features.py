@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -59,6 +60,7 @@ gfz   Fz / max(sum of Fz, 0.5 N): each pillar's share of the grasp's normal load
 """
 ALL_CHANNELS = (*CHANNEL_INDEX, *DERIVED)
 UTIL_FLOOR_N = CONTACT_THRESHOLD_N
+_UTIL_FLOOR_F32 = np.float32(UTIL_FLOOR_N)
 LUTIL_FLOOR = np.float32(0.01)
 CLIP_N = np.array([2 * FT_RANGE_N, 2 * FT_RANGE_N, 2 * FZ_RANGE_N], dtype=np.float32)
 """Bound on tared forces per axis (twice the sensor's range)."""
@@ -118,12 +120,12 @@ class FeatureSpec:
             cols = tuple(p * 3 + CHANNEL_INDEX[c] for p in self.pillars for c in self.channels)
         object.__setattr__(self, "_cols", cols)
 
-    @property
+    @cached_property
     def derived(self) -> bool:
         """True when a channel is computed after the median (stage 5b) rather than selected."""
         return any(c in DERIVED for c in self.channels)
 
-    @property
+    @cached_property
     def n_base(self) -> int:
         """Columns selected in stage 4 and median-filtered (equals ``n_channels`` without derived channels)."""
         return len(self._cols)
@@ -137,7 +139,7 @@ class FeatureSpec:
         if not self.derived:
             return filtered
         f = filtered.reshape(len(filtered), len(self.pillars), 3)
-        fz = np.maximum(f[:, :, 2], np.float32(UTIL_FLOOR_N))
+        fz = np.maximum(f[:, :, 2], _UTIL_FLOOR_F32)
         if self.channels == ("util",):
             # The shipped model's layout, once per decision on the hot path: no stack of one part (same values).
             out: np.ndarray = np.hypot(f[:, :, 0], f[:, :, 1])
@@ -163,17 +165,17 @@ class FeatureSpec:
                 parts.append(f[:, :, CHANNEL_INDEX[c]])
         return np.stack(parts, axis=-1).astype(np.float32, copy=False).reshape(len(filtered), self.n_channels)
 
-    @property
+    @cached_property
     def n_channels(self) -> int:
         """Features per sample (C)."""
         return len(self.pillars) * len(self.channels)
 
-    @property
+    @cached_property
     def input_size(self) -> int:
         """Length of one flattened window (T * C)."""
         return self.window * self.n_channels
 
-    @property
+    @cached_property
     def step(self) -> int:
         """Samples between two consecutive windows."""
         return self.stride or self.window
@@ -280,12 +282,23 @@ def sliding_median(hist: np.ndarray, width: int) -> np.ndarray:
         a, b, c = hist[0:n], hist[1 : n + 1], hist[2 : n + 2]
         return _median3(a, b, c).astype(np.float32, copy=False)
     if width == 5:
-        a, b, c, d, e = (hist[k : n + k] for k in range(5))
+        a, b, c, d, e = hist[0:n], hist[1 : n + 1], hist[2 : n + 2], hist[3 : n + 3], hist[4 : n + 4]
         # median5 = median3(e, max(min(a, b), min(c, d)), min(max(a, b), max(c, d))): the larger of the two
-        # pair minima and the smaller of the two pair maxima bracket the median of a..d's middle pair.
-        lo = np.maximum(np.minimum(a, b), np.minimum(c, d))
-        hi = np.minimum(np.maximum(a, b), np.maximum(c, d))
-        return _median3(e, lo, hi).astype(np.float32, copy=False)
+        # pair minima and the smaller of the two pair maxima bracket the median of a..d's middle pair. Three
+        # arrays written in place (this runs once per decision on the daemon's hot path).
+        lo = np.minimum(a, b)
+        t = np.minimum(c, d)
+        np.maximum(lo, t, out=lo)
+        hi = np.maximum(a, b)
+        np.maximum(c, d, out=t)
+        np.minimum(hi, t, out=hi)
+        # median3(e, lo, hi) = max(min(e, lo), min(max(e, lo), hi)), as ``_median3``
+        np.maximum(e, lo, out=t)
+        np.minimum(t, hi, out=t)
+        np.minimum(e, lo, out=lo)
+        np.maximum(lo, t, out=lo)
+        med: np.ndarray = lo.astype(np.float32, copy=False)
+        return med
     out: np.ndarray = np.median(sliding_window_view(hist, width, axis=0), axis=-1).astype(np.float32)
     return out
 
@@ -410,9 +423,13 @@ class FeatureStream:
         n = self._n
         if n < spec.window or (n - spec.window) % spec.step:
             return None
-        hist = self._buf[self._end - self._hist_len : self._end]
-        filtered = self._derive(causal_median_tail(hist, spec.median))
-        return filtered.reshape(-1).copy()
+        return self._window(self._buf[self._end - self._hist_len : self._end])
+
+    def _window(self, hist: np.ndarray) -> np.ndarray:
+        """The flattened window that ends a history slice, a fresh array the caller owns: the median's output is one
+        (width 1 reads the history itself: copied)."""
+        out: np.ndarray = self._derive(causal_median_tail(hist, self.spec.median)).reshape(-1)
+        return out.copy() if self.spec.median == 1 else out
 
     def push_many(self, samples: np.ndarray) -> list[tuple[int, np.ndarray]]:
         """Add a block of raw samples ([k, 9, 3] or [k, 27]) at once; ``push`` for each, in one pass.
@@ -469,7 +486,7 @@ class FeatureStream:
             self._append(rows[done : i + 1])
             done = i + 1
             hist = self._buf[self._end - self._hist_len : self._end]
-            out.append((i, self._derive(causal_median_tail(hist, spec.median)).reshape(-1).copy()))
+            out.append((i, self._window(hist)))
         self._append(rows[done:])
         self._n = n0 + k
         return out
@@ -484,7 +501,7 @@ class FeatureStream:
         out = []
         for i in range(first, k, spec.step):
             hist = self._buf[end + i + 1 - self._hist_len : end + i + 1]
-            out.append((i, self._derive(causal_median_tail(hist, spec.median)).reshape(-1).copy()))
+            out.append((i, self._window(hist)))
         self._end = end + k
         self._n = n0 + k
         return out

@@ -58,6 +58,11 @@ class FrictionEstimator:
 
     def update(self, util: Sequence[float], fz: Sequence[float], p_slip: Sequence[float]) -> FrictionEstimate | None:
         """Add this decision's sliding pillars; returns the estimate (None while none was seen sliding)."""
+        self.add(util, fz, p_slip)
+        return self.estimate()
+
+    def add(self, util: Sequence[float], fz: Sequence[float], p_slip: Sequence[float]) -> None:
+        """``update`` without building the estimate (the contact stream reads it after ``refute``)."""
         floor = self._floor(fz)
         prev = self._fz if self._fz is not None else fz
         rise = 1.0 + self.max_fz_rise
@@ -75,7 +80,6 @@ class FrictionEstimator:
                 self._m += d * w / self._w
                 self._s += w * d * (u - self._m)
             self.samples += len(use)
-        return self.estimate()
 
     def refute(self, util: Sequence[float], fz: Sequence[float], p_slip: Sequence[float],
                factor: float) -> FrictionEstimate | None:

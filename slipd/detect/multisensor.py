@@ -32,11 +32,24 @@ class MultiDetector:
             raise ValueError("detectors must be rows 0..S-1 of S sharing one ensemble")
         self.detectors = list(detectors)
         self.sensors = len(detectors)
+        self._all_rows = np.ones(self.sensors, bool)
+        self._all_rows.flags.writeable = False  # handed to every call where all sensors step: nobody may change it
+        self._rows: np.ndarray | None = None  # ``_rows_of``'s buffer
         self.ensemble = detectors[0].ensemble
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
         """Model call time behind each returned detection: on the first stepped sensor of a call, None on
         the others (one call, one observation)."""
+
+    def _rows_of(self, windows: list[np.ndarray]) -> np.ndarray:
+        """The sensors' windows side by side [S, len]: ``np.stack`` into one buffer kept for the next call (the model
+        call copies it into its own input; ``derive_rows`` makes a new array of it)."""
+        rows = self._rows
+        if rows is None or rows.shape[1] != len(windows[0]):
+            rows = self._rows = np.empty((self.sensors, len(windows[0])), np.float32)
+        for s, w in enumerate(windows):
+            rows[s] = w
+        return rows
 
     @property
     def windows(self) -> int:
@@ -118,14 +131,15 @@ class MultiDetector:
             kk = i + j
             t, idx = int(t_us[kk]), base + kk
             gated = [d._gate(x[kk, s], t, idx) for s, d in enumerate(subs)]
-            active = np.array([g is None for g in gated])
+            stepping = [g is None for g in gated]
+            # Every sensor in contact (a grasp, decision after decision): one array made once, no new one per call.
+            active = self._all_rows if all(stepping) else np.array(stepping)
             p = ok = None
             step_s: float | None = None
-            if active.any():
+            if any(stepping):
+                batch = self._rows_of([cast(np.ndarray, w[m][2 if shared else 1]) for w in wins])
                 if shared:
-                    batch = subs[0].derive_rows(np.stack([cast(np.ndarray, w[m][2]) for w in wins]))
-                else:
-                    batch = np.stack([cast(np.ndarray, w[m][1]) for w in wins])
+                    batch = subs[0].derive_rows(batch)
                 t0 = time.perf_counter()  # the model call alone (the inference metric)
                 p, _, ok = self.ensemble.step_rows(batch, subs[0].phase(n0 + j + 1), active)
                 step_s = time.perf_counter() - t0
@@ -134,14 +148,15 @@ class MultiDetector:
                 det = gated[s]
                 if det is None:
                     assert p is not None and ok is not None
-                    det = d._finish(float(p[s]), bool(ok[s]), t, idx)
                     rows = self.ensemble.pillar_rows
                     d.set_pillars(rows[s] if bool(ok[s]) and rows is not None else None)
+                    det = d._finish(float(p[s]), bool(ok[s]), t, idx, d.contact_state(wins[s][m][2], wins[s][m][3]))
                     d.last_step_s = step_s
                     self.step_seconds.append(step_s)
                     step_s = None
                 else:
                     self.step_seconds.append(None)
                     d.pillar_p = None
-                out.append((kk, det.with_contact(d.contact_state(wins[s][m][2], wins[s][m][3]))))
+                    det = det.with_contact(d.contact_state(wins[s][m][2], wins[s][m][3]))
+                out.append((kk, det))
         return out

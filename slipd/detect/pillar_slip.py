@@ -158,7 +158,7 @@ class PillarSlip:
         for i, ((x0, y0, z0), c, u, z, s) in enumerate(zip(first, contact, util, fz, step)):
             if not c:
                 s = stick  # off the surface
-            elif u < keep * (math.hypot(x0, y0) / (z0 if z0 > thr else thr)) and z > z0 + floor:
+            elif z > z0 + floor and u < keep * (math.hypot(x0, y0) / (z0 if z0 > thr else thr)):
                 s = stick  # its utilisation fell while its normal force rose (``fall``): sticks
             # min(lim, max(-lim, logit + s)), without the two calls
             v = logit[i] + s

@@ -339,6 +339,9 @@ class _NeedMore(Exception):
 _BUFFER_BYTES = 1 << 16
 _CHUNK_BYTES = _BUFFER_BYTES - MAX_FRAME_BYTES
 _LE_U16 = np.dtype("<u2")
+_LE_U32 = np.dtype("<u4")
+_LE_U64 = np.dtype("<u8")
+_LE_F32 = np.dtype("<f4")
 
 
 class FrameDecoder:
@@ -369,9 +372,13 @@ class FrameDecoder:
         self._u8 = np.frombuffer(self._buf, dtype=np.uint8)
         self._start = 0
         self._end = 0
-        # (frame length, payload length, fixed byte indices, their values, block record positions) of the
-        # last fully validated frame: the controller sends one layout, so later frames are checked against it.
-        self._run: tuple[int, int, np.ndarray, np.ndarray, dict[int, tuple[int, ...]], bytes] | None = None
+        # (frame length, payload length, fixed byte indices, their values, block record positions, the fixed-byte
+        # mask and the fixed bytes, each tiled for as many back-to-back frames as the buffer holds) of the last fully
+        # validated frame: the controller sends one layout, so later frames are checked against it.
+        self._run: tuple[int, int, np.ndarray, np.ndarray, dict[int, tuple[int, ...]], np.ndarray, bytes] | None = None
+        self._scratch = np.zeros(_BUFFER_BYTES, np.uint8)
+        # ``_emit``'s reading positions for the layout it last copied (``_layout_plan``), keyed by its record positions.
+        self._plan: tuple[Any, int, tuple[int, ...], int | None] = (None, 0, (), None)
         self._value_ranges: list[tuple[int, int]] = []
         # Output storage, reused across feeds (grown only when one feed completes more frames than ever
         # before; a serial read is bounded, so is this). _vals is [frame, sensor, force|disp, pillar, axis].
@@ -507,20 +514,23 @@ class FrameDecoder:
         full decode would (same structure, end marker, checksum); the run stops before the first frame
         that differs or is incomplete, which the full decoder then judges. Returns the frames added.
         """
-        flen, plen, chk_idx, chk_vals, found, tiled = self._run  # type: ignore[misc]
+        flen, plen, chk_idx, chk_vals, found, mask, tiled = self._run  # type: ignore[misc]
         k = (self._end - s) // flen
         if k == 0:
             return 0
-        rows = np.ndarray((k, flen), dtype=np.uint8, buffer=self._buf, offset=s, strides=(flen, 1))
-        fixed = rows[:, chk_idx]
+        nb = k * flen
+        seg = self._u8[s : s + nb]
+        rows = seg.reshape(k, flen)
         # The checksum is the payload's byte sum mod 2**16: a 16-bit accumulator wraps to exactly that.
         sums = rows[:, len(START) : len(START) + plen].sum(axis=1, dtype=_LE_U16)
         sent = np.ndarray((k,), dtype=_LE_U16, buffer=self._buf, offset=s + len(START) + plen, strides=(flen,))
-        # The common read, every frame whole: two byte comparisons (memcmp) instead of per-frame reductions.
-        if fixed.tobytes() == tiled[: fixed.nbytes] and sums.tobytes() == sent.tobytes():
+        # The common read, every frame whole: the frames' bytes with their values masked out against the template,
+        # and the checksums, each in one byte comparison (memcmp) instead of per-frame reductions.
+        fixed = np.bitwise_and(seg, mask[:nb], out=self._scratch[:nb])
+        if fixed.tobytes() == tiled[:nb] and sums.tobytes() == sent.tobytes():
             n = k
         else:
-            ok = (fixed == chk_vals).all(axis=1) & (sums == sent)
+            ok = (rows[:, chk_idx] == chk_vals).all(axis=1) & (sums == sent)
             n = k if ok.all() else int(np.argmin(ok))
         if n == 0:
             return 0
@@ -547,9 +557,14 @@ class FrameDecoder:
             np.arange(len(START)), len(START) + np.flatnonzero(mask), np.arange(flen - len(END), flen)
         ]).astype(np.intp)
         vals = self._u8[p0 - len(START) + fixed].copy()
-        # The fixed bytes of as many back-to-back frames as the buffer holds, for ``_decode_run``'s one comparison.
-        tiled = np.tile(vals, _BUFFER_BYTES // flen + 1).tobytes()
-        self._run = (flen, payload_len, fixed, vals, dict(found), tiled)
+        # As many back-to-back frames as the buffer holds, for ``_decode_run``'s one comparison: a mask that keeps the
+        # fixed bytes, and those bytes (values and checksums zero).
+        one = np.zeros(flen, np.uint8)
+        one[fixed] = 0xFF
+        mask = np.tile(one, _BUFFER_BYTES // flen + 1)
+        one[fixed] = vals
+        tiled = np.tile(one, _BUFFER_BYTES // flen + 1).tobytes()
+        self._run = (flen, payload_len, fixed, vals, dict(found), mask, tiled)
 
     def _decode_full(self, p0: int) -> tuple[int, dict[int, tuple[int, ...]]]:
         """Validate a frame whose payload starts at buffer index ``p0``, walking its structure: its length and
@@ -710,18 +725,18 @@ class FrameDecoder:
         if m + n > self._cap:
             self._grow(m + n)
         buf = self._buf
-        hub = p0 + found[TYPE_HUB][0]
-        self._counter[m : m + n] = np.ndarray((n,), dtype="<u4", buffer=buf, offset=hub, strides=(stride,))
-        self._t[m : m + n] = np.ndarray((n,), dtype="<u8", buffer=buf, offset=hub + 4, strides=(stride,))
-        recs = found[TYPE_PILLARS][: self.sensors]
+        if self._plan[0] is not found:
+            self._plan = (found, *self._layout_plan(found))
+        _, hub_off, recs, step = self._plan
+        hub = p0 + hub_off
+        self._counter[m : m + n] = np.ndarray((n,), dtype=_LE_U32, buffer=buf, offset=hub, strides=(stride,))
+        self._t[m : m + n] = np.ndarray((n,), dtype=_LE_U64, buffer=buf, offset=hub + 4, strides=(stride,))
         missing = False
-        step = recs[1] - recs[0] if len(recs) > 1 else 0
-        if len(recs) == self.sensors and min(recs) >= 0 and step >= 0 and \
-                all(recs[k] - recs[k - 1] == step for k in range(1, len(recs))):
+        if step is not None:
             # Every configured sensor's records the same distance apart (always, for one sensor): one view and one
             # copy for all of them.
             src = np.ndarray(
-                (n, self.sensors, N_PILLARS, 2, 3), dtype="<f4", buffer=buf, offset=p0 + recs[0] + 2,
+                (n, self.sensors, N_PILLARS, 2, 3), dtype=_LE_F32, buffer=buf, offset=p0 + recs[0] + 2,
                 strides=(stride, step, _PILLAR_REC, 12, 4),
             )
             np.copyto(self._vals[m : m + n], src.transpose(0, 1, 3, 2, 4))
@@ -732,6 +747,15 @@ class FrameDecoder:
         if self._frames_out is not None:
             self._frames_out.extend(self._build(p0, found, m, n, stride))
         self._n = m + n
+
+    def _layout_plan(self, found: dict[int, tuple[int, ...]]) -> tuple[int, tuple[int, ...], int | None]:
+        """Where ``_emit`` reads a layout's values: the hub's payload index, the configured sensors' first pillar
+        records, and the distance between those records when they are evenly spaced (None: copied sensor by sensor)."""
+        recs = found[TYPE_PILLARS][: self.sensors]
+        step = recs[1] - recs[0] if len(recs) > 1 else 0
+        even = len(recs) == self.sensors and min(recs) >= 0 and step >= 0 and \
+            all(recs[k] - recs[k - 1] == step for k in range(1, len(recs)))
+        return found[TYPE_HUB][0], recs, step if even else None
 
     def _emit_each(self, p0: int, recs: tuple[int, ...], m: int, n: int, stride: int) -> bool:
         """``_emit``'s copy sensor by sensor (a sensor missing from the frames, records not evenly spaced); whether a

@@ -45,3 +45,41 @@ def test_a_clock_that_runs_back_is_counted_once_per_frame_and_the_window_starts_
     assert mon.jumps == 1
     assert m.registry.get_sample_value("slipd_timestamp_jumps_total", {"kind": "backwards"}) == 1
     assert mon.measured is not None and abs(mon.measured - 1000) < 1  # measured again after the jump
+
+
+def test_jumps_are_counted_wherever_they_fall_in_a_block_and_at_a_blocks_edge() -> None:
+    # A decision's block of ten frames is checked in plain Python, a long one vectorised: a step that stands still or
+    # jumps ahead is counted alike inside either, and between two blocks.
+    for block in (10, 100):
+        m = Metrics()
+        mon = RateMonitor(1000, 0.1, m)
+        t_us = np.arange(1000, dtype=np.int64) * 1000
+        t_us[305:] += 60_000  # 60 ms ahead within a block: 61 ms for one packet
+        t_us[499] = t_us[498]  # stands still at one frame, then runs on
+        t_us[600:] += 60_000  # ahead at a block's first frame, against the block before's last
+        _feed(mon, np.arange(1000), t_us, block=block)
+        assert mon.jumps == 3, block
+        assert m.registry.get_sample_value("slipd_timestamp_jumps_total", {"kind": "forward"}) == 2
+        assert m.registry.get_sample_value("slipd_timestamp_jumps_total", {"kind": "backwards"}) == 1
+        assert mon.measured is not None and abs(mon.measured - 1000) < 1  # measured again after the last
+
+
+def test_a_step_of_just_jump_s_is_regular_and_one_beyond_it_per_packet_is_a_jump() -> None:
+    mon = RateMonitor(1000, 0.1)
+    t_us = np.arange(400, dtype=np.int64) * 1000
+    t_us[200:] += 49_000  # 50 ms for one packet: within JUMP_S of the counter's 1 ms
+    _feed(mon, np.arange(400), t_us, block=10)
+    assert mon.jumps == 0
+    mon = RateMonitor(1000, 0.1)
+    t_us = np.arange(400, dtype=np.int64) * 1000
+    t_us[200:] += 50_001  # 51.001 ms: 50.001 ms beyond the counter
+    _feed(mon, np.arange(400), t_us, block=10)
+    assert mon.jumps == 1
+
+
+def test_a_reload_of_the_tolerance_judges_the_latest_measurement_again() -> None:
+    mon = RateMonitor(1000, 0.1)
+    _feed(mon, np.arange(600), np.arange(600) * 1150)  # 870 Hz: 13 % slow
+    assert mon.outside
+    mon.tolerance = 0.2
+    assert not mon.outside

@@ -29,6 +29,7 @@ from slipd.daemon.ros2 import (  # noqa: E402
 )
 from slipd.detect.ensemble import Ensemble  # noqa: E402
 from slipd.detect.replay import replay  # noqa: E402
+from slipd.metrics import Metrics  # noqa: E402
 from slipd.recording import Recording  # noqa: E402
 from slipd.recording import global_wrench as sdk_wrench  # noqa: E402
 
@@ -149,8 +150,11 @@ def test_a_zenoh_subscriber_decodes_every_message_and_gets_the_alarm(decided) ->
 
 def test_a_full_queue_drops_its_oldest_and_counts(decided) -> None:
     rec, dets = decided
-    pub = Ros2Publisher(Ros2Config(enabled=True, queue=8))  # never started: nothing drains the queue
+    m = Metrics()
+    pub = Ros2Publisher(Ros2Config(enabled=True, queue=8), metrics=m)  # never started: nothing drains the queue
     for d in dets[:20]:
         pub.on_decision(d, rec.force[d.index])
     assert len(pub.queue) == 8 and pub.dropped == 12
+    assert m.registry.get_sample_value("slipd_tap_dropped_total", {"tap": "ros2"}) == 12
+    assert m.registry.get_sample_value("slipd_tap_dropped_total", {"tap": "viz"}) == 0  # served from the start
     assert [q[2] for q in pub.queue] == [d.p_slip for d in dets[12:20]]  # the newest eight kept

@@ -109,3 +109,15 @@ def test_a_client_that_never_reads_costs_the_loop_nothing(tmp_path) -> None:
     assert stats.frames == len(rec) and stats.failsafes == 0  # nothing lost, never blind
     assert [a[0] for a in stats.alarms] == offline
     assert view.sent >= len(rec)  # every frame went to the server (which dropped what the viewer did not read)
+
+
+def test_a_full_queue_drops_its_oldest_and_counts_them_in_the_metric() -> None:
+    m = Metrics()
+    view = LiveView(VizConfig(enabled=True, frame_rate_hz=1000, queue=8), metrics=m)  # never started: nothing drains
+    force = np.zeros((20, 1, 9, 3), np.float32)
+    force[:, 0, 0, 2] = np.arange(20)
+    view.on_block(np.arange(20) * 1000, force, np.zeros_like(force))
+    assert len(view.queue) == 8 and view.dropped == 12
+    assert [q[4][0, 0, 2] for q in view.queue] == list(range(12, 20))  # the newest eight kept
+    assert m.registry.get_sample_value("slipd_tap_dropped_total", {"tap": "viz"}) == 12
+    assert m.registry.get_sample_value("slipd_tap_dropped_total", {"tap": "ros2"}) == 0
