@@ -738,12 +738,19 @@ class DynamixelGripper(Gripper):
         return int(model)
 
     def _read(self, address: int, length: int, allow_hw_error: bool = False) -> tuple[bytes, int]:
-        data, _result, err = self._txrx("read", address, self._packet.readTxRx, address, length,
-                                        allow_hw_error=allow_hw_error)
-        if len(data) != length:
+        attempts = self.settings.retries + 1
+        for _ in range(attempts):
+            data, _result, err = self._txrx("read", address, self._packet.readTxRx, address, length,
+                                            allow_hw_error=allow_hw_error)
+            if len(data) == length:
+                return bytes(data), err
+            # A whole status packet of another size: the late answer to an earlier request that gave up waiting (the
+            # servo answered after the timeout), read as this one's. Its own answer is queued behind it; drop both
+            # and ask again rather than fail safe on a bus that works.
             self._count("rx_corrupt")
-            raise self._error(f"read returned {len(data)} of {length} bytes", address, kind="rx_corrupt")
-        return bytes(data), err
+            self._require_port().clearPort()
+        raise self._error(f"read returned {len(data)} of {length} bytes after {attempts} attempt(s)", address,
+                          kind="rx_corrupt")
 
     def _write(self, address: int, data: bytes) -> None:
         self._txrx("write", address, self._packet.writeTxRx, address, len(data), list(data))

@@ -397,6 +397,21 @@ def test_a_short_silence_is_bridged_by_retries(emu, metrics):
         g.close()
 
 
+def test_a_late_answer_to_an_earlier_request_is_dropped_and_the_read_asked_again(emu, gripper, metrics):
+    """A status packet that arrives after its request gave up is read as the next request's answer; a read of
+    another size must not fail the gripper (and with it the arm) for it."""
+    send = emu._send
+    stale = [emu._status(0, b"\x00\x00")]  # a two-byte read's answer, complete and valid, but late
+
+    def late_then_real(reply: bytes) -> None:
+        send((stale.pop() if stale else b"") + reply)
+
+    emu._send = late_then_real  # type: ignore[method-assign]
+    status = gripper.read_status()
+    assert status.healthy and not stale
+    assert errors(metrics, "rx_corrupt") == 1
+
+
 def test_overload_is_reported_and_recovered(emu, gripper, clock, metrics, protocol):
     gripper.hold()
     clock.advance(1.0)
