@@ -29,6 +29,9 @@ Augmentations (names used by ``tools/train.py --aug``):
     shapes     ``contact_shape``: with p = 0.25 only the pillars of one contact shape stay loaded (a line of
                three, a cross, a 2x2 block, an L): the contacts of curved objects, edges and small objects,
                which load two to five pillars where a flat object loads nine.
+    slow       ``stretch``: with p = 0.3 the sequence played 1.5 to 3 times slower (linear interpolation, fresh
+               sensor noise on top): loads that grow and slips that spread over seconds, where our families'
+               lifts and pushes take tenths of one.
     sensor     ``sensor_model``: each pillar's axes scaled by their own gain in [0.8, 1.25], its normal force
                leaking into its tangential axes by up to 3 %, and a one-pole low-pass with a random corner
                (120 Hz to none): another sensor's calibration, cross-talk and filtering.
@@ -279,3 +282,28 @@ def sensor_model(seq: Seq, rng: np.random.Generator, gain: tuple[float, float] =
         # Started at rest on the first sample, so the filter adds no step of its own.
         force = lfilter([a], [1.0, a - 1.0], force, axis=0, zi=(1.0 - a) * force[:1])[0]
     return Seq(np.asarray(force, np.float32), seq.label, seq.slip, seq.loaded)
+
+
+STRETCH_NOISE_N = 0.008
+"""Noise added after interpolating a stretched sequence (N): interpolation averages the sensor's own noise away."""
+
+
+def stretch(seq: Seq, rng: np.random.Generator, p: float = 0.3, factor: tuple[float, float] = (1.5, 3.0)) -> Seq:
+    """With probability ``p`` play the sequence ``U[factor]`` times slower at the same 1 kHz spacing.
+
+    Forces are interpolated linearly between samples; each new sample takes the label and slip truth of the
+    original sample it falls in; fresh noise (``STRETCH_NOISE_N``) replaces the noise the interpolation smoothed.
+    """
+    n = len(seq)
+    if n < 2 or rng.random() >= p:
+        return seq
+    f = float(rng.uniform(*factor))
+    m = int((n - 1) * f) + 1
+    x = np.arange(m) / f
+    i0 = np.minimum(np.floor(x).astype(np.intp), n - 2)
+    w = (x - i0).astype(np.float32)[:, None, None]
+    force = seq.force[i0] * (1.0 - w) + seq.force[i0 + 1] * w
+    force += rng.normal(0.0, STRETCH_NOISE_N, size=force.shape).astype(np.float32)
+    near = np.minimum(np.round(x).astype(np.intp), n - 1)
+    slip = None if seq.slip is None else seq.slip[near]
+    return Seq(force.astype(np.float32), seq.label[near], slip, seq.loaded)

@@ -68,11 +68,12 @@ from sliplab.augment import (
     rotate_grid_90,
     sensor_model,
     shift_start,
+    stretch,
     unload_pillars,
 )
 from sliplab.model import SlipNet
 
-ALL_AUGS = ("rotation", "speed", "unloaded", "mixing", "grid90", "shift", "shapes", "sensor")
+ALL_AUGS = ("rotation", "speed", "unloaded", "mixing", "grid90", "shift", "shapes", "sensor", "slow")
 DEFAULT_AUGS = ("rotation", "speed", "unloaded", "mixing")
 ADVANCED_AUGS = ("unloaded", "mixing")
 
@@ -198,6 +199,8 @@ def augment_epoch(
             seq = contact_shape(seq, rng)
         if "sensor" in augs:
             seq = sensor_model(seq, rng)
+        if "slow" in augs:
+            seq = stretch(seq, rng)
         if "speed" in augs:
             seq = drop_samples(seq, float(rng.choice(SPEED_RATES)), rng)
         if "shift" in augs:
