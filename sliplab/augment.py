@@ -26,6 +26,15 @@ Augmentations (names used by ``tools/train.py --aug``):
     mixing     ``mix_pillars``: nine pillar sequences from different recordings, some scaled by a
                factor in [0.2, 2.0], at permuted positions; the label is recomputed from the slip
                truth of the pillars used (``label_from_slip``).
+    shapes     ``contact_shape``: with p = 0.25 only the pillars of one contact shape stay loaded (a line of
+               three, a cross, a 2x2 block, an L): the contacts of curved objects, edges and small objects,
+               which load two to five pillars where a flat object loads nine.
+    slow       ``stretch``: with p = 0.3 the sequence played 1.5 to 3 times slower (linear interpolation, fresh
+               sensor noise on top): loads that grow and slips that spread over seconds, where our families'
+               lifts and pushes take tenths of one.
+    sensor     ``sensor_model``: each pillar's axes scaled by their own gain in [0.8, 1.25], its normal force
+               leaking into its tangential axes by up to 3 %, and a one-pole low-pass with a random corner
+               (120 Hz to none): another sensor's calibration, cross-talk and filtering.
 """
 
 from __future__ import annotations
@@ -41,6 +50,12 @@ SPEED_RATES = (0.0, 0.1, 0.2, 0.3, 0.4)
 """The method's sample-drop rates for speed variation."""
 UNLOADED_SIGMA_N = 0.001
 """Noise of an unloaded pillar in the method (N)."""
+CONTACT_SHAPES = (
+    (1, 4, 7), (3, 4, 5), (0, 1, 2), (0, 3, 6), (2, 5, 8), (6, 7, 8), (0, 4, 8), (2, 4, 6),
+    (1, 3, 4, 5, 7), (0, 1, 3, 4), (1, 2, 4, 5), (3, 4, 6, 7), (4, 5, 7, 8), (0, 1, 2, 3, 6), (4, 5), (1, 4),
+)
+"""Pillars a contact loads when it is not flat (SDK raster order, centre 4): lines of three (a cylinder, an edge),
+a cross (a sphere on the tallest pillars), 2x2 blocks (a small object off centre), an L, and pairs."""
 
 
 @dataclass
@@ -218,3 +233,77 @@ def mix_pillars(
             loaded[pos] = s.loaded[pillar[j]]
     label = label_from_slip(slip, [p for p in considered if loaded[p]])
     return Seq(force, label, slip, loaded)
+
+
+def contact_shape(seq: Seq, rng: np.random.Generator, p: float = 0.25, sigma: float = UNLOADED_SIGMA_N) -> Seq:
+    """With probability ``p`` keep one ``CONTACT_SHAPES`` entry's pillars loaded and unload the rest.
+
+    The unloaded pillars read N(0, sigma) and their slip truth is cleared. The label is kept from the first sample
+    on which a pillar still loaded slides (the slip the label marks is then under way on the contact that is left);
+    before it, and throughout when none of them ever slides, it is 0.
+    """
+    if rng.random() >= p:
+        return seq
+    keep = np.zeros(N_PILLARS, bool)
+    keep[list(CONTACT_SHAPES[int(rng.integers(len(CONTACT_SHAPES)))])] = True
+    force = seq.force.copy()
+    force[:, ~keep, :] = rng.normal(0.0, sigma, size=(len(seq), int((~keep).sum()), 3)).astype(np.float32)
+    loaded = keep if seq.loaded is None else (seq.loaded & keep)
+    if seq.slip is None:
+        return Seq(force, seq.label, None, loaded)
+    slip = seq.slip.copy()
+    slip[:, ~keep] = False
+    sliding = slip.any(axis=1)
+    label = seq.label.copy()
+    first = int(np.argmax(sliding)) if sliding.any() else len(label)
+    label[:first] = 0
+    return Seq(force, label, slip, loaded)
+
+
+def sensor_model(seq: Seq, rng: np.random.Generator, gain: tuple[float, float] = (0.8, 1.25),
+                 crosstalk: float = 0.03, corner_hz: tuple[float, float] = (120.0, 500.0),
+                 rate_hz: float = 1000.0) -> Seq:
+    """Another sensor's calibration, cross-talk and filtering applied to one sequence (labels unchanged).
+
+    Gains are drawn per pillar and axis (log-uniform in ``gain``); each pillar's tangential axes take up to
+    ``crosstalk`` of its normal force; half of the sequences also pass a one-pole low-pass whose corner is drawn
+    in ``corner_hz``.
+    """
+    lo, hi = np.log(gain[0]), np.log(gain[1])
+    g = np.exp(rng.uniform(lo, hi, size=(N_PILLARS, 3))).astype(np.float32)
+    force = seq.force * g
+    c = rng.uniform(-crosstalk, crosstalk, size=(N_PILLARS, 2)).astype(np.float32)
+    force[:, :, :2] += force[:, :, 2:3] * c
+    if rng.random() < 0.5 and len(force):
+        from scipy.signal import lfilter
+
+        fc = float(rng.uniform(*corner_hz))
+        a = 1.0 - np.exp(-2.0 * np.pi * fc / rate_hz)
+        # Started at rest on the first sample, so the filter adds no step of its own.
+        force = lfilter([a], [1.0, a - 1.0], force, axis=0, zi=(1.0 - a) * force[:1])[0]
+    return Seq(np.asarray(force, np.float32), seq.label, seq.slip, seq.loaded)
+
+
+STRETCH_NOISE_N = 0.008
+"""Noise added after interpolating a stretched sequence (N): interpolation averages the sensor's own noise away."""
+
+
+def stretch(seq: Seq, rng: np.random.Generator, p: float = 0.3, factor: tuple[float, float] = (1.5, 3.0)) -> Seq:
+    """With probability ``p`` play the sequence ``U[factor]`` times slower at the same 1 kHz spacing.
+
+    Forces are interpolated linearly between samples; each new sample takes the label and slip truth of the
+    original sample it falls in; fresh noise (``STRETCH_NOISE_N``) replaces the noise the interpolation smoothed.
+    """
+    n = len(seq)
+    if n < 2 or rng.random() >= p:
+        return seq
+    f = float(rng.uniform(*factor))
+    m = int((n - 1) * f) + 1
+    x = np.arange(m) / f
+    i0 = np.minimum(np.floor(x).astype(np.intp), n - 2)
+    w = (x - i0).astype(np.float32)[:, None, None]
+    force = seq.force[i0] * (1.0 - w) + seq.force[i0 + 1] * w
+    force += rng.normal(0.0, STRETCH_NOISE_N, size=force.shape).astype(np.float32)
+    near = np.minimum(np.round(x).astype(np.intp), n - 1)
+    slip = None if seq.slip is None else seq.slip[near]
+    return Seq(force.astype(np.float32), seq.label[near], slip, seq.loaded)

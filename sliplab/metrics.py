@@ -89,7 +89,8 @@ class SceneTruth:
     def from_recording(cls, rec, name: str = "") -> SceneTruth:
         """Truth of a ``slipd.recording.Recording``.
 
-        Onset: first sample labelled incipient slip (``label``), else ``events["onset"]``.
+        Onset: first sample labelled incipient slip (``label``), else ``events["onset"]``; none where the events put
+        gross slip on the onset itself (no incipient stage: such a slip is scored online only).
         Gross slip (offline criterion): first sample after the onset where the incipient label ends
         (all considered pillars slipped), else ``events["gross_slip"]``, else the end of the recording.
         Online gross slip: first sample where ``object_motion`` (relative to its value at motion start)
@@ -113,6 +114,10 @@ class SceneTruth:
         onset = onset if onset is not None else events.get("onset")
         if gross is None:
             gross = events.get("gross_slip", duration if onset is not None else None)
+        if not has_label and onset is not None and gross is not None and gross <= onset:
+            # Every considered pillar began to slide on the same sample (one pillar carried the whole grasp): the
+            # slip had no incipient stage, so the offline criterion has no window; the online one still scores it.
+            onset = gross = None
         motion_start = events.get("motion_start")
         family = str(meta.get("family", ""))
         online_gross = None

@@ -61,16 +61,19 @@ from slipd.recording import Recording, RecordingError, list_recordings
 from sliplab.augment import (
     SPEED_RATES,
     Seq,
+    contact_shape,
     drop_samples,
     mix_pillars,
     rotate_forces,
     rotate_grid_90,
+    sensor_model,
     shift_start,
+    stretch,
     unload_pillars,
 )
 from sliplab.model import SlipNet
 
-ALL_AUGS = ("rotation", "speed", "unloaded", "mixing", "grid90", "shift")
+ALL_AUGS = ("rotation", "speed", "unloaded", "mixing", "grid90", "shift", "shapes", "sensor", "slow")
 DEFAULT_AUGS = ("rotation", "speed", "unloaded", "mixing")
 ADVANCED_AUGS = ("unloaded", "mixing")
 
@@ -192,6 +195,12 @@ def augment_epoch(
             seq = rotate_forces(seq, float(rng.uniform(0.0, 2 * np.pi)))
         if "unloaded" in augs:
             seq = unload_pillars(seq, rng)
+        if "shapes" in augs:
+            seq = contact_shape(seq, rng)
+        if "sensor" in augs:
+            seq = sensor_model(seq, rng)
+        if "slow" in augs:
+            seq = stretch(seq, rng)
         if "speed" in augs:
             seq = drop_samples(seq, float(rng.choice(SPEED_RATES)), rng)
         if "shift" in augs:

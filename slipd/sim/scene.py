@@ -15,7 +15,8 @@ press / grip closing, a settle, then the motion (``events.motion_start``).
 
 Labels (the method's rule): incipient slip (1) from the first sample after motion start at which any
 considered pillar slides until all considered pillars slide at once (gross slip, 0 again). Considered:
-pillars in contact at motion start; for hexapod rotations only the outer eight. Gripper scenes also
+pillars in contact at motion start (``slipd.sim.labels``: a light grasp counts its lightly touching pillars); for
+hexapod rotations only the outer eight. Gripper scenes also
 end the label at gross object motion (> 2 mm or > 2 deg relative to the finger). Stop scenes are all 0.
 In a combined motion whose instantaneous centre of rotation lies on a pillar, that pillar never
 slides: the label then runs to the end and there is no ``gross_slip`` event (physically right).
@@ -34,12 +35,13 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from slipd.geometry import CONTACT_THRESHOLD_N, N_PILLARS, OUTER
+from slipd.geometry import N_PILLARS
 from slipd.recording import Recording
 from slipd.sim import contact_models as cm
 from slipd.sim import effects as fx
 from slipd.sim import timeline as tl
 from slipd.sim.engine.spec import EngineScene
+from slipd.sim.labels import considered_pillars, incipient_labels
 from slipd.sim.physics import (
     DT_S,
     GripperStepper,
@@ -322,37 +324,7 @@ def _hex_context(sc: HexapodScene, n: int, stop_index: int | None) -> fx.SimCont
 
 
 def _considered(kind: str, fz_at_start: np.ndarray) -> np.ndarray:
-    mask = fz_at_start > CONTACT_THRESHOLD_N
-    if kind == "rotation":
-        outer = np.zeros(N_PILLARS, bool)
-        outer[list(OUTER)] = True
-        mask &= outer
-    return mask
-
-
-def incipient_labels(slip: np.ndarray, considered: np.ndarray, motion_start: int,
-                     end_limit: int | None = None) -> tuple[np.ndarray, int | None, int | None]:
-    """The method's labels from per-pillar slip: (label [N] uint8, onset index, gross index).
-
-    Onset: first sample at or after ``motion_start`` where a considered pillar slides. Gross: first
-    later sample where all considered pillars slide at once (or ``end_limit`` if earlier).
-    """
-    n = len(slip)
-    label = np.zeros(n, np.uint8)
-    if not considered.any():
-        return label, None, None
-    s = slip[:, considered]
-    after = np.arange(n) >= motion_start
-    anyv = s.any(1) & after
-    if not anyv.any():
-        return label, None, None
-    onset = int(np.argmax(anyv))
-    allv = s.all(1) & (np.arange(n) >= onset)
-    gross = int(np.argmax(allv)) if allv.any() else None
-    if end_limit is not None and end_limit >= onset and (gross is None or end_limit < gross):
-        gross = end_limit
-    label[onset: gross if gross is not None else n] = 1
-    return label, onset, gross
+    return considered_pillars(fz_at_start, rotation=kind == "rotation")
 
 
 # ---------------------------------------------------------------------------- generation

@@ -175,6 +175,21 @@ def test_truth_from_a_recording() -> None:
         SceneTruth.from_recording(rec, "r")
 
 
+def test_a_slip_without_an_incipient_stage_is_scored_online_only() -> None:
+    """One pillar carried the grasp: it slid, and with it the whole contact, on one sample. The label is empty and
+    the events put gross slip on the onset; the offline criterion has no window there, the online one does."""
+    n = 1000
+    rec = Recording(t_us=np.arange(n) * 1000, force=np.zeros((n, 9, 3)), disp=np.zeros((n, 9, 3)),
+                    label=np.zeros(n, np.uint8),
+                    meta={"kind": "slip", "motion": "lift", "events": {"motion_start": 0.2, "onset": 0.6,
+                                                                      "gross_slip": 0.6, "gross_motion": 0.62}})
+    tr = SceneTruth.from_recording(rec, "r")
+    assert (tr.kind, tr.onset_s, tr.gross_slip_s, tr.online_gross_s) == ("slip", None, None, 0.62)
+    assert offline_outcome(tr, 0.61) is None and online_outcome(tr, 0.61) == "success"
+    rec.meta["events"]["gross_slip"] = 0.64  # a stage of 40 ms: scored offline again
+    assert SceneTruth.from_recording(rec, "r").onset_s == 0.6
+
+
 # --------------------------------------------------------------------------- tools/evaluate.py end to end
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory) -> Path:

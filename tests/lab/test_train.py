@@ -150,6 +150,52 @@ def test_unloaded_pillars_become_small_noise_and_stop_slipping() -> None:
     assert 0.15 < hits / trials < 0.25  # p = 0.2
 
 
+def test_a_contact_shape_keeps_its_pillars_and_the_slip_on_them() -> None:
+    seq = _seq(np.random.default_rng(6), n=4000)
+    rng = np.random.default_rng(1)
+    seen = 0
+    for _ in range(200):
+        out = A.contact_shape(seq, rng)
+        if out is seq:
+            continue
+        seen += 1
+        kept = np.flatnonzero(out.loaded)
+        assert tuple(kept) in A.CONTACT_SHAPES
+        np.testing.assert_array_equal(out.force[:, kept], seq.force[:, kept])
+        assert np.abs(out.force[:, ~out.loaded]).max() < 0.01 and not out.slip[:, ~out.loaded].any()
+        sliding = out.slip.any(axis=1)
+        # The label is the original one from the first sample a kept pillar slides, 0 before it.
+        first = int(np.argmax(sliding)) if sliding.any() else len(seq)
+        assert not out.label[:first].any()
+        np.testing.assert_array_equal(out.label[first:], seq.label[first:])
+    assert 30 < seen < 70  # p = 0.25
+
+
+def test_the_sensor_model_scales_leaks_and_filters_but_keeps_the_truth() -> None:
+    seq = _seq(np.random.default_rng(6), n=2000)
+    out = A.sensor_model(seq, np.random.default_rng(2))
+    assert out.force.shape == seq.force.shape and out.force.dtype == np.float32
+    np.testing.assert_array_equal(out.label, seq.label)
+    ratio = np.abs(out.force[:, :, 2]).sum(0) / np.abs(seq.force[:, :, 2]).sum(0)
+    assert (ratio > 0.7).all() and (ratio < 1.4).all() and not np.allclose(ratio, 1.0)
+    # A constant load stays a constant load (the filter starts at rest on the first sample).
+    still = A.Seq(np.ones((300, 9, 3), np.float32), np.zeros(300, np.uint8), None)
+    for k in range(6):
+        o = A.sensor_model(still, np.random.default_rng(k))
+        np.testing.assert_allclose(o.force, np.broadcast_to(o.force[:1], o.force.shape), rtol=1e-5)
+
+
+def test_stretch_plays_a_sequence_slower_with_its_labels() -> None:
+    seq = _seq(np.random.default_rng(6), n=1000)
+    out = A.stretch(seq, np.random.default_rng(3), p=1.0)
+    f = (len(out) - 1) / (len(seq) - 1)
+    assert 1.5 <= f <= 3.0
+    # The labelled span keeps its place in time, scaled by the same factor.
+    on, on2 = int(np.argmax(seq.label > 0)), int(np.argmax(out.label > 0))
+    assert abs(on2 - on * f) <= 1.0 and abs(out.label.sum() - seq.label.sum() * f) <= f + 1
+    assert A.stretch(seq, np.random.default_rng(3), p=0.0) is seq
+
+
 def test_mixing_takes_pillars_from_sources_and_relabels_from_slip_truth() -> None:
     rng = np.random.default_rng(8)
     sources = [_seq(rng, n=1000 + 50 * i, kind="stop" if i % 3 == 0 else "slip") for i in range(9)]

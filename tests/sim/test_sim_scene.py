@@ -10,6 +10,7 @@ import pytest
 from slipd.detect.features import tare_offset
 from slipd.geometry import CENTRE
 from slipd.sim import SceneError, generate, load_scene, parse_scene
+from slipd.sim.labels import considered_pillars
 from slipd.sim.scene import incipient_labels
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -104,6 +105,24 @@ def test_label_rule():
     assert incipient_labels(slip2, considered, 0)[2] is None
     # Slip before the motion starts (press) is not incipient slip.
     assert incipient_labels(slip, considered, motion_start=6)[1] == 6
+
+
+def test_a_light_grasp_considers_its_lightly_touching_pillars():
+    """A few newtons on a flat object: the tallest pillar over the contact flag, its four neighbours at a few tenths
+    of a newton. Those neighbours are in contact and slide first; with the flag alone the grasp would have no
+    incipient slip at all."""
+    fz = np.array([0.0, 0.15, 0.0, 0.15, 1.9, 0.15, 0.0, 0.15, 0.0])
+    cons = considered_pillars(fz)
+    assert cons.tolist() == [False, True, False, True, True, True, False, True, False]
+    slip = np.zeros((10, 9), bool)
+    slip[3:, [1, 3, 5, 7]] = True
+    slip[6:, CENTRE] = True
+    assert incipient_labels(slip, cons, 0)[1:] == (3, 6)
+    # A firm grasp: the flag alone decides; a rotation leaves the centre out.
+    firm = np.full(9, 2.0)
+    firm[0] = 0.3
+    assert considered_pillars(firm).tolist() == [False] + [True] * 8
+    assert not considered_pillars(firm, rotation=True)[CENTRE]
 
 
 def test_gripper_scenes_lift_and_slip():

@@ -2,7 +2,7 @@
 
 The measurement goes through the simulator's one sensor chain (``scene._finish``: the scene's signal effects, the
 reported displacements carrying the force error, saturation), and the labels follow the same rule as every other
-scene (``scene.incipient_labels``). ``scene.generate_batch`` hands both in as ``Rules``, so that this module does
+scene (``slipd.sim.labels``). ``scene.generate_batch`` hands both in as ``Rules``, so that this module does
 not import ``scene`` back.
 """
 
@@ -13,12 +13,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slipd.geometry import CONTACT_THRESHOLD_N, N_PILLARS
+from slipd.geometry import N_PILLARS
 from slipd.recording import Recording
 from slipd.sim import effects as fx
 from slipd.sim.engine.model import ObjectGeometry
 from slipd.sim.engine.spec import EngineScene, GripSeg, HoldSeg, LiftSeg, LoadSeg
 from slipd.sim.engine.stepping import EngineOutput, EngineSim
+from slipd.sim.labels import considered_pillars
 from slipd.sim.physics import DT_S, sensor_params
 
 STOP_RETRIES = 2
@@ -165,16 +166,9 @@ def simulate(sc: EngineScene, prof: Profiles) -> EngineOutput:
     return sim.run(prof.grip, prof.accel, prof.force, prof.torque)
 
 
-LIGHT_CONTACT_N = 0.05
-"""Where no pillar reaches the sensor's contact threshold (a grasp of a newton or less), the labels consider the
-pillars above this instead: otherwise an object could fall out of such a grasp under a no-slip label."""
-
-
 def considered(out: EngineOutput, start: int) -> np.ndarray:
-    """Pillars in contact at a segment's start (the sensor's contact threshold, as every scene's labels use)."""
-    fz = out.force[start, :, 2]
-    mask = fz > CONTACT_THRESHOLD_N
-    return mask if mask.any() else fz > LIGHT_CONTACT_N
+    """Pillars the labels consider at a segment's start (``slipd.sim.labels``, as every scene's labels use)."""
+    return considered_pillars(out.force[start, :, 2])
 
 
 def gross_motion(pose: np.ndarray, start: int, rules: Rules) -> int | None:
