@@ -712,3 +712,13 @@ def test_grip_force_stays_within_the_servos_pwm_limit(emu, metrics, caplog):
         assert emu.register("goal_pwm") == 600
     finally:
         g.close()
+
+
+def test_the_emulators_write_log_is_bounded(emu, gripper):
+    """A soak of hours runs the emulated servo in the daemon's process: its log of writes must not grow with it."""
+    for _ in range(mx28.MAX_WRITES // 2 + 10):
+        gripper.hold()
+        gripper.tighten()
+    writes = emu.writes()
+    assert len(writes) == mx28.MAX_WRITES
+    assert writes[-1].values.get("goal_position") == SECURE_POS

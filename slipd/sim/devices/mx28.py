@@ -30,6 +30,7 @@ import select
 import threading
 import time
 import tty
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -142,6 +143,11 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+MAX_WRITES = 1024
+"""Accepted writes the emulator keeps (the oldest are dropped): tests and the rig read the latest few, and a soak of
+hours must measure the daemon's memory, not this log's."""
+
+
 @dataclass(frozen=True)
 class WriteRecord:
     """A write the emulator accepted: when (``time.monotonic()``), where, and the registers it set."""
@@ -189,7 +195,7 @@ class EmulatedMX28:
         self.table.set("id", dxl_id)
         self.jaw = JawModel(jaw or JawParams(), clock())
         self._sync_goal_to_jaw()
-        self._writes: list[WriteRecord] = []
+        self._writes: deque[WriteRecord] = deque(maxlen=MAX_WRITES)
         self._absent = False
         self._mute_until = 0.0
         self._hw_error = 0
@@ -261,7 +267,7 @@ class EmulatedMX28:
             return self.table.get(name)
 
     def writes(self) -> list[WriteRecord]:
-        """A copy of the history of accepted writes, oldest first."""
+        """A copy of the latest ``MAX_WRITES`` accepted writes, oldest first."""
         with self._lock:
             return list(self._writes)
 
