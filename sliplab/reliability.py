@@ -460,7 +460,7 @@ def soak_from_json(path: Path) -> SoakReport:
 
 def soak_command(soak: SoakReport) -> str:
     """The command that reproduces a soak's figures."""
-    from sliplab.soak_live import WARMUP_MIN_S, WARMUP_SHARE
+    from sliplab.soak_live import default_warmup
 
     cmd = f"tools/soak_live.py --seconds {soak.seconds:g}"
     if soak.slip_every_s:
@@ -469,7 +469,7 @@ def soak_command(soak: SoakReport) -> str:
         cmd += f" --failsafe-every {soak.failsafe_every_s:g}"
     if soak.recordings:
         cmd += " --record"
-    if soak.warmup_s and soak.warmup_s != max(WARMUP_MIN_S, WARMUP_SHARE * soak.seconds):
+    if soak.warmup_s and soak.warmup_s != default_warmup(soak.seconds):
         cmd += f" --warmup {soak.warmup_s:g}"
     return cmd
 

@@ -50,6 +50,11 @@ WARMUP_SHARE = 0.1
 WARMUP_MIN_S = 60.0
 
 
+def default_warmup(seconds: float) -> float:
+    """Seconds before the memory samples start when ``--warmup`` is not given: a share of the run, at least a minute."""
+    return max(WARMUP_MIN_S, WARMUP_SHARE * seconds)
+
+
 @dataclass
 class SoakReport:
     """Counts of one soak run."""
@@ -217,7 +222,7 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
 
             daemon.recorder = open_recorder(cfg, "soak", {"model_sha256": ens.manifest.sha256}, metrics)
         d = daemon
-        warm_s = max(WARMUP_MIN_S, WARMUP_SHARE * seconds) if warmup_s is None else warmup_s
+        warm_s = default_warmup(seconds) if warmup_s is None else warmup_s
         rep.warmup_s = warm_s
         ts: list[float] = []
         rss: list[int] = []
