@@ -10,19 +10,21 @@ looped stream every S seconds, so alarms, arm stops, gripper tightens and record
 S`` stalls the sensor for ``STALL_MS`` every S seconds (a ``sensor_stall`` fail-safe: the arm stopped, its control
 script ended and uploaded again once live). Every ``SAMPLE_S`` the process's resident memory, open file descriptors
 and threads are read from /proc; after the first ``WARMUP_SHARE`` of the run (at least ``WARMUP_MIN_S``) a least-squares
-line through the memory samples gives its slope in kB per hour (the process holds the emulated sensor and servo
-too; the emulated UR controller is a process of its own).
+line through the memory samples gives its slope in kB per hour. This process is the daemon alone: the emulated
+sensor and servo run in a process of their own, the emulated UR controller in another, so the samples, and the CPU
+figures, are the daemon's.
 
 The real ``Daemon`` (pyserial reader, ONNX ensemble, dynamixel-sdk, ur_rtde, device health poll) runs
-in this process against the emulated PapillArray (pty, quiet hold looped), MX-28 (pty) and UR
-controller (own process on ``--host``). At the end the sensor emulator stops, the daemon drains the
-pty, and the counts are compared: frames sent (written to the pty, plus any the emulator had to
-discard because the reader fell behind) against frames the daemon processed.
+in this process against the emulated PapillArray (pty, quiet hold looped) and MX-28 (pty), both in one
+child process (``slipd.sim.harness.EmulatorProcess``), and the UR controller (own process on ``--host``).
+At the end the sensor emulator stops, the daemon drains the pty, and the counts are compared: frames
+sent (written to the pty, plus any the emulator had to discard because the reader fell behind) against
+frames the daemon processed.
 
 Prints frames sent, processed, lost (must be 0), loop overruns, frames dropped by the packet counter,
 reconnects, fail-safes, alarms, health polls, and CPU: the loop thread's own CPU seconds per wall
-second (reader, decoder, features, model), and the whole process's (which also carries the emulated
-sensor and servo threads). Exit status 1 when a frame was lost or a decode error occurred.
+second (reader, decoder, features, model), the whole daemon process's, and the emulator process's.
+Exit status 1 when a frame was lost or a decode error occurred.
 """
 
 from __future__ import annotations
@@ -89,6 +91,8 @@ class SoakReport:
     samples: int = 0
     loop_cpu_share: float = 0.0
     process_cpu_share: float = 0.0
+    emulator_cpu_share: float = 0.0
+    """CPU seconds per wall second of the emulated sensor and servo's own process."""
     wall_s: float = 0.0
 
     @property
@@ -117,7 +121,8 @@ class SoakReport:
             f"fds, threads    {self.fds[0]}..{self.fds[1]} open descriptors, {self.threads[0]}..{self.threads[1]} "
             "threads after warm-up",
             f"CPU share       loop thread {self.loop_cpu_share * 100:.1f} %   "
-            f"whole process (with the sensor and servo emulators) {self.process_cpu_share * 100:.1f} %",
+            f"daemon process {self.process_cpu_share * 100:.1f} %   "
+            f"emulated sensor and servo (own process) {self.emulator_cpu_share * 100:.1f} %",
         ]
 
 
@@ -141,6 +146,14 @@ def with_slips(every_s: float, hold: Recording) -> Recording:
     force = np.concatenate([hf, sf])
     disp = np.zeros_like(force)
     return Recording(t_us=np.arange(len(force), dtype=np.int64) * 1000, force=force, disp=disp)
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far, from /proc."""
+    import os
+
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _proc_sample() -> tuple[int, int, int]:
@@ -194,18 +207,21 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
     from slipd.detect.ensemble import Ensemble
     from slipd.metrics import Metrics
     from slipd.sim.devices.ur_controller import URControllerProcess
-    from slipd.sim.harness import EmulatedDevices
+    from slipd.sim.harness import EmulatorProcess
 
     own_ur = controller is None
     if own_ur:
         controller = URControllerProcess(host).start()
     host = controller.host
     rep = SoakReport(seconds=seconds, model=str(model), slip_every_s=slip_every, failsafe_every_s=failsafe_every)
-    dev = EmulatedDevices(with_slips(slip_every, quiet_hold()) if slip_every > 0 else quiet_hold(), ur=False)
-    dev.sensor.loop = True
+    source = with_slips(slip_every, quiet_hold()) if slip_every > 0 else quiet_hold()
+    emu = EmulatorProcess(source, sensor={"loop": True})
     daemon = None
     try:
-        updates = {**dev.overrides(), "arm.enabled": True, "arm.host": host, "model.manifest": str(model),
+        emu.start()
+        emu_pid = emu.pid
+        assert emu_pid is not None
+        updates = {**emu.overrides(), "arm.enabled": True, "arm.host": host, "model.manifest": str(model),
                    "model.detector": "onnx",
                    "sensor.tare": "startup", "sensor.tare_samples": TARE, "recorder.enabled": record_dir is not None}
         if record_dir is not None:
@@ -232,8 +248,9 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
         async def main() -> None:
             task = asyncio.create_task(d.run())
             await d.ready.wait()
-            dev.start_sensor()
+            emu.call("sensor", "start")
             t0, c0, p0 = time.monotonic(), time.thread_time(), time.process_time()
+            e0 = _cpu_seconds(emu_pid)
             try:
                 next_sample = t0 + warm_s
                 next_stall = t0 + failsafe_every if failsafe_every > 0 else float("inf")
@@ -241,7 +258,7 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
                     await asyncio.sleep(0.2)
                     now = time.monotonic()
                     if now >= next_stall:
-                        dev.sensor.stall(STALL_MS)
+                        emu.call("sensor", "stall", STALL_MS)
                         next_stall += failsafe_every
                     if now >= next_sample:
                         r, f, th = _proc_sample()
@@ -250,17 +267,22 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
                         fds.append(f)
                         threads.append(th)
                         next_sample += SAMPLE_S
-                dev.sensor.stop()  # stop sending, then let the reader drain what is in flight
-                await asyncio.to_thread(dev.sensor.write_frames, [], 5.0)  # push out bytes still queued
-                rep.frames_sent = dev.sensor.frames_written + dev.sensor.frames_discarded
+                emu.call("sensor", "stop")  # stop sending, then let the reader drain what is in flight
+                await asyncio.to_thread(emu.call, "sensor", "write_frames", [], 5.0)  # push out bytes still queued
+                # Read once streaming has stopped: the emulator's own counts, in its process.
+                written = emu.get("sensor", "frames_written")
+                rep.emulator_discarded = emu.get("sensor", "frames_discarded")
+                rep.frames_sent = written + rep.emulator_discarded
                 deadline = time.monotonic() + 5.0
-                while d.sensor.decoder.frames < dev.sensor.frames_written and time.monotonic() < deadline:
+                while d.sensor.decoder.frames < written and time.monotonic() < deadline:
                     await asyncio.sleep(0.01)
                 await asyncio.sleep(0.05)
                 t1, c1, p1 = time.monotonic(), time.thread_time(), time.process_time()
+                e1 = _cpu_seconds(emu_pid)
                 rep.wall_s = t1 - t0
                 rep.loop_cpu_share = (c1 - c0) / rep.wall_s
                 rep.process_cpu_share = (p1 - p0) / rep.wall_s
+                rep.emulator_cpu_share = (e1 - e0) / rep.wall_s
             finally:
                 d.stop()
                 await task
@@ -269,7 +291,7 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
     finally:
         if daemon is not None:
             daemon.close()
-        dev.close()
+        emu.close()
         if own_ur:
             controller.stop()
     m, st = daemon.metrics, daemon.stats
@@ -278,7 +300,6 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
         v = m.registry.get_sample_value(name, labels or None)
         return 0.0 if v is None else v
 
-    rep.emulator_discarded = dev.sensor.frames_discarded
     rep.frames_processed = st.frames
     rep.frames_lost = rep.frames_sent - st.frames
     rep.overruns = st.overruns

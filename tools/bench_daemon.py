@@ -57,6 +57,7 @@ import numpy as np
 import yaml
 
 from slipd.recording import Recording
+from slipd.sim.harness import EmulatorProcess
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -107,34 +108,21 @@ def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str, sensors: 
 
 
 # ---------------------------------------------------------------------------------------------- latency
-def _emulator_process(conn: Any, n: int, sensors: int) -> None:
-    """Child process: the emulated PapillArray (1 kHz quiet hold) and MX-28, driven over ``conn``.
+class _StampedHold:
+    """The quiet hold as a sample source that notes when each frame was taken (``time.monotonic``, one clock for
+    every process), so the parent can subtract the write time of a window's last sample from its reaction's.
 
-    Sends the two port paths, streams on "start", and on "stop" sends back the monotonic time each frame
-    was written, the frames written and the servo's accepted writes. ``time.monotonic`` is one system-wide
-    clock, so the parent can subtract the two.
-    """
-    from slipd.sim.devices.mx28 import EmulatedMX28
-    from slipd.sim.devices.papillarray import EmulatedPapillArray
+    Runs in the emulator process (``EmulatorProcess``); the parent reads ``written`` from there at the end."""
 
-    rec = quiet_hold(n, sensors)
-    written = np.zeros(n)
+    def __init__(self, n: int, sensors: int) -> None:
+        self.rec = quiet_hold(n, sensors)
+        self.written = np.zeros(n)
 
-    def source(i: int) -> tuple[np.ndarray, np.ndarray] | None:
-        if i >= n:
+    def __call__(self, i: int) -> tuple[np.ndarray, np.ndarray] | None:
+        if i >= len(self.written):
             return None
-        written[i] = time.monotonic()  # the frame is encoded and written right after this returns
-        return rec.force[i], rec.disp[i]
-
-    with EmulatedMX28() as servo, EmulatedPapillArray(source, sensors=sensors) as sensor:
-        conn.send((sensor.port, servo.port))
-        assert conn.recv() == "clear"
-        servo.clear_writes()
-        conn.send("cleared")
-        assert conn.recv() == "start"
-        sensor.start()
-        assert conn.recv() == "stop"
-        conn.send((written, sensor.frames_written, [(w.t, w.address, bytes(w.data)) for w in servo.writes()]))
+        self.written[i] = time.monotonic()  # the frame is encoded and written right after this returns
+        return self.rec.force[i], self.rec.disp[i]
 
 
 def _stuck_viewer(port: int, sensors: int) -> Any:
@@ -158,13 +146,10 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int, viz
     from slipd.metrics import Metrics
 
     n = int(seconds * 1000) + 1000
-    ctx = multiprocessing.get_context("spawn")
-    parent, child = ctx.Pipe()
-    proc = ctx.Process(target=_emulator_process, args=(child, n, sensors), daemon=True)
-    proc.start()
-    with tempfile.TemporaryDirectory() as tmp:
-        sensor_port, servo_port = parent.recv()
-        cfg_path = _config(Path(tmp), model, sensor_port, servo_port, sensors, stride,
+    # The emulated sensor and servo in a process of their own: their threads must not share this one's GIL.
+    with tempfile.TemporaryDirectory() as tmp, \
+            EmulatorProcess(_StampedHold(n, sensors), sensor={"sensors": sensors}) as emu:
+        cfg_path = _config(Path(tmp), model, emu.sensor_port, emu.servo_port, sensors, stride,
                            viz_port=_free_port() if viz else None)
         cfg = load_config(cfg_path)
         metrics = Metrics()
@@ -184,13 +169,12 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int, viz
             return update(p, pm, may_raise)
 
         decision.update = always_rising  # type: ignore[method-assign]
-        parent.send("clear")
-        parent.recv()
+        emu.call("servo", "clear_writes")
 
         async def main() -> Any:
             task = asyncio.create_task(daemon.run(duration_s=n / 1000 + 0.5))
             await daemon.ready.wait()
-            parent.send("start")
+            emu.call("sensor", "start")
             return await task
 
         stats = asyncio.run(main())
@@ -199,9 +183,9 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int, viz
         daemon.close()
         if viewer is not None:
             viewer.close()
-        parent.send("stop")
-        written, sent, writes = parent.recv()
-        proc.join(10)
+        emu.call("sensor", "stop")
+        written, sent = emu.get("source", "written"), emu.get("sensor", "frames_written")
+        writes = [(w.t, w.address, w.data) for w in emu.call("servo", "writes")]
         secure = cfg.gripper.secure_position
         tightens = np.array(
             [t for t, address, data in writes if address == 116 and int.from_bytes(data[:4], "little") == secure]

@@ -419,12 +419,17 @@ def test_arm_protective_stop_and_link_loss_are_noticed_and_the_link_comes_back(c
 def test_soak_30_s_at_1_khz_loses_no_frame(controller, tiny_model_json) -> None:
     from sliplab.soak_live import soak
 
-    rep = soak(30.0, tiny_model_json, controller=controller, threshold=0.999)
+    # The emulated sensor and servo run in a process of their own; the stalls are sent there.
+    rep = soak(30.0, tiny_model_json, controller=controller, threshold=0.999, failsafe_every=12.0, warmup_s=5.0)
     print("\n" + "\n".join(rep.lines()))
     assert rep.frames_sent >= 25_000  # the emulator really streamed for the whole run
     assert rep.frames_lost == 0 and rep.emulator_discarded == 0
+    assert rep.frames_processed == rep.frames_sent
     assert rep.decode_errors == 0 and rep.step_errors == 0 and rep.dropped == 0
     assert rep.decisions > 0 and rep.health_polls > 0
+    assert rep.failsafes >= 2  # a stall at 12 s and at 24 s, each a fail-safe
+    assert rep.emulator_cpu_share > 0.0 and rep.process_cpu_share > 0.0  # two processes, each measured
+    assert rep.samples >= 2 and rep.rss_first_kb > 0 and rep.threads[0] > 0
 
 
 def test_reliability_report_cites_only_existing_tests() -> None:
