@@ -595,13 +595,17 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "## Live soak",
         "",
-        f"`{soak_command(soak)}`: the daemon in-process at 1 kHz against the emulated PapillArray, MX-28 and UR "
-        "controller (a quiet hold" + (f", the packaged sample slip every {soak.slip_every_s:g} s"
+        f"`{soak_command(soak)}`: the daemon "
+        + ("alone in its process at 1 kHz against the emulated PapillArray and MX-28 (one process of their own) and "
+           "UR controller (another)" if soak.emulators_own_process else
+           "in-process at 1 kHz against the emulated PapillArray, MX-28 and UR controller")
+        + " (a quiet hold" + (f", the packaged sample slip every {soak.slip_every_s:g} s"
                                       if soak.slip_every_s else "")
         + (f", a fail-safe sensor stall every {soak.failsafe_every_s:g} s" if soak.failsafe_every_s else "")
         + (", the recorder on" if soak.recordings else "") + "; arm and gripper health polls running)."
-        + (" Memory, descriptors and threads are the soak process's own (the emulated sensor and servo included), "
-           "read from /proc every 10 s after the warm-up; the slope is a least-squares line through the memory "
+        + (" Memory, descriptors and threads are the soak process's own ("
+           + ("the daemon's alone" if soak.emulators_own_process else "the emulated sensor and servo included")
+           + "), read from /proc every 10 s after the warm-up; the slope is a least-squares line through the memory "
            "samples." if soak.samples else ""),
         "",
         "```",

@@ -93,6 +93,9 @@ class SoakReport:
     process_cpu_share: float = 0.0
     emulator_cpu_share: float = 0.0
     """CPU seconds per wall second of the emulated sensor and servo's own process."""
+    emulators_own_process: bool = False
+    """The emulated sensor and servo ran in a process of their own, so the samples and ``process_cpu_share`` are the
+    daemon's alone (False in the JSON of a soak that held them in its process: the figures include theirs)."""
     wall_s: float = 0.0
 
     @property
@@ -121,8 +124,10 @@ class SoakReport:
             f"fds, threads    {self.fds[0]}..{self.fds[1]} open descriptors, {self.threads[0]}..{self.threads[1]} "
             "threads after warm-up",
             f"CPU share       loop thread {self.loop_cpu_share * 100:.1f} %   "
-            f"daemon process {self.process_cpu_share * 100:.1f} %   "
-            f"emulated sensor and servo (own process) {self.emulator_cpu_share * 100:.1f} %",
+            + (f"daemon process {self.process_cpu_share * 100:.1f} %   "
+               f"emulated sensor and servo (own process) {self.emulator_cpu_share * 100:.1f} %"
+               if self.emulators_own_process else
+               f"whole process (with the sensor and servo emulators) {self.process_cpu_share * 100:.1f} %"),
         ]
 
 
@@ -213,7 +218,8 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
     if own_ur:
         controller = URControllerProcess(host).start()
     host = controller.host
-    rep = SoakReport(seconds=seconds, model=str(model), slip_every_s=slip_every, failsafe_every_s=failsafe_every)
+    rep = SoakReport(seconds=seconds, model=str(model), slip_every_s=slip_every, failsafe_every_s=failsafe_every,
+                     emulators_own_process=True)
     source = with_slips(slip_every, quiet_hold()) if slip_every > 0 else quiet_hold()
     emu = EmulatorProcess(source, sensor={"loop": True})
     daemon = None
