@@ -3,7 +3,8 @@
     python tools/soak_live.py                          # 600 s, slipd/models/slip_ensemble.json
     python tools/soak_live.py --seconds 30 --model M.json
     python tools/soak_live.py --random-model           # no trained model yet: random weights, full size
-    python tools/soak_live.py --seconds 3600 --slip-every 4 --failsafe-every 60 --json   # months, compressed
+    python tools/soak_live.py --seconds 5100 --slip-every 3 --failsafe-every 60 --record --warmup 1500 --json
+                                                       # months, compressed: an hour after the histories are full
 
 ``--slip-every S`` puts the packaged sample slip (``slipd/models/sample_slip.npz``, on the hold's load) into the
 looped stream every S seconds, so alarms, arm stops, gripper tightens and recordings keep coming; ``--failsafe-every
@@ -343,7 +344,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--record", action="store_true", help="run the recorder (a temporary directory, 50 MB bound)")
     p.add_argument("--warmup", type=float, default=None,
                    help="seconds before the memory samples start (default: a tenth of the run, at least 60); "
-                        "past the time the daemon's bounded histories fill, the slope shows what still grows")
+                        "past the time the daemon's bounded histories fill, the slope shows what still grows (with "
+                        "--record the recorder's list of deleted files is the last to fill: only once 50 MB of "
+                        "recordings are on disk and 256 more have been written)")
     p.add_argument("--json", action="store_true", help="also print the counts as one JSON line")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
