@@ -47,15 +47,22 @@ class DeviceWorker:
 
     def _run(self) -> None:
         while (item := self._queue.get()) is not None:
-            fut, fn, args, kwargs = item
-            if not fut.set_running_or_notify_cancel():
-                continue
-            try:
-                result = fn(*args, **kwargs)
-            except BaseException as exc:  # handed to whoever awaits the future
-                fut.set_exception(exc)
-            else:
-                fut.set_result(result)
+            self._run_one(item)
+            # A finished call's arguments (a recording's frames: megabytes for a long episode) must not stay
+            # alive while the thread waits for the next one.
+            del item
+
+    @staticmethod
+    def _run_one(item: _Item) -> None:
+        fut, fn, args, kwargs = item
+        if not fut.set_running_or_notify_cancel():
+            return
+        try:
+            result = fn(*args, **kwargs)
+        except BaseException as exc:  # handed to whoever awaits the future
+            fut.set_exception(exc)
+        else:
+            fut.set_result(result)
 
     def close(self, wait: bool = True, timeout: float | None = None) -> bool:
         """Stop accepting work. ``wait``: let queued calls finish (for at most ``timeout`` seconds, None:

@@ -541,3 +541,35 @@ def test_a_lost_sensor_records_what_led_to_it_and_a_later_alarm_starts_after_the
     daemon.recorder.close()
     newest = Recording.load(sorted(list_recordings(tmp_path))[-1])
     assert newest.t_us[0] == 0 and (np.diff(newest.t_us) > 0).all()
+
+
+def test_months_of_recordings_keep_the_recorders_lists_and_the_worker_bounded(tmp_path):
+    """A soak writes and deletes recordings for hours: the lists of written and deleted files keep the latest
+    MAX_KEPT_PATHS, the directory stays within its bound, and the writer thread keeps no recording's frames once it
+    is written (one 30-s episode is megabytes)."""
+    import gc
+    import weakref
+
+    from slipd.daemon.recorder import MAX_KEPT_PATHS
+
+    rec = Recorder(tmp_path, RATE, seconds_before=0.02, seconds_after=0.01, max_total_mb=0.05)
+    n = MAX_KEPT_PATHS + 60
+    snaps: list[weakref.ref] = []
+    submit = rec.worker.submit
+
+    def watched(fn, snap, *a, **k):  # what the writer thread is handed, watched without keeping it alive
+        snaps.append(weakref.ref(snap.force))
+        return submit(fn, snap, *a, **k)
+
+    rec.worker.submit = watched  # type: ignore[method-assign]
+    for k in range(n):
+        feed(rec, 40 * k, 40 * k + 40, alarm_at={40 * k + 25})
+        rec.settle()
+        assert rec.wait() is not None
+    assert rec.files_written == n
+    assert len(rec.written) == MAX_KEPT_PATHS and len(rec.deleted) == MAX_KEPT_PATHS
+    assert rec.written[-1].exists() and not rec.deleted[-1].exists()
+    assert rec.total_bytes() <= rec.max_total_bytes
+    gc.collect()
+    assert len(snaps) == n and all(r() is None for r in snaps)  # the last one's frames released too
+    rec.close()
