@@ -3,7 +3,7 @@
     python tools/soak_live.py                          # 600 s, slipd/models/slip_ensemble.json
     python tools/soak_live.py --seconds 30 --model M.json
     python tools/soak_live.py --random-model           # no trained model yet: random weights, full size
-    python tools/soak_live.py --seconds 5100 --slip-every 3 --failsafe-every 60 --record --warmup 1500 --json
+    python tools/soak_live.py --seconds 5400 --slip-every 3 --failsafe-every 60 --record --warmup 1800 --json
                                                        # months, compressed: an hour after the histories are full
 
 ``--slip-every S`` puts the packaged sample slip (``slipd/models/sample_slip.npz``, on the hold's load) into the
