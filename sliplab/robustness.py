@@ -197,6 +197,7 @@ def figures(results: list) -> dict:
         "stop_false_alarms": off.fp / stops if stops else None, "stop_alarmed": off.fp,
         "latency_median_s": s.latency_s.median, "latency_p90_s": s.latency_s.p90,
         "unscored_slips": s.offline_unlabelled,
+        "partial": s.partial, "partial_alarmed": s.partial_alarmed,
         "false_alarms_per_hour": s.false_alarms_per_hour, "no_slip_hours": s.no_slip_hours,
     }
 
