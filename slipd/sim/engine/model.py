@@ -65,7 +65,7 @@ class EngineParams(BaseModel):
     min_slide_mm: float = Field(0.02, ge=0.0)
     """... and only an episode in which the tip slides at least this far counts. When the weight passes from the
     table to the grasp, the solver lets a loaded tip on its cone move a few micrometres and stick again; such a
-    blip is far below what the sensor (0.006 N of tangential force per micrometre at most) or a camera on the tips
+    blip is far below what the sensor (0.005 N of tangential force per micrometre at most) or a camera on the tips
     resolves, and it ends by itself."""
     slide_gap_samples: int = Field(5, ge=0)
     """Sliding interrupted for at most this many samples is one episode (a tip on the cone's edge flickers)."""
