@@ -6,7 +6,8 @@ offline success
     A *slip* sequence is a true positive when its **first** alarm falls in
     ``[onset - 0.3 s, gross-slip time]``; an alarm before that window is ``early``, one after it
     ``late``, none at all ``missed``. A *stop* (or hold) sequence is a true negative when it has no
-    alarm at all, else a false positive.
+    alarm at all, else a false positive. A *partial* sequence (some pillars slid and stuck again, the grasp
+    held) has no outcome under either criterion; how many of them alarmed is counted apart.
 confusion matrix
     Rows: truth (slip / stop); columns: outcome (detected in time / not). ``tp`` + ``fn`` = slip
     sequences (``fn`` = early + late + missed), ``fp`` + ``tn`` = stop sequences.
@@ -47,6 +48,10 @@ GROSS_ROTATION_DEG = 2.0
 
 SLIP_KINDS = ("slip",)
 NO_SLIP_KINDS = ("stop", "hold")
+PARTIAL_KINDS = ("partial",)
+"""A partial slip that stopped by itself: some pillars slid, then stuck again, and the grasp held (no gross slip).
+Neither criterion has an answer for it: an alarm reacts to a real slip that did not need it, silence ignores one
+that happened to stop. It is left out of both criteria and counted apart (``Summary.partial_alarmed``)."""
 
 
 # --------------------------------------------------------------------------- truth
@@ -75,8 +80,13 @@ class SceneTruth:
 
     @property
     def is_slip(self) -> bool:
-        """True for a slip sequence, False for stop / hold."""
+        """True for a slip sequence, False for stop / hold / partial."""
         return self.kind in SLIP_KINDS
+
+    @property
+    def is_partial(self) -> bool:
+        """True for a partial slip that stopped by itself (no outcome under either criterion)."""
+        return self.kind in PARTIAL_KINDS
 
     def to_dict(self) -> dict:
         """JSON form (without the arrays)."""
@@ -103,8 +113,9 @@ class SceneTruth:
         label = rec.label
         has_label = label is not None and bool(np.any(label))
         kind = str(meta.get("kind") or ("slip" if has_label else "stop"))
-        if kind not in SLIP_KINDS + NO_SLIP_KINDS:
-            raise ValueError(f"{name or 'recording'}: meta kind {kind!r} is not one of {SLIP_KINDS + NO_SLIP_KINDS}")
+        kinds = SLIP_KINDS + NO_SLIP_KINDS + PARTIAL_KINDS
+        if kind not in kinds:
+            raise ValueError(f"{name or 'recording'}: meta kind {kind!r} is not one of {kinds}")
         onset = gross = None
         if has_label:
             on = int(np.argmax(label > 0))
@@ -276,8 +287,10 @@ def offline_outcome(truth: SceneTruth, first_alarm_s: float | None) -> str | Non
 
     None for a slip sequence without a labelled onset (no pillar was labelled slipping, e.g. a gripper trial
     whose object moved without a labelled incipient stretch): the criterion is undefined there, so such
-    sequences are left out of the offline figures and counted as ``offline_unlabelled``.
+    sequences are left out of the offline figures and counted as ``offline_unlabelled``. None for a partial slip.
     """
+    if truth.is_partial:
+        return None
     if not truth.is_slip:
         return "tn" if first_alarm_s is None else "fp"
     if truth.onset_s is None:
@@ -293,9 +306,9 @@ def offline_outcome(truth: SceneTruth, first_alarm_s: float | None) -> str | Non
 def online_outcome(truth: SceneTruth, first_alarm_s: float | None) -> str | None:
     """The online criterion: success when the first alarm is in [T_m, T_g].
 
-    None for hexapod scenes and for slip scenes without a motion start.
+    None for hexapod scenes, partial slips and slip scenes without a motion start.
     """
-    if truth.family == "hexapod":
+    if truth.family == "hexapod" or truth.is_partial:
         return None
     if not truth.is_slip:
         return "tn" if first_alarm_s is None else "fp"
@@ -425,6 +438,10 @@ class Summary:
     false_alarms: int
     no_slip_hours: float
     false_alarms_per_hour: float | None
+    partial: int = 0
+    """Partial slips that stopped by themselves, left out of both criteria ..."""
+    partial_alarmed: int = 0
+    """... and how many of them raised the alarm."""
 
     def to_dict(self) -> dict:
         """JSON form."""
@@ -440,6 +457,8 @@ class Summary:
             "false_alarms": self.false_alarms,
             "no_slip_hours": self.no_slip_hours,
             "false_alarms_per_hour": self.false_alarms_per_hour,
+            "partial": self.partial,
+            "partial_alarmed": self.partial_alarmed,
         }
 
 
@@ -487,7 +506,7 @@ def summarize(results: Sequence[SceneResult]) -> Summary:
         n_scenes=len(results),
         offline=confusion(results),
         offline_failures=off_fail,
-        offline_unlabelled=sum(r.offline_outcome is None for r in results),
+        offline_unlabelled=sum(r.offline_outcome is None and r.kind in SLIP_KINDS for r in results),
         latency_s=Distribution.of([r.latency_s for r in results if r.offline_outcome == "tp"]),
         online=on if any(r.online_outcome is not None and r.kind in SLIP_KINDS for r in results) else None,
         online_failures=on_fail,
@@ -495,4 +514,6 @@ def summarize(results: Sequence[SceneResult]) -> Summary:
         false_alarms=edges,
         no_slip_hours=hours,
         false_alarms_per_hour=per_hour,
+        partial=sum(r.kind in PARTIAL_KINDS for r in results),
+        partial_alarmed=sum(r.kind in PARTIAL_KINDS and r.first_alarm_s is not None for r in results),
     )

@@ -197,6 +197,7 @@ def figures(results: list) -> dict:
         "stop_false_alarms": off.fp / stops if stops else None, "stop_alarmed": off.fp,
         "latency_median_s": s.latency_s.median, "latency_p90_s": s.latency_s.p90,
         "unscored_slips": s.offline_unlabelled,
+        "partial": s.partial, "partial_alarmed": s.partial_alarmed,
         "false_alarms_per_hour": s.false_alarms_per_hour, "no_slip_hours": s.no_slip_hours,
     }
 
@@ -391,13 +392,15 @@ def tables(report: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                        ("reverse_holdout", "Reverse: trained on the engine only, tested on our own families")):
         if not report.get(key):
             continue
-        head = ["detector", "n", "offline success", "online success (lifts)", "stop false alarms", "light grasps",
-                "slow loads", *[c.replace("_", " ") for c in CATEGORIES[1:]]]
+        head = ["detector", "n", "offline success", "online success (lifts)", "stop false alarms",
+                "partial slips alarmed", "latency median", "light grasps", "slow loads",
+                *[c.replace("_", " ") for c in CATEGORIES[1:]]]
         rows = []
         for det, f in report[key].items():
-            cat = f["categories"]
+            cat, whole = f["categories"], f["all"]
             rows.append([det, str(f["n"]), _pct(f["offline_success"]),
                          f"{_pct(f['online_success'])} ({f['online_lifts']})", _pct(f["stop_false_alarm_rate"]),
+                         f"{whole.get('partial_alarmed', 0)}/{whole.get('partial', 0)}", _ms(whole["latency_median_s"]),
                          _pct(f["light_grasp_success"]), _pct(f["slow_load_success"]),
                          *[f"{_pct(cat[c]['success'])} ({cat[c]['n']})" if c in cat else "-" for c in CATEGORIES[1:]]])
         out.append((title, head, rows))

@@ -16,7 +16,8 @@ Stages, in order, per sample:
     5b. derive    only for specs with a derived channel (``DERIVED``): per filtered sample, the
                   derived channels are computed from that pillar's filtered fx, fy, fz and the
                   spec's channels are put in order (``FeatureSpec.derive``, the one function both
-                  paths call);
+                  paths call); a channel that compares a sample with an earlier one (``WINDOWED``)
+                  reads only the samples of its own window, so both paths derive window by window;
     6. window     ``window`` consecutive filtered samples flattened time-major ([T, C] -> [T*C]).
                   Windows end every ``stride`` samples (``stride == window``: the method's
                   non-overlapping windows); the first ends at sample ``window - 1``.
@@ -39,7 +40,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from slipd.geometry import CONTACT_THRESHOLD_N, FT_RANGE_N, FZ_RANGE_N, N_PILLARS, OUTER
 
 CHANNEL_INDEX = {"fx": 0, "fy": 1, "fz": 2}
-DERIVED = ("util", "lutil", "ux", "uy", "gft", "gfz")
+DERIVED = ("util", "lutil", "ux", "uy", "gft", "gfz", "rspeed")
 """Derived channels, computed from a pillar's filtered forces after the median (stage 5b):
 
 util  friction utilisation |Ft| / max(Fz, 0.5 N): the share of the friction cone a pillar uses, up to the
@@ -57,7 +58,21 @@ gft   |Ft| / max(sum of Fz, 0.5 N): a pillar's tangential force over the whole g
       pillars), so a 2 N grasp reads like a 20 N one; unlike util it stays defined on pillars that barely touch.
 gfz   Fz / max(sum of Fz, 0.5 N): each pillar's share of the grasp's normal load (how the contact is spread:
       a flat face over nine pillars, a curved one over two or three), whatever the grip.
+rspeed a pillar's tangential deflection speed over that of the fastest pillar: |Ft(t) - Ft(t - 10 ms)| (the
+      force vector's change, which is k_t times the tip's deflection) over the largest such change among the
+      spec's pillars, at least ``RSPEED_FLOOR_N``. What the reference-pillar heuristic reads: while a tip sticks
+      it deflects with the object, once it slides its deflection stops growing, so a slipping pillar falls
+      behind the ones that still stick, at any grip, friction or load rate. Within the first 10 ms of a window
+      the lag reaches back to the window's first sample only (``WINDOWED``).
 """
+WINDOWED = ("rspeed",)
+"""Derived channels that compare a sample with an earlier one; they read the samples of their own window only."""
+RSPEED_LAG = 10
+"""Samples over which ``rspeed`` measures a deflection speed (10 ms: the heuristics' lag)."""
+RSPEED_FLOOR_N = np.float32(0.035)
+"""Smallest fastest-pillar change (N per 10 ms) that ``rspeed`` divides by: 1 mm/s of a v2 tip (3.5 N/mm), the
+reference-pillar heuristic's smallest reference speed; below it (a still grasp) every pillar reads its own change
+over this floor, near 0."""
 ALL_CHANNELS = (*CHANNEL_INDEX, *DERIVED)
 UTIL_FLOOR_N = CONTACT_THRESHOLD_N
 _UTIL_FLOOR_F32 = np.float32(UTIL_FLOOR_N)
@@ -78,6 +93,8 @@ def channel_bound(channel: str) -> float:
         return channel_bound("util")
     if channel == "gfz":
         return float(CLIP_N[2] / UTIL_FLOOR_N)
+    if channel == "rspeed":
+        return 1.0
     return float(CLIP_N[CHANNEL_INDEX[channel]])
 TARE_GLITCH_FLOOR_N = 0.05
 """Smallest deviation from the median that ``tare_offset`` may treat as a glitch (five noise sigmas)."""
@@ -126,6 +143,11 @@ class FeatureSpec:
         return any(c in DERIVED for c in self.channels)
 
     @cached_property
+    def windowed(self) -> bool:
+        """True when a channel reads earlier samples of its window (``WINDOWED``): derived window by window."""
+        return any(c in WINDOWED for c in self.channels)
+
+    @cached_property
     def n_base(self) -> int:
         """Columns selected in stage 4 and median-filtered (equals ``n_channels`` without derived channels)."""
         return len(self._cols)
@@ -134,7 +156,8 @@ class FeatureSpec:
         """Stage 5b: [T, n_base] filtered samples -> [T, n_channels]; the identity without derived channels.
 
         Elementwise float32 arithmetic per sample, so any split of a recording into pieces gives the same
-        values bit for bit (the streaming and batch paths both call this).
+        values bit for bit (the streaming and batch paths both call this). A ``windowed`` spec takes whole
+        windows, ``T`` a multiple of ``window`` (one window, or several stacked).
         """
         if not self.derived:
             return filtered
@@ -161,9 +184,24 @@ class FeatureSpec:
                 parts.append(np.hypot(f[:, :, 0], f[:, :, 1]) / grasp)
             elif c == "gfz":
                 parts.append(f[:, :, 2] / grasp)
+            elif c == "rspeed":
+                parts.append(self._rspeed(f))
             else:
                 parts.append(f[:, :, CHANNEL_INDEX[c]])
         return np.stack(parts, axis=-1).astype(np.float32, copy=False).reshape(len(filtered), self.n_channels)
+
+    def _rspeed(self, f: np.ndarray) -> np.ndarray:
+        """[T, P] ``rspeed`` of [T, P, 3] filtered forces, T a multiple of the window (each window on its own)."""
+        w = f[:, :, :2].reshape(-1, self.window, len(self.pillars), 2)
+        lag = min(RSPEED_LAG, self.window - 1)
+        before = np.empty_like(w)
+        before[:, lag:] = w[:, :-lag] if lag else w
+        before[:, :lag] = w[:, :1]
+        d = w - before
+        speed = np.hypot(d[..., 0], d[..., 1])
+        fastest = np.maximum(speed.max(axis=-1, keepdims=True), RSPEED_FLOOR_N)
+        out: np.ndarray = (speed / fastest).reshape(len(f), len(self.pillars))
+        return out
 
     @cached_property
     def n_channels(self) -> int:
@@ -326,6 +364,10 @@ def batch_windows(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The whole pipeline on a recording: ([K, T*C] float32 windows, [K] index of each window's last sample)."""
     x, _ = prepare_samples(force, spec, offset)
+    if spec.windowed:
+        # A channel that reads earlier samples of its window: cut the filtered base windows, then derive each.
+        base, ends = batch_windows_base(x, spec)
+        return spec.derive(base.reshape(-1, spec.n_base)).reshape(len(ends), spec.input_size), ends
     filtered = spec.derive(causal_median(x, spec.median))
     ends = window_ends(len(filtered), spec)
     if len(ends) == 0:
@@ -336,6 +378,18 @@ def batch_windows(
     starts = ends - spec.window + 1
     wins = sliding_window_view(filtered, spec.window, axis=0)[starts]  # [K, C, T]
     return np.ascontiguousarray(wins.transpose(0, 2, 1)).reshape(len(ends), spec.input_size), ends
+
+
+def batch_windows_base(x: np.ndarray, spec: FeatureSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Prepared samples [N, n_base] -> ([K, T * n_base] windows of the filtered base columns, [K] ends): stage 5 and
+    the windows, without stage 5b."""
+    filtered = causal_median(x, spec.median)
+    ends = window_ends(len(filtered), spec)
+    if len(ends) == 0:
+        return np.zeros((0, spec.window * spec.n_base), np.float32), ends
+    starts = ends - spec.window + 1
+    wins = sliding_window_view(filtered, spec.window, axis=0)[starts]  # [K, n_base, T]
+    return np.ascontiguousarray(wins.transpose(0, 2, 1)).reshape(len(ends), -1), ends
 
 
 def window_labels(label: np.ndarray, ends: np.ndarray) -> np.ndarray:

@@ -273,6 +273,7 @@ def write_dataset(set_name: str, split: str, out: str | Path, count: int | None 
         "set": set_name, "split": split, "seed": seed, "count": len(entries),
         "generator": GENERATOR_VERSION,
         "slip": sum(e["kind"] == "slip" for e in entries), "stop": sum(e["kind"] == "stop" for e in entries),
+        "partial": sum(e["kind"] == "partial" for e in entries),
         "slip_with_onset": sum("onset" in e["events"] for e in entries if e["kind"] == "slip"),
         "simulated_s": round(sim_s, 3), "physics_wall_s": round(wall, 3),
         "speed_ratio": round(sim_s / wall, 1) if wall > 0 else None,

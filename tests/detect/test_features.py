@@ -144,6 +144,27 @@ def test_grasp_normalised_channels_divide_by_the_whole_grasps_normal_load() -> N
     assert np.all(np.isfinite(batch_windows(force, spec)[0]))
 
 
+def test_rspeed_is_each_pillars_deflection_speed_over_the_fastest_pillars() -> None:
+    # Pillar 4 loads at 0.01 N per sample along x, pillar 0 at a quarter of that, pillar 8 (not in the spec) faster:
+    # over the 10-sample lag 0.1 N and 0.025 N, so 1 and 0.25 once a window holds ten samples of history.
+    spec = FeatureSpec(pillars=(4, 0), channels=("rspeed",), median=1, window=20, stride=10)
+    n = 60
+    ramp = np.arange(n, dtype=np.float32)
+    force = np.zeros((n, 9, 3), np.float32)
+    force[:, 4, 0] = 0.01 * ramp
+    force[:, 0, 1] = 0.0025 * ramp
+    force[:, 8, 0] = 0.5 * ramp
+    win, _ = batch_windows(force, spec)
+    rows = win.reshape(len(win), spec.window, 2)
+    assert np.allclose(rows[:, 10:], [1.0, 0.25], atol=1e-5)
+    assert np.allclose(rows[:, 0], 0.0)  # the window's first sample has no earlier one within the window
+    # Scale-free: ten times the loads, the same ratios; a still grasp: changes over the floor, near 0.
+    strong = batch_windows(force * np.float32(10), spec)[0].reshape(len(win), spec.window, 2)
+    assert np.allclose(strong[:, 10:], rows[:, 10:], atol=1e-5)
+    force[:] = 0.3
+    assert np.allclose(batch_windows(force, spec)[0], 0.0)
+
+
 def test_spec_roundtrip_and_validation() -> None:
     spec = FeatureSpec(stride=20)
     assert FeatureSpec.from_dict(spec.to_dict()) == spec
@@ -167,7 +188,8 @@ def test_spec_roundtrip_and_validation() -> None:
     window=st.sampled_from([10, 20, 40]),
     median=st.sampled_from([1, 5, 11, 21]),
     seed=st.integers(0, 2**16),
-    channels=st.sampled_from([("fx", "fy"), ("fx", "fy", "util"), ("util", "fz"), ("lutil",), ("ux", "uy", "util")]),
+    channels=st.sampled_from([("fx", "fy"), ("fx", "fy", "util"), ("util", "fz"), ("lutil",), ("ux", "uy", "util"),
+                              ("util", "rspeed"), ("rspeed",)]),
 )
 def test_stream_equals_batch_property(n: int, window: int, median: int, seed: int, channels: tuple) -> None:
     spec = FeatureSpec(window=window, median=median, channels=channels)
@@ -193,7 +215,10 @@ def test_push_many_equals_push_and_batch(n: int, stride: int, median: int, block
                                          glitches: bool, derived: bool) -> None:
     # Blocks of any size (1 to more than the history) give the windows, at the same samples, and the
     # counters that push gives sample by sample, and the batch windows.
-    spec = FeatureSpec(stride=stride, median=median, channels=("fx", "fy", "util") if derived else ("fx", "fy"))
+    channels = ("fx", "fy", "util") if derived else ("fx", "fy")
+    if derived and seed % 2:
+        channels = ("util", "rspeed")  # a channel that reads earlier samples of its window
+    spec = FeatureSpec(stride=stride, median=median, channels=channels)
     force = _signal(n, seed) if n else np.zeros((0, 9, 3), np.float32)
     if glitches and n > 10:
         rng = np.random.default_rng(seed)

@@ -190,6 +190,26 @@ def test_a_slip_without_an_incipient_stage_is_scored_online_only() -> None:
     assert SceneTruth.from_recording(rec, "r").onset_s == 0.6
 
 
+def test_a_partial_slip_that_stopped_by_itself_is_counted_apart() -> None:
+    """Some pillars slid and stuck again, and the grasp held: neither criterion scores it, whether it alarmed or
+    not, and the summary counts how many such recordings alarmed."""
+    n = 1000
+    rec = Recording(t_us=np.arange(n) * 1000, force=np.zeros((n, 9, 3)), disp=np.zeros((n, 9, 3)),
+                    label=np.zeros(n, np.uint8), meta={"kind": "partial", "motion": "lift", "family": "engine",
+                                                       "events": {"motion_start": 0.2}})
+    tr = SceneTruth.from_recording(rec, "p")
+    assert tr.is_partial and not tr.is_slip
+    assert offline_outcome(tr, 0.5) is None and online_outcome(tr, 0.5) is None
+    assert offline_outcome(tr, None) is None and online_outcome(tr, None) is None
+    stop = SceneTruth(name="s", kind="stop", duration_s=1.0)
+    dets = [Detection(t, t * 1000, float(t >= 500), float(t >= 500), t >= 500, t == 500) for t in range(0, n, 10)]
+    alarmed = evaluate_scene(tr, Trace.from_detections(dets, rec.t_us))
+    quiet = evaluate_scene(tr, Trace.from_detections([], rec.t_us))
+    s = summarize([alarmed, quiet, evaluate_scene(stop, Trace.from_detections([], rec.t_us))])
+    assert (s.partial, s.partial_alarmed, s.offline.n, s.offline.tn, s.offline_unlabelled) == (2, 1, 1, 1, 0)
+    assert s.false_alarms == 0  # a partial slip's alarm is not a false alarm on a no-slip recording either
+
+
 # --------------------------------------------------------------------------- tools/evaluate.py end to end
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory) -> Path:

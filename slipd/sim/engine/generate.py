@@ -194,13 +194,28 @@ def labels(prof: Profiles, out: EngineOutput,
         else:
             gm = gross_motion(out.pose[:end], mv["start"], rules)
             lab, onset, gross = rules.label_rule(out.slip[:end], cons, mv["start"], gm)
-            label[:end] |= lab
             item["onset_s"] = onset * DT_S if onset is not None else None
             item["gross_slip_s"] = gross * DT_S if gross is not None else None
-            if first == (None, None) and onset is not None:
-                first = (onset, gross)
+            if onset is not None and gross is None and not out.slip[end - 1, cons].any():
+                # Some pillars slid and stuck again before the next move, and the object never passed the gross
+                # threshold: a partial slip that stopped by itself. The grasp held, so nothing is labelled.
+                item["partial"] = True
+            else:
+                label[:end] |= lab
+                if first == (None, None) and onset is not None:
+                    first = (onset, gross)
         items.append(item)
     return (label, *first), items
+
+
+def kind(onset: int | None, items: list[dict], moved: bool) -> str:
+    """The recording's kind: a slip when a move slipped to gross slip; else partial when a move's partial slip
+    stopped by itself; else a stop (moves, none slipped) or a hold (no move)."""
+    if onset is not None:
+        return "slip"
+    if any(it.get("partial") for it in items):
+        return "partial"
+    return "stop" if moved else "hold"
 
 
 def _stop_segment(sc: EngineScene) -> int | None:
@@ -259,7 +274,7 @@ def generate_engine(scenes: list[EngineScene], seeds: list[int], rules: Rules) -
         eff = sc.build_effects()
         mtype = "+".join(sorted({m["op"] for m in prof.moves})) or "none"
         rec = rules.finish(sc, eff, seed, ctx, res, motion, sensor_params(sc.sensor).to_dict(), mtype, gm, labels=lab)
-        rec.meta["kind"] = "slip" if lab[1] is not None else ("stop" if prof.moves else "hold")
+        rec.meta["kind"] = kind(lab[1], items, bool(prof.moves))
         if start is None:
             rec.meta["events"].pop("motion_start", None)
         rec.meta["physics"] = {"name": sc.physics.get("name"), **sc.engine_params().model_dump(mode="json")}

@@ -62,6 +62,13 @@ class EngineParams(BaseModel):
     cone_fraction: float = Field(0.95, gt=0.0, le=1.0)
     """... while its friction force is at least this fraction of mu x normal (below it the motion is the contact's
     elastic give)."""
+    min_slide_mm: float = Field(0.02, ge=0.0)
+    """... and only an episode in which the tip slides at least this far counts. When the weight passes from the
+    table to the grasp, the solver lets a loaded tip on its cone move a few micrometres and stick again; such a
+    blip is far below what the sensor (0.005 N of tangential force per micrometre at most) or a camera on the tips
+    resolves, and it ends by itself."""
+    slide_gap_samples: int = Field(5, ge=0)
+    """Sliding interrupted for at most this many samples is one episode (a tip on the cone's edge flickers)."""
 
 
 @dataclass(frozen=True)

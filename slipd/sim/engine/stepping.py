@@ -8,7 +8,8 @@ normal law is applied as a joint force before every step (explicit, like MuJoCo'
 Outputs per sample: the pillar forces as the sensor computes them from its tips' deflections (``kt u`` and
 the normal law of the compression), the deflections, per-pillar slip truth (the tangential speed of the
 tip's contact point relative to the object's material point above ``EngineParams.slip_speed_mm_s``, while the
-contact carries load and its friction force is on the friction cone), the contact forces the engine's solver
+contact carries load and its friction force is on the friction cone, in an episode that slides it at least
+``EngineParams.min_slide_mm``), the contact forces the engine's solver
 found (normal and tangential, for cross-checks), and the object's pose relative to the finger (x, y mm; turn
 about the sensor normal, deg).
 """
@@ -34,7 +35,7 @@ class EngineOutput:
     disp: np.ndarray
     """[N, 9, 3] mm: tip deflection x, y and compression."""
     slip: np.ndarray
-    """[N, 9] bool: the tip's contact slides."""
+    """[N, 9] bool: the tip's contact slides, in an episode that carries it at least ``min_slide_mm``."""
     contact_fn: np.ndarray
     """[N, 9] N: normal force of each tip's contact (the solver's)."""
     contact_ft: np.ndarray
@@ -75,9 +76,10 @@ class EngineSim:
         d.qfrc_applied[self.dof_adr[:, 2]] = f
 
     def _sample(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Per-pillar (sliding, normal contact force, friction force magnitude) and the object's pose."""
+        """Per-pillar (sliding speed mm/s, 0 where not sliding; normal contact force; friction force magnitude) and
+        the object's pose."""
         d, m = self.data, self.model
-        slide = np.zeros(N_PILLARS, bool)
+        slide = np.zeros(N_PILLARS)
         fn = np.zeros(N_PILLARS)
         ft = np.zeros(N_PILLARS)
         ncon = d.ncon
@@ -113,11 +115,13 @@ class EngineSim:
                 rel = v_obj - d.qvel[self.dof_adr[i]]
                 normal = con.frame[k, :3]
                 rel_t = rel - normal * np.sum(rel * normal, 1)[:, None]
-                fast = np.sqrt(np.sum(rel_t**2, 1)) * 1e3 > self.params.slip_speed_mm_s
+                speed = np.sqrt(np.sum(rel_t**2, 1)) * 1e3
+                fast = speed > self.params.slip_speed_mm_s
                 # MuJoCo's friction is soft: a stuck contact yields elastically by a few micrometres, fast while its
                 # force changes fast. A tip slides only when it moves with its friction force on the cone.
                 on_cone = np.hypot(f[:, 1], f[:, 2]) >= self.params.cone_fraction * con.friction[k, 0] * f[:, 0]
-                slide[i[fast & load & on_cone]] = True
+                sliding = fast & load & on_cone
+                np.maximum.at(slide, i[sliding], speed[sliding])
         pos = (d.xpos[self.obj_body] - self.start_pos) * 1e3
         r_rel = d.xmat[self.obj_body].reshape(3, 3) @ self.start_mat.T
         turn = np.degrees(np.arctan2(r_rel[1, 0], r_rel[0, 0]))
@@ -130,7 +134,7 @@ class EngineSim:
         d, m = self.data, self.model
         force = np.empty((n, N_PILLARS, 3))
         disp = np.empty((n, N_PILLARS, 3))
-        slip = np.empty((n, N_PILLARS), bool)
+        speed = np.empty((n, N_PILLARS))
         cfn = np.empty((n, N_PILLARS))
         cft = np.empty((n, N_PILLARS))
         pose = np.empty((n, 3))
@@ -150,5 +154,26 @@ class EngineSim:
             disp[k, :, 2] = c
             force[k, :, :2] = kt * q[:, :2]
             force[k, :, 2] = normal_force(c, self.sensor)
-            slip[k], cfn[k], cft[k], pose[k] = self._sample()
+            speed[k], cfn[k], cft[k], pose[k] = self._sample()
+        slip = sustained_slides(speed, self.params.min_slide_mm, self.params.slide_gap_samples)
         return EngineOutput(force, disp, slip, cfn, cft, pose)
+
+
+def sustained_slides(speed_mm_s: np.ndarray, min_slide_mm: float, gap: int) -> np.ndarray:
+    """[N, 9] bool from [N, 9] sliding speeds (0 where a tip sticks): the episodes that carry a tip ``min_slide_mm``.
+
+    Runs of sliding samples separated by at most ``gap`` samples form one episode (the gap counts as sliding);
+    the distance is the speed integrated over the episode at the 1 kHz sample spacing.
+    """
+    out = np.zeros(speed_mm_s.shape, bool)
+    for p in range(speed_mm_s.shape[1]):
+        moving = np.flatnonzero(speed_mm_s[:, p] > 0)
+        if not len(moving):
+            continue
+        breaks = np.flatnonzero(np.diff(moving) > gap + 1)
+        starts = np.concatenate([[moving[0]], moving[breaks + 1]])
+        ends = np.concatenate([moving[breaks], [moving[-1]]]) + 1
+        for a, b in zip(starts, ends):
+            if float(speed_mm_s[a:b, p].sum()) * DT_S >= min_slide_mm:
+                out[a:b, p] = True
+    return out
