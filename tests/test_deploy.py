@@ -182,6 +182,7 @@ def test_every_referenced_metric_exists_in_a_running_daemon(tmp_path):
             sensor.jump_counter(5)  # five frames missing by the packet counter
             time.sleep(0.5)
             sensor.stall(400)  # longer than the stall timeout: a fail-safe, counted by reason
+            deadline = time.monotonic() + 30  # its own wait: a slow start on a loaded machine must not use it up
             while time.monotonic() < deadline:
                 names, values = _exposed(_scrape(port))
                 if (values.get("slipd_dropped_frames_total", 0) > 0
