@@ -394,8 +394,10 @@ state (contact gate, press hold, alarm rule, the detections); "reaction check" w
 
 def stage_breakdown(daemon: Any, dec: Any, chunks: list[bytes]) -> dict[str, float]:
     """Mean microseconds per decision of each hot-path stage (``STAGES``), the reads of ``chunks`` handed to the
-    daemon back to back with a timer around each stage's functions (the timers add a little to every stage), and
-    ``total``, the instrumented read and decision whole."""
+    daemon back to back with a timer around each stage's functions (the timers add a little to every stage),
+    ``total``, the instrumented read and decision whole, and ``untimed``, the same code on as many reads before the
+    timers were put in: the stages cover the whole path (their sum is ``total``), and ``total - untimed`` is what the
+    timers themselves cost."""
     import importlib
 
     acc = dict.fromkeys([name for name, _ in STAGES], 0.0)
@@ -415,6 +417,13 @@ def stage_breakdown(daemon: Any, dec: Any, chunks: list[bytes]) -> dict[str, flo
 
         return call
 
+    q = len(chunks) // 4
+    for k in range(q):
+        daemon._on_frames(dec.feed_block(chunks[k]))
+    t0 = time.perf_counter()
+    for k in range(q, 2 * q):
+        daemon._on_frames(dec.feed_block(chunks[k]))
+    untimed = time.perf_counter() - t0
     patched = []
     for stage, targets in STAGES:
         for module, cls_name, attr in targets:
@@ -425,38 +434,47 @@ def stage_breakdown(daemon: Any, dec: Any, chunks: list[bytes]) -> dict[str, flo
             patched.append((cls, attr, f))
             setattr(cls, attr, timed(f, stage))
     try:
-        half = len(chunks) // 2
-        for k in range(half):  # warm-up: the timers' own first calls
+        q = len(chunks) // 4  # untimed: warm-up, measured; timed: warm-up (the timers' own first calls), measured
+        for k in range(2 * q, 3 * q):
             daemon._on_frames(dec.feed_block(chunks[k]))
         for v in acc:
             acc[v] = 0.0
         t0 = time.perf_counter()
-        for k in range(half, len(chunks)):
+        for k in range(3 * q, 4 * q):
             daemon._on_frames(dec.feed_block(chunks[k]))
         total = time.perf_counter() - t0
     finally:
         for cls, attr, f in patched:
             setattr(cls, attr, f)
-    n = len(chunks) - half
-    return {**{k: v / n * 1e6 for k, v in acc.items()}, "total": total / n * 1e6}
+    return {**{k: v / q * 1e6 for k, v in acc.items()}, "total": total / q * 1e6, "untimed": untimed / q * 1e6}
 
 
 def _stages_line(stages: dict[str, float]) -> str:
-    """The per-stage breakdown as one line: each stage's microseconds, then the instrumented total."""
-    parts = [f"{k} {v:.1f}" for k, v in stages.items() if k != "total"]
-    return f"stages (us): {', '.join(parts)}; instrumented total {stages['total']:.0f}"
+    """The per-stage breakdown as one line: each stage's microseconds, the instrumented total, and the same reads
+    without the timers."""
+    parts = [f"{k} {v:.1f}" for k, v in stages.items() if k not in ("total", "untimed")]
+    line = f"stages (us): {', '.join(parts)}; instrumented total {stages['total']:.0f}"
+    if "untimed" in stages:
+        line += f", untimed {stages['untimed']:.0f} (the timers' own cost {stages['total'] - stages['untimed']:.0f})"
+    return line
 
 
 def _warm_and_cold(call: Any, decisions: int, sleep_s: float) -> tuple[float, float]:
-    """Median microseconds of ``call(k)``, k = 0 .. 2 * decisions - 1, alternately straight after the previous call
-    and after ``sleep_s`` asleep: (back to back, after the sleep)."""
+    """Median microseconds of ``call(k)``, k = 0 .. 2 * decisions - 1: the first ``decisions`` one straight after the
+    other (back to back), then each after ``sleep_s`` asleep: (back to back, after the sleep).
+
+    Back to back means a run of calls with nothing in between. A call straight after one that followed a sleep is
+    neither figure: it still pays part of the cold penalty (here 1.5 to 3.5 times the consecutive cost, varying from run
+    to run and more for the model step than for the Python around it), so a ratio of two such figures said more about
+    the machine's state than about the code."""
     got: tuple[list[float], list[float]] = ([], [])
     for k in range(2 * decisions):
-        if k % 2:
+        cold = k >= decisions
+        if cold:
             time.sleep(sleep_s)
         t0 = time.perf_counter()
         call(k)
-        got[k % 2].append(time.perf_counter() - t0)
+        got[cold].append(time.perf_counter() - t0)
     return float(np.median(got[0][5:])) * 1e6, float(np.median(got[1][5:])) * 1e6
 
 

@@ -397,7 +397,9 @@ class Daemon:
         prev = self._prev_bits
         last = [vals[-1, s].tobytes() for s in range(ns)]
         self._prev_bits = last
-        if not math.isfinite(vals.sum()):  # a non-finite value makes the sum so (a finite overflow: checked exactly)
+        # A non-finite value makes the sum so (a finite overflow: checked exactly); add.reduce is ndarray.sum less its
+        # Python wrapper.
+        if not math.isfinite(np.add.reduce(vals, axis=None)):
             self._check_nonfinite(vals, prev)
             return
         # The common block, all finite: a sensor is fresh unless every sample is bit-identical to the one before (the

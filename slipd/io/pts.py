@@ -522,7 +522,7 @@ class FrameDecoder:
         seg = self._u8[s : s + nb]
         rows = seg.reshape(k, flen)
         # The checksum is the payload's byte sum mod 2**16: a 16-bit accumulator wraps to exactly that.
-        sums = rows[:, len(START) : len(START) + plen].sum(axis=1, dtype=_LE_U16)
+        sums = np.add.reduce(rows[:, len(START) : len(START) + plen], axis=1, dtype=_LE_U16)  # (ndarray.sum's own call)
         sent = np.ndarray((k,), dtype=_LE_U16, buffer=self._buf, offset=s + len(START) + plen, strides=(flen,))
         # The common read, every frame whole: the frames' bytes with their values masked out against the template,
         # and the checksums, each in one byte comparison (memcmp) instead of per-frame reductions.
