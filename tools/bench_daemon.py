@@ -31,9 +31,10 @@ both run at once, each on its own stream, and the difference per pair is reporte
 
 Beside them: a process that only reads and decodes the same frames (``--decode-only``, one and two sensors,
 reading every frame as it arrives), an event loop that only wakes 100 times a second (``idle_loop``: what this
-machine charges for the decision rate's wake-ups alone), and the floor of the work on this machine: the bytes
-(frames read once, decoded once) over the measured memory bandwidth plus the FLOPs (model steps, median filter)
-over the measured float32 matrix rate.
+machine charges for the decision rate's wake-ups alone), the same loop stepping the model once per wake-up
+(``step_loop``: the decision's floor with none of the daemon's Python around the model), and the floor of the work
+on this machine: the bytes (frames read once, decoded once) over the measured memory bandwidth plus the FLOPs (model
+steps, median filter) over the measured float32 matrix rate.
 """
 
 from __future__ import annotations
@@ -224,11 +225,13 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int, viz
 
 # ---------------------------------------------------------------------------------------------- CPU
 def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None, tree: Path | None = None,
-              policy: str = "stop_and_secure", idle_hz: float | None = None, viz: bool = False) -> float:
+              policy: str = "stop_and_secure", idle_hz: float | None = None, viz: bool = False,
+              idle_step: bool = False) -> float:
     """CPU seconds per wall second of one process reading the 1 kHz stream (``slipd run``; decode-only when
     ``stride`` is None). ``tree``: run the ``slipd`` of that source tree instead of this one (``--baseline-tree``).
     ``policy`` grip_control: the grip controller takes the quiet grasp over and runs on every decision.
-    ``idle_hz``: instead, an event loop that only wakes this often (``idle_loop``), beside the same stream."""
+    ``idle_hz``: instead, an event loop that only wakes this often (``idle_loop``), beside the same stream; with
+    ``idle_step`` it steps ``model`` on ``sensors`` windows at each wake-up (``step_loop``)."""
     from slipd.sim.devices.mx28 import EmulatedMX28
     from slipd.sim.devices.papillarray import EmulatedPapillArray
 
@@ -236,6 +239,8 @@ def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None, tre
     with tempfile.TemporaryDirectory() as tmp, EmulatedMX28() as servo, EmulatedPapillArray(rec) as sensor:
         if idle_hz is not None:
             cmd = [sys.executable, __file__, "--idle-loop", str(idle_hz)]
+            if idle_step:
+                cmd += ["--idle-step", "--model", str(model), "--sensors", str(sensors)]
         elif stride is None:
             cmd = [sys.executable, __file__, "--decode-only", sensor.port, "--sensors", str(sensors)]
         else:
@@ -282,12 +287,25 @@ def decode_only(port: str, sensors: int) -> None:
     asyncio.run(main())
 
 
-def idle_loop(hz: float) -> None:
+def idle_loop(hz: float, model: Path | None = None, sensors: int = 1) -> None:
     """Baseline process: an asyncio event loop (the daemon's) that wakes ``hz`` times a second on an absolute
     schedule and does nothing else. On a machine whose cores go cold while idle (this virtual machine: see
     ``hot_path_cost``) a wake-up alone costs far more than its instructions; this line shows how much of the
     daemon's share the machine charges for waking at the decision rate at all (this module holds numpy, as the
-    daemon's process does)."""
+    daemon's process does).
+
+    ``model``: each wake-up also steps that ensemble once on a batch of ``sensors`` windows (``step_loop``), the
+    daemon's decision with none of its Python around the model: what the machine charges for the model's step
+    after the sleep between decisions (its weights walked again from a cold cache)."""
+    step: Any = None
+    if model is not None:
+        from slipd.detect.ensemble import Ensemble
+
+        ens = Ensemble.load(model)
+        window = np.full((sensors, ens.feature_spec.input_size), 0.1, np.float32)
+
+        def step() -> None:
+            ens.step(window)
 
     async def main() -> None:
         loop = asyncio.get_running_loop()
@@ -295,6 +313,8 @@ def idle_loop(hz: float) -> None:
 
         def tick(k: int) -> None:
             loop.call_at(start + k / hz, tick, k + 1)
+            if step is not None:
+                step()
 
         tick(1)
         await asyncio.Event().wait()
@@ -631,12 +651,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="the live view off and on (a Foxglove viewer that never reads): p99, frames lost, CPU")
     p.add_argument("--decode-only", metavar="PORT", help=argparse.SUPPRESS)
     p.add_argument("--idle-loop", type=float, metavar="HZ", help=argparse.SUPPRESS)
+    p.add_argument("--idle-step", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.decode_only:
         decode_only(args.decode_only, args.sensors[0])
         return 0
     if args.idle_loop:
-        idle_loop(args.idle_loop)
+        idle_loop(args.idle_loop, args.model if args.idle_step else None, args.sensors[0])
         return 0
     if args.baseline_tree:
         return compare_trees(args)
@@ -670,14 +691,15 @@ def main(argv: list[str] | None = None) -> int:
         keys += [("grip_control", r["sensors"], r["stride"]) for r in runs]
     keys += [("decode_only", s, None) for s in args.sensors]
     keys += [("idle_loop", 1, None)]  # the decision rate at stride 10: 100 wake-ups a second
+    keys += [("step_loop", s, None) for s in args.sensors]  # ... each with the model's step alone
     shares: dict[tuple[str, int, int | None], list[float]] = {k: [] for k in keys}
     for rnd in range(args.cpu_runs):
         shift = rnd * len(keys) // args.cpu_runs
         for policy, sensors, stride in keys[shift:] + keys[:shift]:
-            pol = "stop_and_secure" if policy in ("decode_only", "idle_loop") else policy
-            idle = IDLE_HZ if policy == "idle_loop" else None
+            pol = "stop_and_secure" if policy in ("decode_only", "idle_loop", "step_loop") else policy
+            idle = IDLE_HZ if policy in ("idle_loop", "step_loop") else None
             shares[(policy, sensors, stride)].append(100 * cpu_share(args.model, per, sensors, stride, policy=pol,
-                                                                     idle_hz=idle))
+                                                                     idle_hz=idle, idle_step=policy == "step_loop"))
         print(f"  CPU round {rnd + 1} of {args.cpu_runs} done", flush=True)
     for r in runs:
         got = shares[("stop_and_secure", r["sensors"], r["stride"])]
@@ -687,6 +709,7 @@ def main(argv: list[str] | None = None) -> int:
             r.update(cpu_percent_grip_control=float(np.median(got)), cpu_percent_grip_control_runs=got)
     base = {s: float(np.median(shares[("decode_only", s, None)])) for s in args.sensors}
     idle_runs = shares[("idle_loop", 1, None)]
+    step_loop = {s: float(np.median(shares[("step_loop", s, None)])) for s in args.sensors}
     hot = {(r["sensors"], r["stride"]): hot_path_cost(args.model, r["sensors"], stride=r["stride"]) for r in runs}
     for r in runs:
         h = hot[(r["sensors"], r["stride"])]
@@ -723,6 +746,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{s:>7} {'decode-only (every frame as it arrives)':<40} {cpu:>5.1f} % CPU")
     print(f"{'-':>7} {f'event loop waking {IDLE_HZ:g} times a second, nothing else':<40} "
           f"{float(np.median(idle_runs)):>5.1f} % CPU  [{', '.join(f'{x:.1f}' for x in idle_runs)}]")
+    for s, cpu in step_loop.items():
+        runs_s = shares[("step_loop", s, None)]
+        print(f"{s:>7} {'the same, each wake-up one model step':<40} {cpu:>5.1f} % CPU  "
+              f"[{', '.join(f'{x:.1f}' for x in runs_s)}]")
+    for r in runs:
+        if r["stride"] == 10:
+            idle = float(np.median(idle_runs))
+            print(f"{r['sensors']:>7} sensor(s) stride 10: CPU {r['cpu_percent'] / idle:.1f}x the idle event loop, "
+                  f"{r['cpu_percent'] / step_loop[r['sensors']]:.1f}x the loop with the model's step alone")
     print(f"hot path per decision (decode `stride` frames, freshness, detector, decision, metrics; no event loop), "
           f"medians of {HOT_DECISIONS}, back to back / after {HOT_SLEEP_S * 1e3:g} ms asleep, against the model step "
           "alone (one onnxruntime call on the same batch); per stage: means, instrumented, with the recorder on")
@@ -740,6 +772,8 @@ def main(argv: list[str] | None = None) -> int:
                                              for s, c in base.items()],
                "idle_loop": {"hz": IDLE_HZ, "cpu_percent": float(np.median(idle_runs)), "cpu_percent_runs": idle_runs},
                "idle_loop_percent": float(np.median(idle_runs)), "cpu_runs": args.cpu_runs,
+               "step_loop": [{"sensors": s, "cpu_percent": c, "cpu_percent_runs": shares[("step_loop", s, None)]}
+                             for s, c in step_loop.items()],
                "machine": {"copy_bytes_per_s": bw, "flops_per_s": flops_rate, "load_average": [load0, load1],
                            "cores": os.cpu_count()},
                "seconds": args.seconds, "model": str(args.model)}
