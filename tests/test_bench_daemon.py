@@ -33,13 +33,14 @@ def test_hot_path_reports_each_stage_and_restores_the_timed_code(sensors: int) -
     before = (Daemon.__dict__["_on_frames"], Detector.__dict__["contact_state"], Ensemble.__dict__["step_rows"])
     h = mod.hot_path_cost(MODEL, sensors, decisions=12, sleep_s=0.0)
     assert (Daemon.__dict__["_on_frames"], Detector.__dict__["contact_state"], Ensemble.__dict__["step_rows"]) == before
-    for key in ("back_to_back_us", "after_sleep_us", "model_back_to_back_us", "model_after_sleep_us"):
+    for key in ("back_to_back_us", "after_sleep_us", "back_to_back_p10_us", "model_back_to_back_us",
+                "model_after_sleep_us", "model_back_to_back_p10_us"):
         assert h[key] > 0
     stages = h["stages_us"]
-    assert list(stages) == [name for name, _ in mod.STAGES] + ["total"]
+    assert list(stages) == [name for name, _ in mod.STAGES] + ["total", "untimed"]
     # Every stage runs on each decision of a quiet hold (the recorder keeps the frames; no alarm, no file).
     assert all(v > 0 for v in stages.values()), stages
     # Exclusive times: the stages share out the instrumented total, nothing counted twice.
-    assert sum(v for k, v in stages.items() if k != "total") <= stages["total"]
+    assert sum(v for k, v in stages.items() if k not in ("total", "untimed")) <= stages["total"]
     line = mod._stages_line(stages)
-    assert "contact state" in line and "instrumented total" in line
+    assert "contact state" in line and "instrumented total" in line and "untimed" in line

@@ -23,17 +23,19 @@ Per configuration (sensors x stride):
 both run at once, each on its own stream, and the difference per pair is reported (see ``_paired_shares``).
 
 3. **Hot path per decision** (``hot_path_cost``): the daemon's code on one read of ``stride`` frames (decode,
-   freshness, detector, decision, metrics) without the event loop, back to back and after 10 ms asleep, against the
-   model step alone, and where it goes per stage (``STAGES``: decode, freshness check, features, step, decision,
-   contact state, reaction check, recorder, metrics). ``--json`` writes them in each entry of ``runs``:
-   ``hot_path_us`` and ``step_us`` (``{"back_to_back": .., "after_sleep": ..}``) and ``stages_us``; the idle event
-   loop's share is ``idle_loop_percent`` at the top level.
+   freshness, detector, decision, metrics) without the event loop, back to back (a run of consecutive reads) and after
+   10 ms asleep, against the model step alone, and where it goes per stage (``STAGES``: decode, freshness check,
+   features, step, decision, contact state, reaction check, recorder, metrics; beside them the same reads untimed).
+   ``--json`` writes them in each entry of ``runs``: ``hot_path_us`` and ``step_us`` (``{"back_to_back": ..,
+   "after_sleep": .., "back_to_back_p10": ..}``: medians, and the back-to-back 10th percentile) and ``stages_us``; the
+   idle event loop's share is ``idle_loop_percent`` at the top level, the loop with the model's step ``step_loop``.
 
 Beside them: a process that only reads and decodes the same frames (``--decode-only``, one and two sensors,
 reading every frame as it arrives), an event loop that only wakes 100 times a second (``idle_loop``: what this
-machine charges for the decision rate's wake-ups alone), and the floor of the work on this machine: the bytes
-(frames read once, decoded once) over the measured memory bandwidth plus the FLOPs (model steps, median filter)
-over the measured float32 matrix rate.
+machine charges for the decision rate's wake-ups alone), the same loop stepping the model once per wake-up
+(``step_loop``: the decision's floor with none of the daemon's Python around the model), and the floor of the work
+on this machine: the bytes (frames read once, decoded once) over the measured memory bandwidth plus the FLOPs (model
+steps, median filter) over the measured float32 matrix rate.
 """
 
 from __future__ import annotations
@@ -208,11 +210,13 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int, viz
 
 # ---------------------------------------------------------------------------------------------- CPU
 def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None, tree: Path | None = None,
-              policy: str = "stop_and_secure", idle_hz: float | None = None, viz: bool = False) -> float:
+              policy: str = "stop_and_secure", idle_hz: float | None = None, viz: bool = False,
+              idle_step: bool = False) -> float:
     """CPU seconds per wall second of one process reading the 1 kHz stream (``slipd run``; decode-only when
     ``stride`` is None). ``tree``: run the ``slipd`` of that source tree instead of this one (``--baseline-tree``).
     ``policy`` grip_control: the grip controller takes the quiet grasp over and runs on every decision.
-    ``idle_hz``: instead, an event loop that only wakes this often (``idle_loop``), beside the same stream."""
+    ``idle_hz``: instead, an event loop that only wakes this often (``idle_loop``), beside the same stream; with
+    ``idle_step`` it steps ``model`` on ``sensors`` windows at each wake-up (``step_loop``)."""
     from slipd.sim.devices.mx28 import EmulatedMX28
     from slipd.sim.devices.papillarray import EmulatedPapillArray
 
@@ -220,6 +224,8 @@ def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None, tre
     with tempfile.TemporaryDirectory() as tmp, EmulatedMX28() as servo, EmulatedPapillArray(rec) as sensor:
         if idle_hz is not None:
             cmd = [sys.executable, __file__, "--idle-loop", str(idle_hz)]
+            if idle_step:
+                cmd += ["--idle-step", "--model", str(model), "--sensors", str(sensors)]
         elif stride is None:
             cmd = [sys.executable, __file__, "--decode-only", sensor.port, "--sensors", str(sensors)]
         else:
@@ -266,12 +272,25 @@ def decode_only(port: str, sensors: int) -> None:
     asyncio.run(main())
 
 
-def idle_loop(hz: float) -> None:
+def idle_loop(hz: float, model: Path | None = None, sensors: int = 1) -> None:
     """Baseline process: an asyncio event loop (the daemon's) that wakes ``hz`` times a second on an absolute
     schedule and does nothing else. On a machine whose cores go cold while idle (this virtual machine: see
     ``hot_path_cost``) a wake-up alone costs far more than its instructions; this line shows how much of the
     daemon's share the machine charges for waking at the decision rate at all (this module holds numpy, as the
-    daemon's process does)."""
+    daemon's process does).
+
+    ``model``: each wake-up also steps that ensemble once on a batch of ``sensors`` windows (``step_loop``), the
+    daemon's decision with none of its Python around the model: what the machine charges for the model's step
+    after the sleep between decisions (its weights walked again from a cold cache)."""
+    step: Any = None
+    if model is not None:
+        from slipd.detect.ensemble import Ensemble
+
+        ens = Ensemble.load(model)
+        window = np.full((sensors, ens.feature_spec.input_size), 0.1, np.float32)
+
+        def step() -> None:
+            ens.step(window)
 
     async def main() -> None:
         loop = asyncio.get_running_loop()
@@ -279,6 +298,8 @@ def idle_loop(hz: float) -> None:
 
         def tick(k: int) -> None:
             loop.call_at(start + k / hz, tick, k + 1)
+            if step is not None:
+                step()
 
         tick(1)
         await asyncio.Event().wait()
@@ -349,8 +370,9 @@ def hot_path_cost(model: Path, sensors: int, decisions: int = HOT_DECISIONS, sle
         daemon, dec, chunks = _hot_path_setup(model, sensors, stride, decisions, Path(tmp), recorder=True)
         stages = stage_breakdown(daemon, dec, chunks)
         daemon.close()
-    return {"back_to_back_us": hot[0], "after_sleep_us": hot[1],
-            "model_back_to_back_us": step[0], "model_after_sleep_us": step[1], "stages_us": stages}
+    return {"back_to_back_us": hot[0], "after_sleep_us": hot[1], "back_to_back_p10_us": hot[2],
+            "model_back_to_back_us": step[0], "model_after_sleep_us": step[1], "model_back_to_back_p10_us": step[2],
+            "stages_us": stages}
 
 
 STAGES: tuple[tuple[str, tuple[tuple[str, str, str], ...]], ...] = (
@@ -378,8 +400,11 @@ state (contact gate, press hold, alarm rule, the detections); "reaction check" w
 
 def stage_breakdown(daemon: Any, dec: Any, chunks: list[bytes]) -> dict[str, float]:
     """Mean microseconds per decision of each hot-path stage (``STAGES``), the reads of ``chunks`` handed to the
-    daemon back to back with a timer around each stage's functions (the timers add a little to every stage), and
-    ``total``, the instrumented read and decision whole."""
+    daemon back to back with a timer around each stage's functions (the timers add a little to every stage),
+    ``total``, the instrumented read and decision whole, and ``untimed``, the same code on as many reads before the
+    timers were put in: the stages cover the whole path (their sum is ``total``), and ``total - untimed`` is what the
+    timers themselves cost. Each mean leaves out the slowest tenth of its reads (a read the machine interrupted: on a
+    loaded machine one preemption moved a stage's mean by tens of microseconds)."""
     import importlib
 
     acc = dict.fromkeys([name for name, _ in STAGES], 0.0)
@@ -399,6 +424,22 @@ def stage_breakdown(daemon: Any, dec: Any, chunks: list[bytes]) -> dict[str, flo
 
         return call
 
+    def reads(ks: range, per_stage: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Each read's time and, with the timers in, its stages' times: [n], [n, stages]."""
+        totals, parts = [], []
+        for k in ks:
+            for v in acc:
+                acc[v] = 0.0
+            t0 = time.perf_counter()
+            daemon._on_frames(dec.feed_block(chunks[k]))
+            totals.append(time.perf_counter() - t0)
+            if per_stage:
+                parts.append(list(acc.values()))
+        return np.array(totals) * 1e6, np.array(parts) * 1e6
+
+    q = len(chunks) // 4  # untimed: warm-up, measured; timed: warm-up (the timers' own first calls), measured
+    reads(range(q), False)
+    untimed, _ = reads(range(q, 2 * q), False)
     patched = []
     for stage, targets in STAGES:
         for module, cls_name, attr in targets:
@@ -409,39 +450,47 @@ def stage_breakdown(daemon: Any, dec: Any, chunks: list[bytes]) -> dict[str, flo
             patched.append((cls, attr, f))
             setattr(cls, attr, timed(f, stage))
     try:
-        half = len(chunks) // 2
-        for k in range(half):  # warm-up: the timers' own first calls
-            daemon._on_frames(dec.feed_block(chunks[k]))
-        for v in acc:
-            acc[v] = 0.0
-        t0 = time.perf_counter()
-        for k in range(half, len(chunks)):
-            daemon._on_frames(dec.feed_block(chunks[k]))
-        total = time.perf_counter() - t0
+        reads(range(2 * q, 3 * q), True)
+        total, parts = reads(range(3 * q, 4 * q), True)
     finally:
         for cls, attr, f in patched:
             setattr(cls, attr, f)
-    n = len(chunks) - half
-    return {**{k: v / n * 1e6 for k, v in acc.items()}, "total": total / n * 1e6}
+    keep = total <= np.percentile(total, 90)
+    means = parts[keep].mean(axis=0)
+    return {**{k: float(v) for k, v in zip(acc, means)}, "total": float(total[keep].mean()),
+            "untimed": float(untimed[untimed <= np.percentile(untimed, 90)].mean())}
 
 
 def _stages_line(stages: dict[str, float]) -> str:
-    """The per-stage breakdown as one line: each stage's microseconds, then the instrumented total."""
-    parts = [f"{k} {v:.1f}" for k, v in stages.items() if k != "total"]
-    return f"stages (us): {', '.join(parts)}; instrumented total {stages['total']:.0f}"
+    """The per-stage breakdown as one line: each stage's microseconds, the instrumented total, and the same reads
+    without the timers."""
+    parts = [f"{k} {v:.1f}" for k, v in stages.items() if k not in ("total", "untimed")]
+    line = f"stages (us): {', '.join(parts)}; instrumented total {stages['total']:.0f}"
+    if "untimed" in stages:
+        line += f", untimed {stages['untimed']:.0f} (the timers' own cost {stages['total'] - stages['untimed']:.0f})"
+    return line
 
 
-def _warm_and_cold(call: Any, decisions: int, sleep_s: float) -> tuple[float, float]:
-    """Median microseconds of ``call(k)``, k = 0 .. 2 * decisions - 1, alternately straight after the previous call
-    and after ``sleep_s`` asleep: (back to back, after the sleep)."""
+def _warm_and_cold(call: Any, decisions: int, sleep_s: float) -> tuple[float, float, float]:
+    """Median microseconds of ``call(k)``, k = 0 .. 2 * decisions - 1: the first ``decisions`` one straight after the
+    other (back to back), then each after ``sleep_s`` asleep: (back to back, after the sleep).
+
+    Back to back means a run of calls with nothing in between. A call straight after one that followed a sleep is
+    neither figure: it still pays part of the cold penalty (here 1.5 to 3.5 times the consecutive cost, varying from run
+    to run and more for the model step than for the Python around it), so a ratio of two such figures said more about
+    the machine's state than about the code. Third: the back-to-back calls' 10th percentile, the code with the least
+    interference from the rest of the machine (on a loaded machine the median grows with the load, more for the Python
+    path than for the model's call)."""
     got: tuple[list[float], list[float]] = ([], [])
     for k in range(2 * decisions):
-        if k % 2:
+        cold = k >= decisions
+        if cold:
             time.sleep(sleep_s)
         t0 = time.perf_counter()
         call(k)
-        got[k % 2].append(time.perf_counter() - t0)
-    return float(np.median(got[0][5:])) * 1e6, float(np.median(got[1][5:])) * 1e6
+        got[cold].append(time.perf_counter() - t0)
+    return (float(np.median(got[0][5:])) * 1e6, float(np.median(got[1][5:])) * 1e6,
+            float(np.percentile(got[0][5:], 10)) * 1e6)
 
 
 # ---------------------------------------------------------------------------------------------- floor
@@ -597,12 +646,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="the live view off and on (a Foxglove viewer that never reads): p99, frames lost, CPU")
     p.add_argument("--decode-only", metavar="PORT", help=argparse.SUPPRESS)
     p.add_argument("--idle-loop", type=float, metavar="HZ", help=argparse.SUPPRESS)
+    p.add_argument("--idle-step", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.decode_only:
         decode_only(args.decode_only, args.sensors[0])
         return 0
     if args.idle_loop:
-        idle_loop(args.idle_loop)
+        idle_loop(args.idle_loop, args.model if args.idle_step else None, args.sensors[0])
         return 0
     if args.baseline_tree:
         return compare_trees(args)
@@ -613,7 +663,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{s} sensor(s): hot path per decision {h['back_to_back_us']:.0f} us back to back, "
                       f"{h['after_sleep_us']:.0f} us after {ms:g} ms asleep; the model step alone "
                       f"{h['model_back_to_back_us']:.0f} / {h['model_after_sleep_us']:.0f} us (medians of "
-                      f"{HOT_DECISIONS})", flush=True)
+                      f"{HOT_DECISIONS}); 10th percentiles back to back {h['back_to_back_p10_us']:.0f} / "
+                      f"{h['model_back_to_back_p10_us']:.0f} us", flush=True)
                 print(f"  {_stages_line(h['stages_us'])}", flush=True)
         return 0
     logging.getLogger("slipd").setLevel(logging.ERROR)  # one alarm per window here: keep the log quiet
@@ -636,14 +687,15 @@ def main(argv: list[str] | None = None) -> int:
         keys += [("grip_control", r["sensors"], r["stride"]) for r in runs]
     keys += [("decode_only", s, None) for s in args.sensors]
     keys += [("idle_loop", 1, None)]  # the decision rate at stride 10: 100 wake-ups a second
+    keys += [("step_loop", s, None) for s in args.sensors]  # ... each with the model's step alone
     shares: dict[tuple[str, int, int | None], list[float]] = {k: [] for k in keys}
     for rnd in range(args.cpu_runs):
         shift = rnd * len(keys) // args.cpu_runs
         for policy, sensors, stride in keys[shift:] + keys[:shift]:
-            pol = "stop_and_secure" if policy in ("decode_only", "idle_loop") else policy
-            idle = IDLE_HZ if policy == "idle_loop" else None
+            pol = "stop_and_secure" if policy in ("decode_only", "idle_loop", "step_loop") else policy
+            idle = IDLE_HZ if policy in ("idle_loop", "step_loop") else None
             shares[(policy, sensors, stride)].append(100 * cpu_share(args.model, per, sensors, stride, policy=pol,
-                                                                     idle_hz=idle))
+                                                                     idle_hz=idle, idle_step=policy == "step_loop"))
         print(f"  CPU round {rnd + 1} of {args.cpu_runs} done", flush=True)
     for r in runs:
         got = shares[("stop_and_secure", r["sensors"], r["stride"])]
@@ -653,11 +705,14 @@ def main(argv: list[str] | None = None) -> int:
             r.update(cpu_percent_grip_control=float(np.median(got)), cpu_percent_grip_control_runs=got)
     base = {s: float(np.median(shares[("decode_only", s, None)])) for s in args.sensors}
     idle_runs = shares[("idle_loop", 1, None)]
+    step_loop = {s: float(np.median(shares[("step_loop", s, None)])) for s in args.sensors}
     hot = {(r["sensors"], r["stride"]): hot_path_cost(args.model, r["sensors"], stride=r["stride"]) for r in runs}
     for r in runs:
         h = hot[(r["sensors"], r["stride"])]
-        r.update(hot_path_us={"back_to_back": h["back_to_back_us"], "after_sleep": h["after_sleep_us"]},
-                 step_us={"back_to_back": h["model_back_to_back_us"], "after_sleep": h["model_after_sleep_us"]},
+        r.update(hot_path_us={"back_to_back": h["back_to_back_us"], "after_sleep": h["after_sleep_us"],
+                              "back_to_back_p10": h["back_to_back_p10_us"]},
+                 step_us={"back_to_back": h["model_back_to_back_us"], "after_sleep": h["model_after_sleep_us"],
+                          "back_to_back_p10": h["model_back_to_back_p10_us"]},
                  stages_us=h["stages_us"])
     bw, flops_rate = machine_rates()
     load1 = os.getloadavg()[0]
@@ -689,6 +744,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{s:>7} {'decode-only (every frame as it arrives)':<40} {cpu:>5.1f} % CPU")
     print(f"{'-':>7} {f'event loop waking {IDLE_HZ:g} times a second, nothing else':<40} "
           f"{float(np.median(idle_runs)):>5.1f} % CPU  [{', '.join(f'{x:.1f}' for x in idle_runs)}]")
+    for s, cpu in step_loop.items():
+        runs_s = shares[("step_loop", s, None)]
+        print(f"{s:>7} {'the same, each wake-up one model step':<40} {cpu:>5.1f} % CPU  "
+              f"[{', '.join(f'{x:.1f}' for x in runs_s)}]")
+    for r in runs:
+        if r["stride"] == 10:
+            idle = float(np.median(idle_runs))
+            print(f"{r['sensors']:>7} sensor(s) stride 10: CPU {r['cpu_percent'] / idle:.1f}x the idle event loop, "
+                  f"{r['cpu_percent'] / step_loop[r['sensors']]:.1f}x the loop with the model's step alone")
     print(f"hot path per decision (decode `stride` frames, freshness, detector, decision, metrics; no event loop), "
           f"medians of {HOT_DECISIONS}, back to back / after {HOT_SLEEP_S * 1e3:g} ms asleep, against the model step "
           "alone (one onnxruntime call on the same batch); per stage: means, instrumented, with the recorder on")
@@ -696,7 +760,9 @@ def main(argv: list[str] | None = None) -> int:
         hp, st = r["hot_path_us"], r["step_us"]
         print(f"{r['sensors']:>7} {r['stride']:>6}  hot path {hp['back_to_back']:.0f} / {hp['after_sleep']:.0f} us, "
               f"step {st['back_to_back']:.0f} / {st['after_sleep']:.0f} us: "
-              f"{hp['back_to_back'] / st['back_to_back']:.2f}x / {hp['after_sleep'] / st['after_sleep']:.2f}x")
+              f"{hp['back_to_back'] / st['back_to_back']:.2f}x / {hp['after_sleep'] / st['after_sleep']:.2f}x; "
+              f"10th percentiles back to back {hp['back_to_back_p10']:.0f} / {st['back_to_back_p10']:.0f} us: "
+              f"{hp['back_to_back_p10'] / st['back_to_back_p10']:.2f}x")
         print(f"{'':>16}{_stages_line(r['stages_us'])}")
     print(f"floor: bytes over {bw / 1e9:.1f} GB/s (copy) + FLOPs over {flops_rate / 1e9:.1f} GFLOP/s (float32 "
           "matrix product), one thread")
@@ -706,6 +772,8 @@ def main(argv: list[str] | None = None) -> int:
                                              for s, c in base.items()],
                "idle_loop": {"hz": IDLE_HZ, "cpu_percent": float(np.median(idle_runs)), "cpu_percent_runs": idle_runs},
                "idle_loop_percent": float(np.median(idle_runs)), "cpu_runs": args.cpu_runs,
+               "step_loop": [{"sensors": s, "cpu_percent": c, "cpu_percent_runs": shares[("step_loop", s, None)]}
+                             for s, c in step_loop.items()],
                "machine": {"copy_bytes_per_s": bw, "flops_per_s": flops_rate, "load_average": [load0, load1],
                            "cores": os.cpu_count()},
                "seconds": args.seconds, "model": str(args.model)}

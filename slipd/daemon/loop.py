@@ -346,7 +346,11 @@ class Daemon:
         SDK's contact threshold, the grip controller's release rule): the reaction then forgets what it owed that
         grasp. A tighten owed to an object that has gone was sent once the servo answered again, closing the jaw on
         nothing, on the next object at the old grasp's secure force, or on a hand in the way."""
-        held = any(c is not None and c.grip_n > CONTACT_THRESHOLD_N for c in self._latest_contact)
+        held = False
+        for c in self._latest_contact:  # (a loop: any() over a generator costs more, once per decision)
+            if c is not None and c.grip_n > CONTACT_THRESHOLD_N:
+                held = True
+                break
         if held != self._grasp_held:
             self._grasp_held = held
             if not held:
@@ -397,7 +401,9 @@ class Daemon:
         prev = self._prev_bits
         last = [vals[-1, s].tobytes() for s in range(ns)]
         self._prev_bits = last
-        if not math.isfinite(vals.sum()):  # a non-finite value makes the sum so (a finite overflow: checked exactly)
+        # A non-finite value makes the sum so (a finite overflow: checked exactly); add.reduce is ndarray.sum less its
+        # Python wrapper.
+        if not math.isfinite(np.add.reduce(vals, axis=None)):
             self._check_nonfinite(vals, prev)
             return
         # The common block, all finite: a sensor is fresh unless every sample is bit-identical to the one before (the

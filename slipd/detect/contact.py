@@ -205,7 +205,8 @@ class ContactStream:
         # risk (``RISK_TOP_SHARE``, ``FRICTION_TOP_SHARE``).
         cut = RISK_TOP_SHARE * top
         p_top = [q if u >= cut else 0.0 for q, u in zip(p, util, strict=True)]
-        pressing = grip > (1.0 + FRICTION_PRESS_RISE) * sum(z for _, _, z in first if z > CONTACT_THRESHOLD_N)
+        # (sum over a list: a generator's frame switches cost more than the nine additions)
+        pressing = grip > (1.0 + FRICTION_PRESS_RISE) * sum([z for _, _, z in first if z > CONTACT_THRESHOLD_N])
         if pressing:
             samples = [0.0] * N_PILLARS
         else:

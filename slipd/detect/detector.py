@@ -419,7 +419,7 @@ class Detector:
         if self.press_rise is None and not self.contact_gate:
             return None
         # Checked once per window, on its last sample (tared, as the model sees it).
-        fz = np.asarray(force, np.float32).reshape(9, 3)[:, 2] - self.features._offset[2::3]
+        fz = np.subtract(np.asarray(force, np.float32).reshape(9, 3)[:, 2], self.features.offset_z)
         if self.press_rise is not None:
             self._press(fz, self.press_rise)
         if not self.contact_gate:
@@ -447,7 +447,8 @@ class Detector:
 
     def _press(self, fz: np.ndarray, press_rise: float) -> None:
         """One window end's tared normal forces [9] -> ``pressing``: the summed load against one window back."""
-        load = float(np.maximum(fz, 0.0).sum())  # np.nansum costs ten times more on the hot path
+        # (np.nansum costs ten times more on the hot path; add.reduce is ndarray.sum without its Python wrapper)
+        load = float(np.add.reduce(np.maximum(fz, 0.0)))
         if not math.isfinite(load):
             load = math.nan  # a non-finite sample: no rise can be measured against it, nor one window on
         before = self._loads[self._load_i]  # the slot written n_streams windows (one window) ago

@@ -129,7 +129,7 @@ class _Stream:
 def _all_finite(a: np.ndarray) -> bool:
     """No NaN or +-Inf in ``a``. One reduction where the sum is finite (a NaN or an infinity in the values makes the sum
     NaN or infinite), the exact test only when it is not (finite values whose sum overflows)."""
-    return math.isfinite(a.sum()) or bool(np.isfinite(a).all())
+    return math.isfinite(np.add.reduce(a, axis=None)) or bool(np.isfinite(a).all())  # (ndarray.sum, less its wrapper)
 
 
 def session_options(threads: int = 1) -> ort.SessionOptions:

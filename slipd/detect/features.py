@@ -421,6 +421,9 @@ class FeatureStream:
         self._last_good = np.zeros(N_PILLARS * 3, np.float32)
         self._scratch = np.zeros(N_PILLARS * 3, np.float32)
         self._abs = np.zeros(N_PILLARS * 3, np.float32)
+        # A block's |tared| values and their in-range flags (``push_many``, blocks up to a window's worth).
+        self._absk = np.zeros((spec.window + 1, N_PILLARS * 3), np.float32)
+        self._ok = np.zeros((spec.window + 1, N_PILLARS * 3), bool)
         self.set_offset(offset)
         self.nonfinite_count = 0
         self.clipped_count = 0
@@ -432,6 +435,8 @@ class FeatureStream:
         self._offset = (
             np.zeros(N_PILLARS * 3, np.float32) if offset is None else np.asarray(offset, np.float32).reshape(-1).copy()
         )
+        self.offset_z = self._offset[2::3].copy()
+        """The normal forces' offsets [9] (the contact gate tares one sample per window with them)."""
 
     def reset(self) -> None:
         """Forget the history (after a reconnect or a gap): the next sample restarts the stream."""
@@ -505,7 +510,13 @@ class FeatureStream:
                 y = np.subtract(x, self._offset, out=rows)
             else:
                 y = np.subtract(x, self._offset)
-            if (np.abs(y) <= self._clip).all():
+            # Every value finite and within the clip (NaN fails the comparison): one count over kept scratch arrays
+            # (ndarray.all goes through a Python wrapper that costs more than the comparison on a decision's block).
+            if k <= len(self._ok):
+                within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip, out=self._ok[:k])
+            else:
+                within = np.abs(y) <= self._clip
+            if np.count_nonzero(within) == within.size:
                 if not self._all_cols:
                     np.take(y, self._cols, axis=1, out=rows)
                 return self._windows_in_place(x, k)

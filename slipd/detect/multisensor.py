@@ -144,13 +144,15 @@ class MultiDetector:
                 p, _, ok = self.ensemble.step_rows(batch, subs[0].phase(n0 + j + 1), active)
                 step_s = time.perf_counter() - t0
                 self.last_step_s = step_s
+            # The call's outputs as plain values once (indexing an array per sensor makes a numpy scalar each time).
+            ps, oks = (p.tolist(), ok.tolist()) if p is not None and ok is not None else ([], [])
             for s, d in enumerate(subs):
                 det = gated[s]
                 if det is None:
-                    assert p is not None and ok is not None
                     rows = self.ensemble.pillar_rows
-                    d.set_pillars(rows[s] if bool(ok[s]) and rows is not None else None)
-                    det = d._finish(float(p[s]), bool(ok[s]), t, idx, d.contact_state(wins[s][m][2], wins[s][m][3]))
+                    valid = bool(oks[s])
+                    d.set_pillars(rows[s] if valid and rows is not None else None)
+                    det = d._finish(float(ps[s]), valid, t, idx, d.contact_state(wins[s][m][2], wins[s][m][3]))
                     d.last_step_s = step_s
                     self.step_seconds.append(step_s)
                     step_s = None

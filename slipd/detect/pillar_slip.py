@@ -149,7 +149,7 @@ class PillarSlip:
             n_top = sum(top_set)
             held = False
             if n_top > 1:
-                slid = sum(1 for t, lg in zip(top_set, self._logit) if t and lg > 0)
+                slid = sum([1 for t, lg in zip(top_set, self._logit) if t and lg > 0])
                 held = slid / n_top > 0.5
             stick, decay = -p.step, -p.decay
             step = [stick if q < p.far else 0.0 if held and t else decay for q, t in zip(near, top_set)]

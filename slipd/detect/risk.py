@@ -28,13 +28,25 @@ def contact_risk(fz: Sequence[float], util: Sequence[float], p_slip: Sequence[fl
     thr = CONTACT_THRESHOLD_N
     limit = mu if mu is not None and mu > 0.0 and margin > 0.0 else None  # None: only the slip counts
     num = den = 0.0
-    for z, u, q in zip(fz, util, p_slip, strict=True):
-        if z > thr:
-            share = float(q)
-            if limit is not None:
-                share = max(share, min(1.0, max(0.0, (u / limit - (1.0 - margin)) / margin)))
-            num += z * share
-            den += z
+    if limit is None:
+        for z, q in zip(fz, p_slip, strict=True):
+            if z > thr:
+                num += z * float(q)
+                den += z
+    else:
+        below = 1.0 - margin
+        for z, u, q in zip(fz, util, p_slip, strict=True):
+            if z > thr:
+                share = float(q)
+                # max(share, min(1.0, max(0.0, near))) with comparisons in place of the calls (the same choices, NaN
+                # included: each keeps its first operand unless the second compares strictly past it)
+                near = (u / limit - below) / margin
+                near = near if near > 0.0 else 0.0
+                near = near if near < 1.0 else 1.0
+                if near > share:
+                    share = near
+                num += z * share
+                den += z
     if den == 0.0:
         return 0.0
     r = float(num / den)

@@ -433,6 +433,7 @@ class FrameDecoder:
         one pass. Returns how many end markers these bytes complete (the frames they complete, unless
         corrupt input or a value that happens to spell the marker says otherwise), or None (nothing kept)
         when the buffer has no room for them: feed them instead."""
+        self._rewind()
         view = memoryview(data).cast("B")
         n = self._end - self._start
         if n + len(view) > _CHUNK_BYTES:
@@ -455,8 +456,19 @@ class FrameDecoder:
         return FrameBlock(self._counter[:n], self._t[:n], vals[:, :, 0], vals[:, :, 1], self._dropped[:n],
                           self._disc[:n])
 
+    def _rewind(self) -> None:
+        """Move what is buffered, when it is at most a partial frame, to the buffer's start: every read then lands on
+        the same few KiB, which the cache still holds at the next decision, instead of walking the whole buffer (a
+        cold line costs more than this copy of a frame's bytes at most)."""
+        n = self._end - self._start
+        if self._start and n <= MAX_FRAME_BYTES:
+            if n:
+                self._buf[:n] = self._buf[self._start : self._end]  # same length: no resize, views stay valid
+            self._start, self._end = 0, n
+
     def _feed(self, data: bytes | bytearray | memoryview) -> None:
         self._n = 0
+        self._rewind()
         view = memoryview(data).cast("B")
         i = 0
         while i < len(view):
@@ -522,7 +534,7 @@ class FrameDecoder:
         seg = self._u8[s : s + nb]
         rows = seg.reshape(k, flen)
         # The checksum is the payload's byte sum mod 2**16: a 16-bit accumulator wraps to exactly that.
-        sums = rows[:, len(START) : len(START) + plen].sum(axis=1, dtype=_LE_U16)
+        sums = np.add.reduce(rows[:, len(START) : len(START) + plen], axis=1, dtype=_LE_U16)  # (ndarray.sum's own call)
         sent = np.ndarray((k,), dtype=_LE_U16, buffer=self._buf, offset=s + len(START) + plen, strides=(flen,))
         # The common read, every frame whole: the frames' bytes with their values masked out against the template,
         # and the checksums, each in one byte comparison (memcmp) instead of per-frame reductions.
