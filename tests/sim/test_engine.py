@@ -157,3 +157,13 @@ def test_a_slide_counts_only_when_it_carries_the_tip_its_minimum_distance():
     assert not slip[:, 0].any() and not slip[:, 2].any()
     assert slip[50:83, 1].all() and slip[:, 1].sum() == 33  # one episode, the flicker inside it
     assert sustained_slides(speed, min_slide_mm=0.0, gap=0)[:, [0, 2]].sum() == 30
+
+
+def test_a_recording_is_a_slip_a_partial_slip_a_stop_or_a_hold():
+    from slipd.sim.engine.generate import kind
+
+    lift = {"op": "lift", "stop": False}
+    assert kind(1200, [lift, {**lift, "partial": True}], True) == "slip"  # one move slipped to gross slip
+    assert kind(None, [lift, {**lift, "partial": True}], True) == "partial"  # one slipped part way, then stuck
+    assert kind(None, [lift], True) == "stop"
+    assert kind(None, [], False) == "hold"
