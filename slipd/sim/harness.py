@@ -18,6 +18,7 @@ import threading
 from multiprocessing.connection import Connection
 from typing import Any, Literal
 
+from slipd.sim.devices.child_process import end_child
 from slipd.sim.devices.mx28 import EmulatedMX28, JawParams
 from slipd.sim.devices.papillarray import EmulatedPapillArray
 from slipd.sim.devices.ur_controller import URControllerProcess
@@ -196,15 +197,7 @@ class EmulatorProcess:
         """Close both emulators (their ptys and links go with them) and wait for the child (safe to call twice)."""
         if self._proc is None:
             return
-        if self._conn is not None and self._proc.is_alive():
-            with contextlib.suppress(Exception):
-                self._request(None)
-        self._proc.join(timeout=10.0)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(timeout=5.0)
-        if self._conn is not None:
-            self._conn.close()
+        end_child(self._proc, self._conn, lambda: self._request(None), (Exception,), join_s=10.0, terminate_s=5.0)
         self._proc, self._conn = None, None
 
     def __enter__(self) -> EmulatorProcess:

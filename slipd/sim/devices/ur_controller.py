@@ -55,6 +55,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from slipd.sim.devices import rtde_protocol as rp
+from slipd.sim.devices.child_process import end_child
 from slipd.sim.devices.ur_motion import LinearMotion
 
 # RTDE enumerations (RTDE guide / ur_rtde).
@@ -845,15 +846,8 @@ class URControllerProcess:
         """Shut the child down (closing every connection) and wait for it."""
         if self._proc is None:
             return
-        if self._conn is not None and self._proc.is_alive():
-            with contextlib.suppress(OSError, EOFError, RuntimeError):
-                self._call("shutdown", timeout=2.0)
-        self._proc.join(timeout=3.0)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(timeout=2.0)
-        if self._conn is not None:
-            self._conn.close()
+        end_child(self._proc, self._conn, lambda: self._call("shutdown", timeout=2.0),
+                  (OSError, EOFError, RuntimeError), join_s=3.0, terminate_s=2.0)
         self._proc, self._conn = None, None
 
     def __enter__(self) -> URControllerProcess:
