@@ -44,7 +44,7 @@ import numpy as np
 from slipd.recording import Recording
 from sliplab.paths import ROOT
 
-DEFAULT_HOST = "127.0.0.6"  # tests use .2 .. .5
+DEFAULT_HOST = "127.0.0.60"  # no test binds it: a long soak and the test suite can run side by side
 TARE = 300
 STALL_MS = 600.0
 """A fail-safe stall: well past the sim config's 250 ms stall timeout."""
