@@ -364,32 +364,26 @@ def batch_windows(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The whole pipeline on a recording: ([K, T*C] float32 windows, [K] index of each window's last sample)."""
     x, _ = prepare_samples(force, spec, offset)
+    filtered = causal_median(x, spec.median)
     if spec.windowed:
         # A channel that reads earlier samples of its window: cut the filtered base windows, then derive each.
-        base, ends = batch_windows_base(x, spec)
+        base, ends = _cut_windows(filtered, spec)
         return spec.derive(base.reshape(-1, spec.n_base)).reshape(len(ends), spec.input_size), ends
-    filtered = spec.derive(causal_median(x, spec.median))
-    ends = window_ends(len(filtered), spec)
+    return _cut_windows(spec.derive(filtered), spec)
+
+
+def _cut_windows(rows: np.ndarray, spec: FeatureSpec) -> tuple[np.ndarray, np.ndarray]:
+    """[N, C] filtered (or derived) samples -> ([K, T * C] windows, time-major, [K] index of each window's last)."""
+    ends = window_ends(len(rows), spec)
+    width = spec.window * rows.shape[1]
     if len(ends) == 0:
-        return np.zeros((0, spec.input_size), np.float32), ends
+        return np.zeros((0, width), np.float32), ends
     if spec.step == spec.window:
-        # Non-overlapping windows are consecutive blocks of the time-major filtered samples: a reshape.
-        return np.ascontiguousarray(filtered[: len(ends) * spec.window]).reshape(len(ends), spec.input_size), ends
+        # Non-overlapping windows are consecutive blocks of the time-major samples: a reshape.
+        return np.ascontiguousarray(rows[: len(ends) * spec.window]).reshape(len(ends), width), ends
     starts = ends - spec.window + 1
-    wins = sliding_window_view(filtered, spec.window, axis=0)[starts]  # [K, C, T]
-    return np.ascontiguousarray(wins.transpose(0, 2, 1)).reshape(len(ends), spec.input_size), ends
-
-
-def batch_windows_base(x: np.ndarray, spec: FeatureSpec) -> tuple[np.ndarray, np.ndarray]:
-    """Prepared samples [N, n_base] -> ([K, T * n_base] windows of the filtered base columns, [K] ends): stage 5 and
-    the windows, without stage 5b."""
-    filtered = causal_median(x, spec.median)
-    ends = window_ends(len(filtered), spec)
-    if len(ends) == 0:
-        return np.zeros((0, spec.window * spec.n_base), np.float32), ends
-    starts = ends - spec.window + 1
-    wins = sliding_window_view(filtered, spec.window, axis=0)[starts]  # [K, n_base, T]
-    return np.ascontiguousarray(wins.transpose(0, 2, 1)).reshape(len(ends), -1), ends
+    wins = sliding_window_view(rows, spec.window, axis=0)[starts]  # [K, C, T]
+    return np.ascontiguousarray(wins.transpose(0, 2, 1)).reshape(len(ends), width), ends
 
 
 def window_labels(label: np.ndarray, ends: np.ndarray) -> np.ndarray:
