@@ -36,7 +36,7 @@ import logging
 import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +51,10 @@ STALL_MS = 600.0
 SAMPLE_S = 10.0
 WARMUP_SHARE = 0.1
 WARMUP_MIN_S = 60.0
+LAG_TICK_S = 0.05
+LAG_REPORT_S = 0.1
+"""A wake-up of the soak's own 50 ms timer this much late is reported as a stall of the daemon's event loop."""
+EVENTS_KEPT = 64
 
 
 def default_warmup(seconds: float) -> float:
@@ -98,6 +102,12 @@ class SoakReport:
     """The emulated sensor and servo ran in a process of their own, so the samples and ``process_cpu_share`` are the
     daemon's alone (False in the JSON of a soak that held them in its process: the figures include theirs)."""
     wall_s: float = 0.0
+    loop_lag_max_s: float = 0.0
+    """The latest a 50 ms timer on the daemon's event loop woke (how long the loop was kept from its frames)."""
+    loop_stalls: list[tuple[float, float]] = field(default_factory=list)
+    """(seconds into the run, lag s) of wake-ups more than ``LAG_REPORT_S`` late, the first ``EVENTS_KEPT``."""
+    discard_runs: list[tuple[float, int]] = field(default_factory=list)
+    """(seconds into the run, frames) of each run of frames the emulator discarded, the last ``EVENTS_KEPT``."""
 
     @property
     def ok(self) -> bool:
@@ -116,6 +126,10 @@ class SoakReport:
             f"reconnects      {self.reconnects}",
             f"fail-safes      {self.failsafes}   alarms {self.alarms}   decisions {self.decisions}"
             f"   step errors {self.step_errors}   health polls {self.health_polls}",
+            f"loop lag max    {self.loop_lag_max_s * 1e3:.0f} ms; {len(self.loop_stalls)} wake-ups over "
+            f"{LAG_REPORT_S * 1e3:.0f} ms late"
+            + "".join(f"; {t:.1f} s: {lag * 1e3:.0f} ms" for t, lag in self.loop_stalls[:5]),
+            "emulator discards " + (", ".join(f"{n} at {t:.1f} s" for t, n in self.discard_runs[:10]) or "none"),
             f"events          a slip every {self.slip_every_s:g} s, a fail-safe stall every "
             f"{self.failsafe_every_s:g} s (0: none); recordings written {self.recordings}, "
             f"failed {self.recordings_failed}",
@@ -252,12 +266,23 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
         fds: list[int] = []
         threads: list[int] = []
 
+        async def watch_lag(t0: float) -> None:
+            # The daemon's loop is this loop: a late wake-up here is time it could not read the sensor either.
+            while True:
+                due = time.monotonic() + LAG_TICK_S
+                await asyncio.sleep(LAG_TICK_S)
+                lag = time.monotonic() - due
+                rep.loop_lag_max_s = max(rep.loop_lag_max_s, lag)
+                if lag > LAG_REPORT_S and len(rep.loop_stalls) < EVENTS_KEPT:
+                    rep.loop_stalls.append((round(due - t0, 3), round(lag, 4)))
+
         async def main() -> None:
             task = asyncio.create_task(d.run())
             await d.ready.wait()
             emu.call("sensor", "start")
             t0, c0, p0 = time.monotonic(), time.thread_time(), time.process_time()
             e0 = _cpu_seconds(emu_pid)
+            watcher = asyncio.create_task(watch_lag(t0))
             try:
                 next_sample = t0 + warm_s
                 next_stall = t0 + failsafe_every if failsafe_every > 0 else float("inf")
@@ -280,6 +305,8 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
                 written = emu.get("sensor", "frames_written")
                 rep.emulator_discarded = emu.get("sensor", "frames_discarded")
                 rep.frames_sent = written + rep.emulator_discarded
+                # time.monotonic() is one clock for every process on the machine: the emulator's times line up.
+                rep.discard_runs = [(round(t - t0, 3), n) for t, n in emu.get("sensor", "discard_log")]
                 deadline = time.monotonic() + 5.0
                 while d.sensor.decoder.frames < written and time.monotonic() < deadline:
                     await asyncio.sleep(0.01)
@@ -291,6 +318,7 @@ def soak(seconds: float, model: Path, *, host: str = DEFAULT_HOST, controller=No
                 rep.process_cpu_share = (p1 - p0) / rep.wall_s
                 rep.emulator_cpu_share = (e1 - e0) / rep.wall_s
             finally:
+                watcher.cancel()
                 d.stop()
                 await task
 

@@ -561,3 +561,21 @@ def test_a_hold_counts_from_the_last_hand_over_not_from_the_read_after_a_pause(e
     # a few suffice to check where each counts from, and none would leave the check below empty.
     assert len(starts) >= 5
     assert all(since == last < now for last, now, since in starts), starts[:3]
+
+
+def test_frames_the_emulator_cannot_hold_are_logged_as_one_run_with_its_start(
+        emulator_factory: Callable[..., EmulatedPapillArray]) -> None:
+    """Nobody reads the port: the queue fills and every frame past it is discarded, counted in one run that says
+    when it began (a soak lines that up with the daemon's stalls); written and discarded add up to the frames made."""
+    emu = emulator_factory(synthetic_recording(400), max_pending_bytes=8 * 1024)
+    t_start = time.monotonic()
+    emu.start()
+    deadline = time.monotonic() + 10.0
+    while not emu.finished.is_set() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert emu.finished.is_set()
+    assert emu.frames_discarded > 0
+    assert len(emu.discard_log) == 1, emu.discard_log
+    (began, n), = emu.discard_log
+    assert n == emu.frames_discarded and emu.frames_written + n == 400
+    assert t_start < began < time.monotonic()

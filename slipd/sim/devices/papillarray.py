@@ -24,7 +24,9 @@ Faults for tests: :meth:`inject_garbage`, :meth:`inject_truncated_frame`,
 :meth:`unplug` and :meth:`replug`. One-shot faults apply to the next frame produced.
 
 Output that the reader does not drain waits in a bounded queue (``max_pending_bytes``); frames beyond
-it are discarded and counted in ``frames_discarded``, as a real device's host buffer would overflow.
+it are discarded and counted in ``frames_discarded``, as a real device's host buffer would overflow; the last
+``DISCARD_LOG`` runs of discarded frames are kept in ``discard_log`` (when each began, how many) to say when the reader
+fell behind.
 """
 
 from __future__ import annotations
@@ -63,6 +65,8 @@ SampleSource = Callable[[int], "tuple[np.ndarray, np.ndarray] | None"]
 
 MAX_BURST = 5
 """Frames generated in one go before they are flushed to the pty (5 ms at 1 kHz)."""
+DISCARD_LOG = 64
+"""Runs of discarded frames kept in ``discard_log``: a bound, so a reader that never drains cannot grow it."""
 
 
 class EmulatedPapillArray:
@@ -126,6 +130,9 @@ class EmulatedPapillArray:
         self.frames_written = 0
         """Frames queued to the pty (streamed and via write_frames); discarded ones are not included."""
         self.frames_discarded = 0
+        self.discard_log: collections.deque[tuple[float, int]] = collections.deque(maxlen=DISCARD_LOG)
+        """Runs of consecutive discarded frames: (``time.monotonic()`` of the first, frames), the latest last."""
+        self._discarding = False
         self.commands: list[tuple[str, object]] = []
         """Commands received, as (kind, value), in order."""
         self._plug()
@@ -405,10 +412,11 @@ class EmulatedPapillArray:
                         break
                     with self._lock:
                         if len(self._pending) + len(data) > self.max_pending_bytes:
-                            self.frames_discarded += 1
+                            self._note_discard()
                         else:
                             self._pending += data
                             self.frames_written += 1
+                            self._discarding = False
                     i += 1
                 t_dev += period
                 next_t += period
@@ -423,6 +431,16 @@ class EmulatedPapillArray:
             # Wake for the next deadline, a command, or room in the pty when output is waiting.
             with contextlib.suppress(OSError, ValueError):
                 select.select([master], [master] if pending else [], [], wait)
+
+    def _note_discard(self) -> None:
+        """Count one discarded frame, in the run it continues or a new one (caller holds the lock)."""
+        self.frames_discarded += 1
+        if self._discarding and self.discard_log:
+            start, n = self.discard_log[-1]
+            self.discard_log[-1] = (start, n + 1)
+        else:
+            self.discard_log.append((time.monotonic(), 1))
+        self._discarding = True
 
     def _flush(self) -> None:
         """Write as much pending output as the pty takes now (caller holds the lock)."""
