@@ -61,3 +61,10 @@ def incipient_labels(slip: np.ndarray, considered: np.ndarray, motion_start: int
         gross = end_limit
     label[onset: gross if gross is not None else n] = 1
     return label, onset, gross
+
+
+def motion_labels(slip: np.ndarray, fz_at_start: np.ndarray, motion_start: int,
+                  rotation: bool = False) -> tuple[np.ndarray, int | None, int | None]:
+    """The labels of one motion from the pillars' normal forces at its start: ``incipient_labels`` over
+    ``considered_pillars``, as every scene and the closed-loop rig label theirs."""
+    return incipient_labels(slip, considered_pillars(fz_at_start, rotation), motion_start)

@@ -45,12 +45,12 @@ import numpy as np
 import yaml
 
 from slipd.detect.manifest import read_manifest
-from slipd.geometry import CONTACT_THRESHOLD_N, OUTER
 from slipd.sim import effects as fx
 from slipd.sim.devices.mx28 import JawParams
 from slipd.sim.harness import EmulatedDevices
+from slipd.sim.labels import motion_labels
 from slipd.sim.physics import DT_S, GripperStepper, ObjectParams, measured_disp, saturate, sensor_params
-from slipd.sim.scene import GripperScene, gripper_context, incipient_labels, load_scene
+from slipd.sim.scene import GripperScene, gripper_context, load_scene
 
 # Packaged with slipd (``slipd[sim]`` runs from any folder); a checkout's config/ links to the same files.
 _PACKAGE = Path(str(resources.files("slipd.sim")))
@@ -131,7 +131,7 @@ class RigResult:
             return f"{never:>8}" if v is None else f"{_ms(v - zero):+6d} ms"
 
         events = [(self.lift_start_s, "never", "the arm starts lifting"),
-                  (self.onset_s, "never", "incipient slip begins: some outer pillars slip, others still stick (truth)"),
+                  (self.onset_s, "never", "incipient slip: some pillars in contact slip, others stick (truth)"),
                   (self.alarm_s, "no alarm", "the daemon's alarm"),
                   (self.stop_reached_s, "no stop", "the stop reaches the arm"),
                   (self.tighten_reached_s, "no grip", "the tighten reaches the gripper"),
@@ -453,11 +453,7 @@ def summarise(physics: RigPhysics, scene_path: Any, react: bool, daemon_log: str
     mono = physics.mono[:n]
     lift = physics.lift_index or 0
     motion = physics.motion[:n].astype(np.float64) - physics.motion[lift]
-    considered = (physics.force[lift, :, 2] > CONTACT_THRESHOLD_N)
-    outer = np.zeros(9, bool)
-    outer[list(OUTER)] = True
-    _, onset, gross = incipient_labels(physics.slip[:n], considered & outer if considered[outer].any() else
-                                       considered, lift)
+    _, onset, gross = motion_labels(physics.slip[:n], physics.force[lift, :, 2], lift)
     # The daemon logs the sensor's own clock, which ran through the idle frames before the timeline began.
     offset = physics.timeline_start_s
     alarms = [float(m) - offset for m in _ALARM_RE.findall(daemon_log)]
@@ -533,7 +529,7 @@ def plot_run(physics: RigPhysics, result: RigResult, path: str | Path) -> Path:
     mot = physics.motion[:n] - physics.motion[lift]
     zero = result.onset_s if result.onset_s is not None else result.lift_start_s
     events = [(result.lift_start_s, "k", ":", "arm starts lifting"),
-              (result.onset_s, "g", "--", "incipient slip begins (truth: the method's label, outer pillars)"),
+              (result.onset_s, "g", "--", "incipient slip begins (truth: the method's label)"),
               (result.alarm_s, "r", "-", "daemon alarm"),
               (result.gross_slip_s, "m", "-.", "gross slip: every pillar slips (truth)"),
               (result.secure_s, "b", ":", "grasp secure")]

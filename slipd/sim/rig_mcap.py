@@ -19,11 +19,10 @@ import numpy as np
 from slipd.config import load_config, override
 from slipd.detect.ensemble import Ensemble
 from slipd.detect.replay import replay
-from slipd.geometry import CONTACT_THRESHOLD_N, OUTER
 from slipd.recording import Recording
 from slipd.recording_mcap import write_mcap
+from slipd.sim.labels import motion_labels
 from slipd.sim.physics import DT_S
-from slipd.sim.scene import incipient_labels
 
 SERVO_GOAL_ADDRESSES = {116: "goal_position", 100: "goal_pwm", 30: "goal_position", 102: "goal_current"}
 
@@ -36,12 +35,11 @@ def run_recording(physics: Any, result: Any) -> Recording:
     force = physics.force[:n] - bias  # float32 - float32, as the emulator computes it
     disp = physics.disp[:n] - np.asarray(getattr(physics, "sensor_bias_disp", np.zeros((9, 3))), np.float32)
     lift = physics.lift_index or 0
-    # The truth label as the run's summary computes it (``rig.summarise``): the outer pillars in contact at the lift.
-    considered = physics.force[lift, :, 2] > CONTACT_THRESHOLD_N if n > lift else np.zeros(9, bool)
-    outer = np.zeros(9, bool)
-    outer[list(OUTER)] = True
-    labels, _, _ = incipient_labels(physics.slip[:n], considered & outer if considered[outer].any() else considered,
-                                    lift)
+    # The truth label as the run's summary computes it (``rig.summarise``), by every scene's rule.
+    if n > lift:
+        labels, _, _ = motion_labels(physics.slip[:n], physics.force[lift, :, 2], lift)
+    else:
+        labels = np.zeros(n, np.uint8)
     events = {k: v for k, v in (("lift", result.lift_start_s), ("onset", result.onset_s),
                                 ("gross_slip", result.gross_slip_s), ("alarm_live", result.alarm_s)) if v is not None}
     return Recording(
