@@ -1,6 +1,7 @@
 """Per scored slip: when each detector first alarmed against the offline window, and what the label rests on.
 
     python tools/slip_timing.py --data out/datasets/engine_test --model M.json [M2.json ...] [--json PATH]
+    python tools/slip_timing.py --labels out/datasets/engine_train
 
 For every slip the offline criterion scores (``sliplab.metrics``: a labelled onset before gross slip) it prints
 the incipient stage (gross slip - onset), the pillars that slide at the onset with their normal force, each
@@ -23,6 +24,7 @@ from slipd.recording import Recording, list_recordings
 from sliplab.evaluate import evaluate_paths
 from sliplab.metrics import EARLY_TOLERANCE_S, NO_SLIP_KINDS
 from sliplab.robustness import DEFAULT_BASELINES
+from sliplab.train import sliding_span_labels, slip_span_labels
 
 LIGHT_ONSET_N = 0.5
 """The SDK's contact flag: below it a pillar reads as out of contact to every detector's input (the model's
@@ -95,6 +97,33 @@ def run(data: Path, models: list[str]) -> dict:
             "no_slip_alarmed": {name: alarmed[name] for name in runs}, "no_slip": no_slip}
 
 
+def label_stats(data: Path) -> dict:
+    """How a training split's labels treat sliding: its slips, those without a labelled sample (no incipient stage),
+    and the samples where a pillar slides while the grasp is in contact (a pillar above the contact flag), labelled
+    slip or not under the training spans ``slip`` and ``sliding`` (``sliplab.train``), by recording kind."""
+    out: dict = {"recordings": 0, "slips": 0, "slips_unlabelled": 0}
+    for path in list_recordings(data):
+        rec = Recording.load(path)
+        if rec.label is None or rec.slip is None:
+            continue
+        out["recordings"] += 1
+        kind = str(rec.meta.get("kind", "stop"))
+        if kind == "slip":
+            out["slips"] += 1
+            out["slips_unlabelled"] += int(not np.any(rec.label))
+        stretch = rec.meta.get("tare_samples", [0, 100])
+        fz = rec.force[:, :, 2] - rec.force[int(stretch[0]):int(stretch[1]), :, 2].mean(axis=0)
+        sliding = (np.nan_to_num(rec.slip) > 0).any(axis=1) & (fz > LIGHT_ONSET_N).any(axis=1)
+        events, t_s = rec.meta.get("events") or {}, rec.t_us / 1e6
+        for span, lab in (("slip", slip_span_labels(rec.label, events, t_s)),
+                          ("sliding", sliding_span_labels(rec.label, rec.slip, events, t_s))):
+            d = out.setdefault(f"{span} span, {kind} recordings", {"sliding labelled slip": 0,
+                                                                   "sliding labelled no slip": 0})
+            d["sliding labelled slip"] += int((sliding & (lab > 0)).sum())
+            d["sliding labelled no slip"] += int((sliding & (lab == 0)).sum())
+    return out
+
+
 def print_report(report: dict) -> None:
     """The per-slip table, then the group counts."""
     names = list(report["no_slip_alarmed"])
@@ -116,12 +145,17 @@ def print_report(report: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", type=Path, required=True, help="a test split (tools/make_dataset.py)")
+    p.add_argument("--data", type=Path, default=None, help="a test split (tools/make_dataset.py)")
     p.add_argument("--model", nargs="+", default=[], help="model manifests")
     p.add_argument("--json", type=Path, default=None, help="also write the report here")
+    p.add_argument("--labels", type=Path, default=None,
+                   help="a training split: print how its labels treat sliding pillars (samples) instead")
     args = p.parse_args(argv)
-    if not list_recordings(args.data):
-        raise SystemExit(f"--data {args.data}: no recordings")
+    if args.labels is not None:
+        print(json.dumps(label_stats(args.labels), indent=1))
+        return 0
+    if args.data is None or not list_recordings(args.data):
+        raise SystemExit(f"--data {args.data}: no recordings (a test split, or --labels TRAIN_SPLIT)")
     report = run(args.data, args.model)
     print_report(report)
     if args.json:
