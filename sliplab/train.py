@@ -120,6 +120,39 @@ def slip_span_labels(label: np.ndarray, events: dict, t_s: np.ndarray) -> np.nda
     return out
 
 
+SLIDING_GAP = 20
+"""Samples without any sliding pillar that end a sliding span (shorter pauses are one stretch of sliding)."""
+
+
+def sliding_span_labels(label: np.ndarray, slip: np.ndarray | None, events: dict, t_s: np.ndarray,
+                        gap: int = SLIDING_GAP) -> np.ndarray:
+    """1 from the onset of the first slip for as long as any pillar keeps sliding (pauses up to ``gap`` samples).
+
+    An object that slides off the finger keeps sliding after the 2 mm of ``slip_span_labels``; under that span
+    those windows teach that sliding is not slip. A slip with no incipient stage (one pillar carried the grasp:
+    onset and gross slip on one sample, no labelled sample) starts at ``events["onset"]``. Never shorter than
+    ``slip_span_labels``; without per-pillar truth (``slip`` None) it is that span.
+    """
+    out = slip_span_labels(label, events, t_s).astype(np.uint8)
+    if slip is None:
+        return out
+    pos = np.flatnonzero(out)
+    if len(pos):
+        start = int(pos[0])
+    elif events.get("onset") is not None and events.get("gross_slip") is not None:
+        start = int(np.searchsorted(t_s, events["onset"]))
+    else:
+        return out
+    sliding = np.nan_to_num(np.asarray(slip, np.float64)).max(axis=1) > 0
+    later_runs = np.flatnonzero(np.diff((out[start:] > 0).astype(np.int8)) > 0)
+    stop_at = start + int(later_runs[0]) + 1 if len(later_runs) else len(out)  # a later labelled event stays its own
+    seq = np.concatenate([[start - 1], start + np.flatnonzero(sliding[start:stop_at])])
+    breaks = np.flatnonzero(np.diff(seq) - 1 > gap)  # quiet stretches longer than the gap
+    last = int(seq[breaks[0]] if len(breaks) else seq[-1])
+    out[start:max(last + 1, start + 1)] = 1
+    return out
+
+
 DEFAULT_FAMILY = "stick_slip"
 """The physics family of a recording whose meta names none (the offline and transfer sets)."""
 
@@ -136,7 +169,8 @@ def load_sequences(data_dir: Path, spec: FeatureSpec, max_recordings: int = 0,
 
     The offset is the recording's own ``meta["tare_samples"]`` stretch (or ``spec.tare_samples``).
     A recording without labels, or too short for one window, raises ``RecordingError`` naming it.
-    ``label_span`` "slip" extends each label with ``slip_span_labels`` (the method: "incipient").
+    ``label_span`` "slip" extends each label with ``slip_span_labels``, "sliding" with ``sliding_span_labels``
+    (the method: "incipient").
     """
     paths = list_recordings(data_dir)
     if not paths:
@@ -162,6 +196,8 @@ def load_sequences(data_dir: Path, spec: FeatureSpec, max_recordings: int = 0,
         label = rec.label
         if label_span == "slip":
             label = slip_span_labels(label, rec.meta.get("events") or {}, rec.t_us / 1e6).astype(np.uint8)
+        elif label_span == "sliding":
+            label = sliding_span_labels(label, rec.slip, rec.meta.get("events") or {}, rec.t_us / 1e6)
         seqs.append(Seq(rec.force - offset, label, rec.slip))
         names.append(path.name)
     return seqs, names
@@ -527,9 +563,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="loss weight of the first --early-windows windows of every positive run (default 1: none)")
     p.add_argument("--early-windows", type=int, default=0,
                    help="how many windows from the start of each positive run --early-weight applies to")
-    p.add_argument("--label-span", choices=("incipient", "slip"), default="incipient",
-                   help="positive windows: incipient slip only (the method) or from its onset until the object "
-                        "has moved 2 mm / 2 deg")
+    p.add_argument("--label-span", choices=("incipient", "slip", "sliding"), default="incipient",
+                   help="positive windows: incipient slip only (the method), from its onset until the object "
+                        "has moved 2 mm / 2 deg (slip), or for as long as any pillar keeps sliding (sliding)")
     p.add_argument("--precise-bn", action="store_true",
                    help="after training, recompute BatchNorm statistics over the whole un-augmented data set")
     p.add_argument("--label-lead", type=int, default=0,

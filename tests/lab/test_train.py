@@ -363,6 +363,27 @@ def test_slip_span_labels_run_from_onset_to_gross_motion() -> None:
     assert not T.slip_span_labels(np.zeros(2000, np.uint8), {"gross_motion": 1.0}, t).any()
 
 
+def test_sliding_span_labels_last_while_a_pillar_slides() -> None:
+    t = np.arange(2000) / 1000.0
+    label = np.zeros(2000, np.uint8)
+    label[900:930] = 1
+    slip = np.zeros((2000, 9), np.float32)
+    slip[905:1400, 2] = 1  # the object slides off for half a second after a 30 ms incipient stage
+    slip[1410:1500, 4] = 1  # a 10 ms pause is the same stretch of sliding
+    slip[1600:1700, 4] = 1  # after 100 ms without sliding: another event, not this slip
+    events = {"onset": 0.9, "gross_slip": 0.93, "gross_motion": 0.95}
+    span = T.sliding_span_labels(label, slip, events, t)
+    assert span[900:1500].all() and not span[:900].any() and not span[1500:].any()
+    # Never shorter than the 2 mm span; without per-pillar truth it is that span.
+    assert T.sliding_span_labels(label, np.zeros_like(slip), {**events, "gross_motion": 1.2}, t)[900:1200].all()
+    assert np.array_equal(T.sliding_span_labels(label, None, events, t), T.slip_span_labels(label, events, t))
+    # One pillar carried the grasp: no labelled sample, the span starts at the onset event.
+    single = T.sliding_span_labels(np.zeros(2000, np.uint8), slip, events, t)
+    assert single[900:1500].all() and not single[:900].any() and not single[1500:].any()
+    # A stop or a partial slip (no onset and gross slip) stays silent whatever its pillars did.
+    assert not T.sliding_span_labels(np.zeros(2000, np.uint8), slip, {"motion_start": 0.5}, t).any()
+
+
 def test_only_trains_the_listed_members_and_they_equal_a_full_run(data_dir: Path, tmp_path: Path) -> None:
     # Members depend on (--seed, index) alone, so --only splits a run across processes without changing it;
     # the derived util channel trains through the same pipeline.
