@@ -419,6 +419,10 @@ class FeatureStream:
         self._absk = np.zeros((spec.window + 1, N_PILLARS * 3), np.float32)
         self._ok = np.zeros((spec.window + 1, N_PILLARS * 3), bool)
         self._offset = np.zeros(N_PILLARS * 3, np.float32)  # written in place (``StreamGroup`` holds views of it)
+        # The offset and the clip bound repeated for a block's rows: a ufunc over operands of one shape takes numpy's
+        # fast loop, one that broadcasts a row costs several times more on a decision's block.
+        self._offset_rows = np.zeros((spec.window + 1, N_PILLARS * 3), np.float32)
+        self._clip_rows = np.tile(self._clip, (spec.window + 1, 1))
         self.set_offset(offset)
         self.nonfinite_count = 0
         self.clipped_count = 0
@@ -428,6 +432,7 @@ class FeatureStream:
     def set_offset(self, offset: np.ndarray | None) -> None:
         """Replace the tare offset ([9, 3], or None for zero). Takes effect from the next sample."""
         self._offset[:] = 0.0 if offset is None else np.asarray(offset, np.float32).reshape(-1)
+        self._offset_rows[:] = self._offset
         self.offset_z = self._offset[2::3].copy()
         """The normal forces' offsets [9] (the contact gate tares one sample per window with them)."""
 
@@ -501,14 +506,16 @@ class FeatureStream:
             # The common block (a stream under way, room in the history): its prepared rows go straight into the
             # history, every window's median reads them there. The same values as below, fewer copies.
             rows = self._buf[self._end : self._end + k]
+            small = k <= len(self._ok)
+            offset = self._offset_rows[:k] if small else self._offset
             if self._all_cols:
-                y = np.subtract(x, self._offset, out=rows)
+                y = np.subtract(x, offset, out=rows)
             else:
-                y = np.subtract(x, self._offset)
+                y = np.subtract(x, offset)
             # Every value finite and within the clip (NaN fails the comparison): one count over kept scratch arrays
             # (ndarray.all goes through a Python wrapper that costs more than the comparison on a decision's block).
-            if k <= len(self._ok):
-                within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip, out=self._ok[:k])
+            if small:
+                within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip_rows[:k], out=self._ok[:k])
             else:
                 within = np.abs(y) <= self._clip
             if np.count_nonzero(within) == within.size:
@@ -610,8 +617,13 @@ class StreamGroup:
             st._offset = self._offset[s]
             self._last_good[s] = st._last_good
             st._last_good = self._last_good[s]
-        self._flat_offset = self._offset.reshape(-1)
-        self._clip = np.tile(first._clip, ns)
+        # Each stream's offset repeated for a block's rows (``FeatureStream._offset_rows``), side by side: a stream's
+        # ``set_offset`` writes its columns here.
+        self._offset_rows = np.zeros((first.spec.window + 1, ns * nb), np.float32)
+        for s, st in enumerate(self.streams):
+            self._offset_rows[:, s * nb : (s + 1) * nb] = st._offset_rows
+            st._offset_rows = self._offset_rows[:, s * nb : (s + 1) * nb]
+        self._clip_rows = np.tile(first._clip, (first.spec.window + 1, ns))
         self._absk = np.zeros((first.spec.window + 1, ns * nb), np.float32)
         self._ok = np.zeros((first.spec.window + 1, ns * nb), bool)
 
@@ -637,8 +649,8 @@ class StreamGroup:
             end = first._end
         x = samples.reshape(k, -1)
         rows = self._buf[end : end + k]
-        y = np.subtract(x, self._flat_offset, out=rows)
-        within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip, out=self._ok[:k])
+        y = np.subtract(x, self._offset_rows[:k], out=rows)
+        within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip_rows[:k], out=self._ok[:k])
         if np.count_nonzero(within) != within.size:
             return None  # (the rows written after the histories' end are written again by each stream's push)
         self._last_good[:] = x[-1].reshape(self._last_good.shape)

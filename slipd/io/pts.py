@@ -389,12 +389,13 @@ class FrameDecoder:
         self._block: FrameBlock | None = None  # ``block``'s views, kept for the next read of as many frames
         self._value_ranges: list[tuple[int, int]] = []
         # Output storage, reused across feeds (grown only when one feed completes more frames than ever
-        # before; a serial read is bounded, so is this). _vals is [frame, sensor, force|disp, pillar, axis].
+        # before; a serial read is bounded, so is this). _vals is [force|disp, frame, sensor, pillar, axis]: a block's
+        # forces are one contiguous array (the ufuncs of the hot path run their fast loop on them).
         self._cap = 0
         self._n = 0
         self._counter = np.zeros(0, np.int64)
         self._t = np.zeros(0, np.uint64)
-        self._vals = np.zeros((0, sensors, 2, N_PILLARS, 3), np.float32)
+        self._vals = np.zeros((2, 0, sensors, N_PILLARS, 3), np.float32)
         self._dropped = np.zeros(0, np.int64)
         self._disc = np.zeros(0, bool)
         self._frames_out: list[Frame] | None = None  # set while ``feed`` builds Frame objects
@@ -460,8 +461,7 @@ class FrameDecoder:
         n = self._n
         block = self._block
         if block is None or len(block.counter) != n:
-            vals = self._vals[:n]
-            block = FrameBlock(self._counter[:n], self._t[:n], vals[:, :, 0], vals[:, :, 1], self._dropped[:n],
+            block = FrameBlock(self._counter[:n], self._t[:n], self._vals[0, :n], self._vals[1, :n], self._dropped[:n],
                                self._disc[:n])
             self._block = block
         block.dropped_before.fill(0)
@@ -773,7 +773,7 @@ class FrameDecoder:
                 counter = np.ndarray((n,), dtype=_LE_U32, buffer=buf, offset=hub, strides=(stride,))
                 t = np.ndarray((n,), dtype=_LE_U64, buffer=buf, offset=hub + 4, strides=(stride,))
                 views = self._keep_views((p0, n, stride, m), (self._counter[m : m + n], counter, self._t[m : m + n], t,
-                                                               self._vals[m : m + n], src.transpose(0, 1, 3, 2, 4)))
+                                                               self._vals[:, m : m + n], src.transpose(3, 0, 1, 2, 4)))
             counter, counter_src, t, t_src, vals, vals_src = views
             np.copyto(counter, counter_src)
             np.copyto(t, t_src)
@@ -804,13 +804,13 @@ class FrameDecoder:
         buf = self._buf
         missing = False
         for k in range(self.sensors):
-            dst = self._vals[m : m + n, k]  # [n, 2, 9, 3]
+            dst = self._vals[:, m : m + n, k]  # [2, n, 9, 3]
             if k < len(recs) and recs[k] >= 0:
                 src = np.ndarray(
                     (n, N_PILLARS, 2, 3), dtype="<f4", buffer=buf, offset=p0 + recs[k] + 2,
                     strides=(stride, _PILLAR_REC, 12, 4),
                 )
-                np.copyto(dst, src.transpose(0, 2, 1, 3))
+                np.copyto(dst, src.transpose(2, 0, 1, 3))
             else:
                 dst[...] = np.nan  # the configured finger is not in these frames: blind, not shifted
                 missing = True
@@ -830,11 +830,11 @@ class FrameDecoder:
         counter, t, vals, dropped, disc = self._counter, self._t, self._vals, self._dropped, self._disc
         self._counter = np.zeros(cap, np.int64)
         self._t = np.zeros(cap, np.uint64)
-        self._vals = np.zeros((cap, self.sensors, 2, N_PILLARS, 3), np.float32)
+        self._vals = np.zeros((2, cap, self.sensors, N_PILLARS, 3), np.float32)
         self._dropped = np.zeros(cap, np.int64)
         self._disc = np.zeros(cap, bool)
         m = self._n  # frames already in the output move along
-        self._counter[:m], self._t[:m], self._vals[:m] = counter[:m], t[:m], vals[:m]
+        self._counter[:m], self._t[:m], self._vals[:, :m] = counter[:m], t[:m], vals[:, :m]
         self._dropped[:m], self._disc[:m] = dropped[:m], disc[:m]
         self._cap = cap
 
@@ -844,7 +844,7 @@ class FrameDecoder:
         buf = self._buf
         counters = self._counter[m : m + n].tolist()
         stamps = self._t[m : m + n].tolist()
-        fd = self._vals[m : m + n].copy()  # the frames own their values: the storage is reused
+        fd = np.moveaxis(self._vals[:, m : m + n], 0, 2).copy()  # [n, S, 2, 9, 3]: the frames own their values
         none = itertools.repeat(None)
         wrench: Iterable[Any] = none
         states: Iterable[Any] = none
