@@ -413,14 +413,16 @@ class Daemon:
             self._nonfinite_run[:] = 0
             self._nonfinite_open = False
         arrived = None
+        stale = False
         for s in range(ns):
             if prev is not None and last[s] == prev[s] and vals[:, s].tobytes() == last[s] * n:
+                stale = True
                 continue
             if arrived is None:
                 arrived = self._arrived()
             self._fresh_ts[s] = arrived
-        if arrived is not None:
-            self._fresh_t = arrived if ns == 1 else float(self._fresh_ts.min())
+        if arrived is not None:  # (every sensor fresh, the common block: the oldest fresh time is this one)
+            self._fresh_t = float(self._fresh_ts.min()) if stale else arrived
 
     def _arrived(self) -> float:
         """When the data of the block at hand arrived (a held block can be handed over up to half a stall timeout

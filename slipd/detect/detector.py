@@ -167,6 +167,9 @@ def gate_windows(force_tared: np.ndarray, spec: FeatureSpec) -> np.ndarray:
     return np.array([gate.check(force_tared[i, :, 2], int(i))[0] for i in ends], bool)
 
 
+_ZEROS = np.zeros(9, np.float32)
+_ZEROS.flags.writeable = False
+
 PRESS_MIN_N = 0.1
 """A press hold needs a rise of at least 0.1 N as well, so the noise of a light contact does not hold alarms."""
 
@@ -448,7 +451,7 @@ class Detector:
     def _press(self, fz: np.ndarray, press_rise: float) -> None:
         """One window end's tared normal forces [9] -> ``pressing``: the summed load against one window back."""
         # (np.nansum costs ten times more on the hot path; add.reduce is ndarray.sum without its Python wrapper)
-        load = float(np.add.reduce(np.maximum(fz, 0.0)))
+        load = float(np.add.reduce(np.maximum(fz, _ZEROS)))  # (an array of zeros: a scalar operand is the slow loop)
         if not math.isfinite(load):
             load = math.nan  # a non-finite sample: no rise can be measured against it, nor one window on
         before = self._loads[self._load_i]  # the slot written n_streams windows (one window) ago

@@ -418,6 +418,11 @@ class FeatureStream:
         # A block's |tared| values and their in-range flags (``push_many``, blocks up to a window's worth).
         self._absk = np.zeros((spec.window + 1, N_PILLARS * 3), np.float32)
         self._ok = np.zeros((spec.window + 1, N_PILLARS * 3), bool)
+        self._offset = np.zeros(N_PILLARS * 3, np.float32)  # written in place (``StreamGroup`` holds views of it)
+        # The offset and the clip bound repeated for a block's rows: a ufunc over operands of one shape takes numpy's
+        # fast loop, one that broadcasts a row costs several times more on a decision's block.
+        self._offset_rows = np.zeros((spec.window + 1, N_PILLARS * 3), np.float32)
+        self._clip_rows = np.tile(self._clip, (spec.window + 1, 1))
         self.set_offset(offset)
         self.nonfinite_count = 0
         self.clipped_count = 0
@@ -426,9 +431,8 @@ class FeatureStream:
 
     def set_offset(self, offset: np.ndarray | None) -> None:
         """Replace the tare offset ([9, 3], or None for zero). Takes effect from the next sample."""
-        self._offset = (
-            np.zeros(N_PILLARS * 3, np.float32) if offset is None else np.asarray(offset, np.float32).reshape(-1).copy()
-        )
+        self._offset[:] = 0.0 if offset is None else np.asarray(offset, np.float32).reshape(-1)
+        self._offset_rows[:] = self._offset
         self.offset_z = self._offset[2::3].copy()
         """The normal forces' offsets [9] (the contact gate tares one sample per window with them)."""
 
@@ -496,18 +500,22 @@ class FeatureStream:
         k = len(x)
         if k == 0:
             return []
+        if self._n and k <= len(self._ok) and self._end + k > len(self._buf):
+            self._shift()  # (the block's rows then fit after the history, which the common block needs)
         if self._n and self._end + k <= len(self._buf):
             # The common block (a stream under way, room in the history): its prepared rows go straight into the
             # history, every window's median reads them there. The same values as below, fewer copies.
             rows = self._buf[self._end : self._end + k]
+            small = k <= len(self._ok)
+            offset = self._offset_rows[:k] if small else self._offset
             if self._all_cols:
-                y = np.subtract(x, self._offset, out=rows)
+                y = np.subtract(x, offset, out=rows)
             else:
-                y = np.subtract(x, self._offset)
+                y = np.subtract(x, offset)
             # Every value finite and within the clip (NaN fails the comparison): one count over kept scratch arrays
             # (ndarray.all goes through a Python wrapper that costs more than the comparison on a decision's block).
-            if k <= len(self._ok):
-                within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip, out=self._ok[:k])
+            if small:
+                within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip_rows[:k], out=self._ok[:k])
             else:
                 within = np.abs(y) <= self._clip
             if np.count_nonzero(within) == within.size:
@@ -569,12 +577,95 @@ class FeatureStream:
         """Append prepared rows to the history; fewer than ``window + 1`` at a time (one window's worth)."""
         m = len(rows)
         if self._end + m > len(self._buf):
-            # Keep what the next window's median needs; the same rows push keeps when it shifts.
-            keep = self._hist_len - 1
-            self._buf[:keep] = self._buf[self._end - keep : self._end]
-            self._end = keep
+            self._shift()
         self._buf[self._end : self._end + m] = rows
         self._end += m
+
+    def _shift(self) -> None:
+        """Move the history to the buffer's start, keeping what the next window's median needs (the same rows push
+        keeps when it shifts)."""
+        keep = self._hist_len - 1
+        self._buf[:keep] = self._buf[self._end - keep : self._end]
+        self._end = keep
+
+
+class StreamGroup:
+    """The feature streams of several sensors that see the same samples (the fingers of one gripper: both arrays
+    arrive in the same frames), their histories side by side in one buffer, so the common block runs stages 2-5 once
+    for all of them (``push_many``).
+
+    Each stream stays a ``FeatureStream`` of its own: its history, offset and last finite values are views into the
+    group's arrays, and everything that concerns one sensor (the start-up tare, a block to sanitise or clip, a restart)
+    runs on that stream as before. Every stage is elementwise per column, so the group's windows are the streams' own,
+    bit for bit. The streams must select every column in order (``FeatureSpec.columns`` all 27: the shipped model's
+    derived layout), so that a history column is a raw column."""
+
+    def __init__(self, streams: Sequence[FeatureStream]) -> None:
+        self.streams = list(streams)
+        first = self.streams[0]
+        if any(st.spec != first.spec or not st._all_cols for st in self.streams):
+            raise ValueError("a stream group needs streams of one spec that select every column")
+        ns, nb = len(self.streams), first.spec.n_base
+        self._buf = np.zeros((len(first._buf), ns * nb), np.float32)
+        self._offset = np.zeros((ns, nb), np.float32)
+        self._last_good = np.zeros((ns, nb), np.float32)
+        for s, st in enumerate(self.streams):
+            cols = slice(s * nb, (s + 1) * nb)
+            self._buf[:, cols] = st._buf
+            st._buf = self._buf[:, cols]
+            self._offset[s] = st._offset
+            st._offset = self._offset[s]
+            self._last_good[s] = st._last_good
+            st._last_good = self._last_good[s]
+        # Each stream's offset repeated for a block's rows (``FeatureStream._offset_rows``), side by side: a stream's
+        # ``set_offset`` writes its columns here.
+        self._offset_rows = np.zeros((first.spec.window + 1, ns * nb), np.float32)
+        for s, st in enumerate(self.streams):
+            self._offset_rows[:, s * nb : (s + 1) * nb] = st._offset_rows
+            st._offset_rows = self._offset_rows[:, s * nb : (s + 1) * nb]
+        self._clip_rows = np.tile(first._clip, (first.spec.window + 1, ns))
+        self._absk = np.zeros((first.spec.window + 1, ns * nb), np.float32)
+        self._ok = np.zeros((first.spec.window + 1, ns * nb), bool)
+
+    def push_many(self, samples: np.ndarray) -> list[tuple[int, np.ndarray]] | None:
+        """A block of raw samples [k, S, 9, 3] into every stream at once: ``(i, windows)`` for each sample
+        ``samples[i]`` that ends a window, ``windows`` the streams' filtered windows side by side ([window, S * n_base],
+        stream ``s`` in columns ``s * n_base ..``; each stream's ``push_many`` returns the same values), and each stream
+        advanced as its own ``push_many`` would. None, with nothing pushed, unless the block is the common one (the
+        streams under way in lockstep, every value finite and within the clip): push it stream by stream then."""
+        streams = self.streams
+        first = streams[0]
+        k = len(samples)
+        n0 = first._n
+        if not n0 or k > len(self._ok):
+            return None
+        end = first._end
+        for st in streams:
+            if st._n != n0 or st._end != end:
+                return None
+        if end + k > len(self._buf):
+            for st in streams:  # (the same rows of every column: one shift would do, but each stream keeps its end)
+                st._shift()
+            end = first._end
+        x = samples.reshape(k, -1)
+        rows = self._buf[end : end + k]
+        y = np.subtract(x, self._offset_rows[:k], out=rows)
+        within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip_rows[:k], out=self._ok[:k])
+        if np.count_nonzero(within) != within.size:
+            return None  # (the rows written after the histories' end are written again by each stream's push)
+        self._last_good[:] = x[-1].reshape(self._last_good.shape)
+        spec = first.spec
+        hist_len, width = first._hist_len, spec.median
+        start = max(spec.window - 1 - n0, 0)
+        start += -(n0 + start + 1 - spec.window) % spec.step
+        out = []
+        for i in range(start, k, spec.step):
+            hist = self._buf[end + i + 1 - hist_len : end + i + 1]
+            out.append((i, causal_median_tail(hist, width).copy() if width == 1 else sliding_median(hist, width)))
+        for st in streams:
+            st._end = end + k
+            st._n = n0 + k
+        return out
 
 
 def _identity(filtered: np.ndarray) -> np.ndarray:

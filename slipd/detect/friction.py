@@ -63,13 +63,20 @@ class FrictionEstimator:
 
     def add(self, util: Sequence[float], fz: Sequence[float], p_slip: Sequence[float]) -> None:
         """``update`` without building the estimate (the contact stream reads it after ``refute``)."""
-        floor = self._floor(fz)
         prev = self._fz if self._fz is not None else fz
+        self._fz = list(fz)
+        for q in p_slip:
+            if q >= 0.5:
+                break
+        else:  # no pillar slides (a steady grasp, decision after decision): no sample, nothing more to look at
+            if not len(util) == len(fz) == len(prev) == len(p_slip):
+                raise ValueError("util, fz and p_slip must have one value per pillar")
+            return
+        floor = self._floor(fz)
         rise = 1.0 + self.max_fz_rise
         # A ratio beyond any real friction (max_mu) is a glitch, not a sample.
         use = [(float(u), float(w)) for u, w, w0, q in zip(util, fz, prev, p_slip, strict=True)
                if q >= 0.5 and w > floor and math.isfinite(u) and u < self.max_mu and w <= rise * w0]
-        self._fz = list(fz)
         if use:
             self._w *= self.forget
             self._s *= self.forget

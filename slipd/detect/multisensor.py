@@ -20,7 +20,7 @@ import numpy as np
 
 from slipd.detect.decision import Detection
 from slipd.detect.detector import Detector
-from slipd.detect.features import FeatureStream
+from slipd.detect.features import FeatureStream, StreamGroup
 
 
 class MultiDetector:
@@ -36,6 +36,10 @@ class MultiDetector:
         self._all_rows.flags.writeable = False  # handed to every call where all sensors step: nobody may change it
         self._rows: np.ndarray | None = None  # ``_rows_of``'s buffer
         self.ensemble = detectors[0].ensemble
+        # Detectors that share their filtered windows with the contact state and filter every column (the shipped
+        # model's layout): their feature streams run the common block as one (``StreamGroup``).
+        self._group = StreamGroup([d.features for d in self.detectors]) if self.sensors > 1 and all(
+            d._shared and d.features._all_cols for d in self.detectors) else None
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
         """Model call time behind each returned detection: on the first stepped sensor of a call, None on
@@ -122,12 +126,18 @@ class MultiDetector:
         # Detectors that share their filtered windows with the contact state (the shipped model's layout) derive the
         # model windows of all sensors in one pass, straight into the model call's batch.
         shared = all(d._shared for d in subs)
-        wins = []
-        for s, d in enumerate(subs):
+        for d in subs:
             d.index += k - i
-            wins.append(d.feature_windows(x[i:, s], derive=not shared))
-        # Same samples into every stream: the windows end on the same samples.
-        for m, (j, _, _, _) in enumerate(wins[0]):
+        # The common block through every sensor's feature stream at once: each window end's filtered windows of all
+        # sensors side by side; otherwise sensor by sensor. Same samples into every stream: the windows end on the same
+        # samples.
+        group = self._group.push_many(x[i:]) if self._group is not None else None
+        if group is None:
+            wins = [d.feature_windows(x[i:, s], derive=not shared) for s, d in enumerate(subs)]
+            ends = [j for j, _, _, _ in wins[0]]
+        else:
+            ends = [j for j, _ in group]
+        for m, j in enumerate(ends):
             kk = i + j
             t, idx = int(t_us[kk]), base + kk
             gated = [d._gate(x[kk, s], t, idx) for s, d in enumerate(subs)]
@@ -136,10 +146,17 @@ class MultiDetector:
             active = self._all_rows if all(stepping) else np.array(stepping)
             p = ok = None
             step_s: float | None = None
+            if group is not None:
+                # The sensors' filtered windows in rows, one per sensor (row s is sensor s's window, as its own stream
+                # returns it; read by its contact state below, before the next window overwrites the buffer).
+                filtered = self._stacked_rows(group[m][1])
             if any(stepping):
-                batch = self._rows_of([cast(np.ndarray, w[m][2 if shared else 1]) for w in wins])
-                if shared:
-                    batch = subs[0].derive_rows(batch)
+                if group is not None:
+                    batch = subs[0].derive_rows(filtered)
+                else:
+                    batch = self._rows_of([cast(np.ndarray, w[m][2 if shared else 1]) for w in wins])
+                    if shared:
+                        batch = subs[0].derive_rows(batch)
                 t0 = time.perf_counter()  # the model call alone (the inference metric)
                 p, _, ok = self.ensemble.step_rows(batch, subs[0].phase(n0 + j + 1), active)
                 step_s = time.perf_counter() - t0
@@ -148,17 +165,32 @@ class MultiDetector:
             ps, oks = (p.tolist(), ok.tolist()) if p is not None and ok is not None else ([], [])
             for s, d in enumerate(subs):
                 det = gated[s]
+                if group is not None:
+                    f_s, state = filtered[s], None
+                else:
+                    f_s, state = wins[s][m][2], wins[s][m][3]
                 if det is None:
                     rows = self.ensemble.pillar_rows
                     valid = bool(oks[s])
                     d.set_pillars(rows[s] if valid and rows is not None else None)
-                    det = d._finish(float(ps[s]), valid, t, idx, d.contact_state(wins[s][m][2], wins[s][m][3]))
+                    det = d._finish(float(ps[s]), valid, t, idx, d.contact_state(f_s, state))
                     d.last_step_s = step_s
                     self.step_seconds.append(step_s)
                     step_s = None
                 else:
                     self.step_seconds.append(None)
                     d.pillar_p = None
-                    det = det.with_contact(d.contact_state(wins[s][m][2], wins[s][m][3]))
+                    det = det.with_contact(d.contact_state(f_s, state))
                 out.append((kk, det))
         return out
+
+    def _stacked_rows(self, windows: np.ndarray) -> np.ndarray:
+        """A ``StreamGroup`` window ([window, S * n_base], the sensors side by side per sample) as the sensors' windows
+        in rows [S, window * n_base], into the buffer ``_rows_of`` keeps."""
+        t, c = windows.shape
+        width = t * c // self.sensors
+        rows = self._rows
+        if rows is None or rows.shape[1] != width:
+            rows = self._rows = np.empty((self.sensors, width), np.float32)
+        np.copyto(rows.reshape(self.sensors, t, -1), windows.reshape(t, self.sensors, -1).transpose(1, 0, 2))
+        return rows

@@ -115,12 +115,10 @@ class PillarSlip:
         ``utilisation(last)`` where the caller has it already."""
         p = self.p
         fz, util, contact = ends or utilisation(last)
-        rate = []
         ref = top = -1.0
         for (ax, ay, _), (bx, by, _), c, u in zip(first, last, contact, util):
-            r = math.hypot(bx - ax, by - ay)
-            rate.append(r)
             if c:  # the largest rate and utilisation in contact (``max`` keeps the first of equals, as here)
+                r = math.hypot(bx - ax, by - ay)
                 if r > ref:
                     ref = r
                 if u > top:
@@ -128,10 +126,15 @@ class PillarSlip:
         if ref < 0.0:  # no pillar in contact
             self.reset()
             return self.probability_list()
+        if ref <= p.rate_floor_n and self._logit.count(-p.limit) == N_PILLARS:
+            # No load change, every pillar at the stick bound (a steady grasp, decision after decision): every step
+            # below is towards stick or none (holding needs a pillar that slid), so every logit stays at the bound.
+            return self.probability_list()
         near = [u / top for u in util] if top > 0 else [0.0] * N_PILLARS
         if ref > p.rate_floor_n:
             # Equal utilisation across pillars of different normal force: a sticking contact shares its
             # load by deflection (equal Ft, so unequal Ft / Fz); only the friction limit equalises Ft / Fz.
+            rate = [math.hypot(bx - ax, by - ay) for (ax, ay, _), (bx, by, _) in zip(first, last)]
             step = [0.0] * N_PILLARS
             even = [contact[i] and near[i] > p.even for i in range(N_PILLARS)]
             fz_even = [fz[i] for i in range(N_PILLARS) if even[i]]

@@ -338,6 +338,8 @@ class _NeedMore(Exception):
 
 _BUFFER_BYTES = 1 << 16
 _CHUNK_BYTES = _BUFFER_BYTES - MAX_FRAME_BYTES
+_MAX_VIEWS = 64
+"""Runs whose views ``FrameDecoder`` keeps (a few recur: a read's frames, at the buffer's start)."""
 _LE_U16 = np.dtype("<u2")
 _LE_U32 = np.dtype("<u4")
 _LE_U64 = np.dtype("<u8")
@@ -379,14 +381,21 @@ class FrameDecoder:
         self._scratch = np.zeros(_BUFFER_BYTES, np.uint8)
         # ``_emit``'s reading positions for the layout it last copied (``_layout_plan``), keyed by its record positions.
         self._plan: tuple[Any, int, tuple[int, ...], int | None] = (None, 0, (), None)
+        self._views: dict[tuple[int, ...], tuple[Any, ...]] = {}
+        """The strided views of the byte buffer and the output slices that ``_decode_run`` and ``_emit`` read and write,
+        by where a run starts and how many frames it holds: ``_rewind`` puts every read's frames at the buffer's start,
+        so the same few runs recur read after read and a read makes no new array for them. Dropped with the layout or
+        the output storage they were cut for; at most ``_MAX_VIEWS``."""
+        self._block: FrameBlock | None = None  # ``block``'s views, kept for the next read of as many frames
         self._value_ranges: list[tuple[int, int]] = []
         # Output storage, reused across feeds (grown only when one feed completes more frames than ever
-        # before; a serial read is bounded, so is this). _vals is [frame, sensor, force|disp, pillar, axis].
+        # before; a serial read is bounded, so is this). _vals is [force|disp, frame, sensor, pillar, axis]: a block's
+        # forces are one contiguous array (the ufuncs of the hot path run their fast loop on them).
         self._cap = 0
         self._n = 0
         self._counter = np.zeros(0, np.int64)
         self._t = np.zeros(0, np.uint64)
-        self._vals = np.zeros((0, sensors, 2, N_PILLARS, 3), np.float32)
+        self._vals = np.zeros((2, 0, sensors, N_PILLARS, 3), np.float32)
         self._dropped = np.zeros(0, np.int64)
         self._disc = np.zeros(0, bool)
         self._frames_out: list[Frame] | None = None  # set while ``feed`` builds Frame objects
@@ -450,11 +459,14 @@ class FrameDecoder:
     def block(self) -> FrameBlock:
         """The frames completed by the latest ``feed`` or ``feed_block`` as arrays (views; see ``FrameBlock``)."""
         n = self._n
-        self._dropped[:n] = 0
-        self._disc[:n] = False
-        vals = self._vals[:n]
-        return FrameBlock(self._counter[:n], self._t[:n], vals[:, :, 0], vals[:, :, 1], self._dropped[:n],
-                          self._disc[:n])
+        block = self._block
+        if block is None or len(block.counter) != n:
+            block = FrameBlock(self._counter[:n], self._t[:n], self._vals[0, :n], self._vals[1, :n], self._dropped[:n],
+                               self._disc[:n])
+            self._block = block
+        block.dropped_before.fill(0)
+        block.discontinuity.fill(False)
+        return block
 
     def _rewind(self) -> None:
         """Move what is buffered, when it is at most a partial frame, to the buffer's start: every read then lands on
@@ -530,16 +542,21 @@ class FrameDecoder:
         k = (self._end - s) // flen
         if k == 0:
             return 0
-        nb = k * flen
-        seg = self._u8[s : s + nb]
-        rows = seg.reshape(k, flen)
+        views = self._views.get((s, k))
+        if views is None:
+            nb = k * flen
+            seg = self._u8[s : s + nb]
+            rows = seg.reshape(k, flen)
+            sent = np.ndarray((k,), dtype=_LE_U16, buffer=self._buf, offset=s + len(START) + plen, strides=(flen,))
+            views = self._keep_views((s, k), (seg, rows, rows[:, len(START) : len(START) + plen], sent, mask[:nb],
+                                               self._scratch[:nb], tiled[:nb]))
+        seg, rows, payloads, sent, mask_k, scratch_k, tiled_k = views
         # The checksum is the payload's byte sum mod 2**16: a 16-bit accumulator wraps to exactly that.
-        sums = np.add.reduce(rows[:, len(START) : len(START) + plen], axis=1, dtype=_LE_U16)  # (ndarray.sum's own call)
-        sent = np.ndarray((k,), dtype=_LE_U16, buffer=self._buf, offset=s + len(START) + plen, strides=(flen,))
+        sums = np.add.reduce(payloads, axis=1, dtype=_LE_U16)  # (ndarray.sum's own call)
         # The common read, every frame whole: the frames' bytes with their values masked out against the template,
         # and the checksums, each in one byte comparison (memcmp) instead of per-frame reductions.
-        fixed = np.bitwise_and(seg, mask[:nb], out=self._scratch[:nb])
-        if fixed.tobytes() == tiled[:nb] and sums.tobytes() == sent.tobytes():
+        fixed = np.bitwise_and(seg, mask_k, out=scratch_k)
+        if fixed.tobytes() == tiled_k and sums.tobytes() == sent.tobytes():
             n = k
         else:
             ok = (rows[:, chk_idx] == chk_vals).all(axis=1) & (sums == sent)
@@ -577,6 +594,7 @@ class FrameDecoder:
         one[fixed] = vals
         tiled = np.tile(one, _BUFFER_BYTES // flen + 1).tobytes()
         self._run = (flen, payload_len, fixed, vals, dict(found), mask, tiled)
+        self._views.clear()
 
     def _decode_full(self, p0: int) -> tuple[int, dict[int, tuple[int, ...]]]:
         """Validate a frame whose payload starts at buffer index ``p0``, walking its structure: its length and
@@ -739,20 +757,31 @@ class FrameDecoder:
         buf = self._buf
         if self._plan[0] is not found:
             self._plan = (found, *self._layout_plan(found))
+            self._views.clear()
         _, hub_off, recs, step = self._plan
-        hub = p0 + hub_off
-        self._counter[m : m + n] = np.ndarray((n,), dtype=_LE_U32, buffer=buf, offset=hub, strides=(stride,))
-        self._t[m : m + n] = np.ndarray((n,), dtype=_LE_U64, buffer=buf, offset=hub + 4, strides=(stride,))
         missing = False
         if step is not None:
-            # Every configured sensor's records the same distance apart (always, for one sensor): one view and one
-            # copy for all of them.
-            src = np.ndarray(
-                (n, self.sensors, N_PILLARS, 2, 3), dtype=_LE_F32, buffer=buf, offset=p0 + recs[0] + 2,
-                strides=(stride, step, _PILLAR_REC, 12, 4),
-            )
-            np.copyto(self._vals[m : m + n], src.transpose(0, 1, 3, 2, 4))
+            views = self._views.get((p0, n, stride, m))
+            if views is None:
+                hub = p0 + hub_off
+                # Every configured sensor's records the same distance apart (always, for one sensor): one view and one
+                # copy for all of them.
+                src = np.ndarray(
+                    (n, self.sensors, N_PILLARS, 2, 3), dtype=_LE_F32, buffer=buf, offset=p0 + recs[0] + 2,
+                    strides=(stride, step, _PILLAR_REC, 12, 4),
+                )
+                counter = np.ndarray((n,), dtype=_LE_U32, buffer=buf, offset=hub, strides=(stride,))
+                t = np.ndarray((n,), dtype=_LE_U64, buffer=buf, offset=hub + 4, strides=(stride,))
+                views = self._keep_views((p0, n, stride, m), (self._counter[m : m + n], counter, self._t[m : m + n], t,
+                                                               self._vals[:, m : m + n], src.transpose(3, 0, 1, 2, 4)))
+            counter, counter_src, t, t_src, vals, vals_src = views
+            np.copyto(counter, counter_src)
+            np.copyto(t, t_src)
+            np.copyto(vals, vals_src)
         else:
+            hub = p0 + hub_off
+            self._counter[m : m + n] = np.ndarray((n,), dtype=_LE_U32, buffer=buf, offset=hub, strides=(stride,))
+            self._t[m : m + n] = np.ndarray((n,), dtype=_LE_U64, buffer=buf, offset=hub + 4, strides=(stride,))
             missing = self._emit_each(p0, recs, m, n, stride)
         if missing:
             self.missing_sensor += n
@@ -775,28 +804,37 @@ class FrameDecoder:
         buf = self._buf
         missing = False
         for k in range(self.sensors):
-            dst = self._vals[m : m + n, k]  # [n, 2, 9, 3]
+            dst = self._vals[:, m : m + n, k]  # [2, n, 9, 3]
             if k < len(recs) and recs[k] >= 0:
                 src = np.ndarray(
                     (n, N_PILLARS, 2, 3), dtype="<f4", buffer=buf, offset=p0 + recs[k] + 2,
                     strides=(stride, _PILLAR_REC, 12, 4),
                 )
-                np.copyto(dst, src.transpose(0, 2, 1, 3))
+                np.copyto(dst, src.transpose(2, 0, 1, 3))
             else:
                 dst[...] = np.nan  # the configured finger is not in these frames: blind, not shifted
                 missing = True
         return missing
 
+    def _keep_views(self, key: tuple[int, ...], views: tuple[Any, ...]) -> tuple[Any, ...]:
+        """Keep a run's views for the next read (``_views``)."""
+        if len(self._views) >= _MAX_VIEWS:
+            self._views.clear()
+        self._views[key] = views
+        return views
+
     def _grow(self, need: int) -> None:
+        self._views.clear()  # (the output slices kept there are of the storage replaced here)
+        self._block = None
         cap = max(need, 2 * self._cap, 64)
         counter, t, vals, dropped, disc = self._counter, self._t, self._vals, self._dropped, self._disc
         self._counter = np.zeros(cap, np.int64)
         self._t = np.zeros(cap, np.uint64)
-        self._vals = np.zeros((cap, self.sensors, 2, N_PILLARS, 3), np.float32)
+        self._vals = np.zeros((2, cap, self.sensors, N_PILLARS, 3), np.float32)
         self._dropped = np.zeros(cap, np.int64)
         self._disc = np.zeros(cap, bool)
         m = self._n  # frames already in the output move along
-        self._counter[:m], self._t[:m], self._vals[:m] = counter[:m], t[:m], vals[:m]
+        self._counter[:m], self._t[:m], self._vals[:, :m] = counter[:m], t[:m], vals[:, :m]
         self._dropped[:m], self._disc[:m] = dropped[:m], disc[:m]
         self._cap = cap
 
@@ -806,7 +844,7 @@ class FrameDecoder:
         buf = self._buf
         counters = self._counter[m : m + n].tolist()
         stamps = self._t[m : m + n].tolist()
-        fd = self._vals[m : m + n].copy()  # the frames own their values: the storage is reused
+        fd = np.moveaxis(self._vals[:, m : m + n], 0, 2).copy()  # [n, S, 2, 9, 3]: the frames own their values
         none = itertools.repeat(None)
         wrench: Iterable[Any] = none
         states: Iterable[Any] = none

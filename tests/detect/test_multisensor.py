@@ -121,3 +121,38 @@ def test_each_finger_takes_its_own_software_zero() -> None:
     np.testing.assert_array_equal(det.offset, zero)
     for d, z in zip(det.detectors, zero, strict=True):  # the contact state's stream too, where it cuts its own windows
         np.testing.assert_array_equal(d.contact.features._offset.reshape(9, 3), z)
+
+
+def test_the_fingers_feature_streams_in_one_pass_give_what_each_stream_gives(sample) -> None:
+    # The daemon's blocks (a read of a few frames) go through both fingers' feature streams at once (StreamGroup); the
+    # same blocks sensor by sensor must give the same detections, contact states and counters, bit for bit, across a
+    # block to sanitise (NaN), one to clip (a glitch), blocks of every size, a restart and a software zero.
+    from slipd.models import packaged
+
+    force = np.stack([sample.force[:1500] * np.float32(0.8), sample.force[:1500]], axis=1).copy()
+    force[700, 0, 4, 1] = np.nan
+    force[900, 1, 2, 2] = 1e6
+    t_us = sample.t_us[:1500]
+    cuts = np.cumsum(np.random.default_rng(3).integers(1, 45, size=200))
+    cuts = cuts[cuts < len(force)]
+    runs = []
+    for grouped in (True, False):
+        ens = Ensemble.load(packaged("slip_ensemble_int8"))
+        det = build_detector(None, ens, tare_samples=100, sensors=2)
+        assert det._group is not None
+        if not grouped:
+            det._group = None
+        got = []
+        for n, (a, b) in enumerate(zip([0, *cuts], [*cuts, len(force)])):
+            if n == 40:
+                det.restart()
+            if n == 60:
+                det.set_offset(np.full((2, 9, 3), 0.01, np.float32))
+            got += [(a + i, d) for i, d in det.push_many(force[a:b], t_us[a:b])]
+        counts = [(f.nonfinite_count, f.clipped_count) for f in det.feature_streams]
+        runs.append((got, counts, det.offset))
+    (grouped_dets, grouped_counts, grouped_offset), (each_dets, each_counts, each_offset) = runs
+    assert len(grouped_dets) > 200 and any(d.contact is not None for _, d in grouped_dets)
+    assert grouped_dets == each_dets
+    assert grouped_counts == each_counts and grouped_counts[0][0] == 1 and grouped_counts[1][1] >= 1
+    np.testing.assert_array_equal(grouped_offset, each_offset)

@@ -439,3 +439,29 @@ def test_stashed_bytes_decode_as_if_fed() -> None:
     frame = encode_frame(simple_frame(1))
     assert dec.stash(frame[:-2]) == 0 and dec.stash(frame[-2:] + frame) == 2  # the split marker counts
     assert dec.feed_block(b"").counter.tolist() == [1, 1]
+
+
+def test_a_decoder_reading_read_after_read_gives_each_reads_own_frames() -> None:
+    # The daemon's reads land at the buffer's start one after the other, the same size again and again: the decoder
+    # keeps the views it reads them through. Each read must still give its own frames, across a layout change (a frame
+    # without the optional blocks), a read that ends mid-frame, garbage, and reads of other sizes.
+    plain = [Frame(c, c * 1000, np.full((9, 3), c, np.float32), np.zeros((9, 3), np.float32)) for c in range(500, 520)]
+    frames = [simple_frame(c) for c in range(200)]
+    reads = [frames[i : i + 10] for i in range(0, 100, 10)] + [plain[:10], frames[100:110], plain[10:13]]
+    reads += [frames[i : i + k] for i, k in ((110, 7), (117, 10), (127, 10), (137, 3), (140, 10))]
+    dec = FrameDecoder()
+    cut = b""
+    for n, read in enumerate(reads):
+        data = cut + b"".join(encode_frame(f) for f in read)
+        want = ([reads[n - 1][-1]] if cut else []) + read
+        cut = b""
+        if n == 12:
+            data = b"\x00\x55\x66" + data  # garbage first: the frames start elsewhere in the buffer
+        if n == 14:  # the read ends 5 bytes short of its last frame's end: the next read brings them
+            data, cut, want = data[:-5], data[-5:], want[:-1]
+        block = dec.feed_block(data)
+        assert block.counter.tolist() == [f.counter for f in want], n
+        assert np.array_equal(block.force[:, 0], np.stack([f.force for f in want])), n
+        assert np.array_equal(block.disp[:, 0], np.stack([f.disp for f in want])), n
+        assert not block.dropped_before.any() and not block.discontinuity.any()
+    assert dec.errors() == {"bad_checksum": 0, "bad_length": 0, "bad_structure": 0} and dec.garbage_bytes == 3
