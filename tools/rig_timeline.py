@@ -3,7 +3,7 @@
     python tools/rig_timeline.py reports/stabilize_onnx.json
 
 Per scenario (and in all), over the runs with the reaction on and the given detector: the alarm's delay after the
-onset of incipient slip (the method's label: some outer pillars slip while others still stick) and how many alarms
+onset of incipient slip (the method's label: some pillars in contact slip while others still stick) and how many alarms
 came while the slip was still incipient (before every pillar in contact slipped, or when that never came).
 """
 
