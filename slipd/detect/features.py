@@ -543,10 +543,7 @@ class FeatureStream:
             self._buf[: spec.median - 1] = rows[0]
             self._end = spec.median - 1
         n0 = self._n
-        # First block index whose sample ends a window: count n = n0 + i + 1 reaches the window, then
-        # every step.
-        first = max(spec.window - 1 - n0, 0)
-        first += -(n0 + first + 1 - spec.window) % spec.step
+        first = first_window_end(n0, spec)
         out = []
         done = 0
         for i in range(first, k, spec.step):
@@ -563,8 +560,7 @@ class FeatureStream:
         spec = self.spec
         self._last_good[:] = x[-1]
         n0, end = self._n, self._end
-        first = max(spec.window - 1 - n0, 0)
-        first += -(n0 + first + 1 - spec.window) % spec.step
+        first = first_window_end(n0, spec)
         out = []
         for i in range(first, k, spec.step):
             hist = self._buf[end + i + 1 - self._hist_len : end + i + 1]
@@ -656,8 +652,7 @@ class StreamGroup:
         self._last_good[:] = x[-1].reshape(self._last_good.shape)
         spec = first.spec
         hist_len, width = first._hist_len, spec.median
-        start = max(spec.window - 1 - n0, 0)
-        start += -(n0 + start + 1 - spec.window) % spec.step
+        start = first_window_end(n0, spec)
         out = []
         for i in range(start, k, spec.step):
             hist = self._buf[end + i + 1 - hist_len : end + i + 1]
@@ -666,6 +661,13 @@ class StreamGroup:
             st._end = end + k
             st._n = n0 + k
         return out
+
+
+def first_window_end(n0: int, spec: FeatureSpec) -> int:
+    """The first index ``i`` of a block pushed after ``n0`` samples whose sample ends a window: the count
+    ``n0 + i + 1`` reaches the window, then every step."""
+    first = max(spec.window - 1 - n0, 0)
+    return first + (-(n0 + first + 1 - spec.window) % spec.step)
 
 
 def _identity(filtered: np.ndarray) -> np.ndarray:
