@@ -63,6 +63,7 @@ from sliplab.augment import (
     Seq,
     contact_shape,
     drop_samples,
+    friction_scale,
     mix_pillars,
     rotate_forces,
     rotate_grid_90,
@@ -73,7 +74,7 @@ from sliplab.augment import (
 )
 from sliplab.model import SlipNet
 
-ALL_AUGS = ("rotation", "speed", "unloaded", "mixing", "grid90", "shift", "shapes", "sensor", "slow")
+ALL_AUGS = ("rotation", "speed", "unloaded", "mixing", "grid90", "shift", "shapes", "sensor", "slow", "friction")
 DEFAULT_AUGS = ("rotation", "speed", "unloaded", "mixing")
 ADVANCED_AUGS = ("unloaded", "mixing")
 
@@ -235,6 +236,8 @@ def augment_epoch(
             seq = contact_shape(seq, rng)
         if "sensor" in augs:
             seq = sensor_model(seq, rng)
+        if "friction" in augs:
+            seq = friction_scale(seq, rng)
         if "slow" in augs:
             seq = stretch(seq, rng)
         if "speed" in augs:
