@@ -427,3 +427,23 @@ def test_early_weights_mark_the_first_windows_of_each_positive_run() -> None:
     assert w[0].tolist() == [1, 5, 5, 1, 1, 5, 5, 1, 1, 1]
     assert w[1].tolist() == [5, 5, 1, 5, 5, 1, 1, 1, 1, 1]
     assert torch.equal(T.early_weights(y, keep, 0, 5.0), torch.ones(2, 10))
+
+
+def test_a_partial_slip_is_a_recording_without_a_label_whose_loaded_pillars_slide() -> None:
+    n = 200
+    force = np.zeros((n, 9, 3), np.float32)
+    force[:, 0, 2] = 2.0  # pillar 0 loaded, pillar 1 barely touching
+    force[:, 1, 2] = 0.1
+    slip = np.zeros((n, 9), bool)
+    label = np.zeros(n, np.uint8)
+    assert not T.is_partial_slip(label, slip, force)
+    slip[50:50 + T.PARTIAL_SLIP_SAMPLES - 1, 0] = True
+    assert not T.is_partial_slip(label, slip, force)  # one sample short
+    slip[100, 0] = True
+    assert T.is_partial_slip(label, slip, force)
+    assert not T.is_partial_slip(label, None, force)  # no truth: nothing to say
+    light = np.zeros((n, 9), bool)
+    light[:, 1] = True
+    assert not T.is_partial_slip(label, light, force)  # an unloaded pillar sliding is not the contact slipping
+    label[150] = 1
+    assert not T.is_partial_slip(label, slip, force)  # a labelled slip is a slip
