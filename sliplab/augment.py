@@ -35,6 +35,11 @@ Augmentations (names used by ``tools/train.py --aug``):
     sensor     ``sensor_model``: each pillar's axes scaled by their own gain in [0.8, 1.25], its normal force
                leaking into its tangential axes by up to 3 %, and a one-pole low-pass with a random corner
                (120 Hz to none): another sensor's calibration, cross-talk and filtering.
+    friction   ``friction_scale``: with p = 0.5 every pillar's tangential force scaled by one factor,
+               log-uniform in [0.5, 4]: the same grasp on a surface with that much more or less friction. A
+               sliding pillar's |Ft| / Fz sits at its friction coefficient, and our families' slips sit near
+               0.1 (the gripper trials) and 0.5-0.8 (the hexapod families); objects elsewhere slide anywhere
+               from 0.2 to above 1, so the onset must be read from how the pillars' loads move, not from where.
 """
 
 from __future__ import annotations
@@ -282,6 +287,25 @@ def sensor_model(seq: Seq, rng: np.random.Generator, gain: tuple[float, float] =
         # Started at rest on the first sample, so the filter adds no step of its own.
         force = lfilter([a], [1.0, a - 1.0], force, axis=0, zi=(1.0 - a) * force[:1])[0]
     return Seq(np.asarray(force, np.float32), seq.label, seq.slip, seq.loaded)
+
+
+FRICTION_GAIN = (0.5, 4.0)
+"""Range of the friction augmentation's tangential gain (log-uniform)."""
+
+
+def friction_scale(seq: Seq, rng: np.random.Generator, p: float = 0.5,
+                   gain: tuple[float, float] = FRICTION_GAIN) -> Seq:
+    """With probability ``p``, every pillar's tangential force scaled by one gain (labels unchanged).
+
+    One gain for the whole sequence and every pillar keeps the grasp's own mechanics (which pillars load first,
+    which slide) and moves only the friction coefficient at which they slide.
+    """
+    if rng.random() >= p:
+        return seq
+    g = np.float32(np.exp(rng.uniform(np.log(gain[0]), np.log(gain[1]))))
+    force = seq.force.copy()
+    force[:, :, :2] *= g
+    return Seq(force, seq.label, seq.slip, seq.loaded)
 
 
 STRETCH_NOISE_N = 0.008

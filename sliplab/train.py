@@ -57,12 +57,14 @@ from torch import nn
 
 from slipd.detect.detector import gate_windows
 from slipd.detect.features import FeatureSpec, batch_windows, stretch_offset, window_labels
+from slipd.geometry import CONTACT_THRESHOLD_N
 from slipd.recording import Recording, RecordingError, list_recordings
 from sliplab.augment import (
     SPEED_RATES,
     Seq,
     contact_shape,
     drop_samples,
+    friction_scale,
     mix_pillars,
     rotate_forces,
     rotate_grid_90,
@@ -73,7 +75,7 @@ from sliplab.augment import (
 )
 from sliplab.model import SlipNet
 
-ALL_AUGS = ("rotation", "speed", "unloaded", "mixing", "grid90", "shift", "shapes", "sensor", "slow")
+ALL_AUGS = ("rotation", "speed", "unloaded", "mixing", "grid90", "shift", "shapes", "sensor", "slow", "friction")
 DEFAULT_AUGS = ("rotation", "speed", "unloaded", "mixing")
 ADVANCED_AUGS = ("unloaded", "mixing")
 
@@ -162,15 +164,29 @@ def physics_family(rec: Recording) -> str:
     return str(rec.meta.get("physics_family", DEFAULT_FAMILY))
 
 
+PARTIAL_SLIP_SAMPLES = 20
+"""A recording without a labelled sample is a partial slip when a loaded pillar slides for this many samples."""
+
+
+def is_partial_slip(label: np.ndarray, slip: np.ndarray | None, force: np.ndarray) -> bool:
+    """No sample labelled slip, yet pillars in contact (tared normal force above the contact flag) slide for at least
+    ``PARTIAL_SLIP_SAMPLES`` samples: a stop or hold in which part of the contact slid and stuck again."""
+    if slip is None or np.asarray(label).any():
+        return False
+    sliding = (np.asarray(slip) & (np.asarray(force)[:, :, 2] > CONTACT_THRESHOLD_N)).any(axis=1)
+    return int(sliding.sum()) >= PARTIAL_SLIP_SAMPLES
+
+
 def load_sequences(data_dir: Path, spec: FeatureSpec, max_recordings: int = 0,
-                   label_span: str = "incipient", exclude_families: tuple[str, ...] = ()
-                   ) -> tuple[list[Seq], list[str]]:
+                   label_span: str = "incipient", exclude_families: tuple[str, ...] = (),
+                   skip_partial: bool = False) -> tuple[list[Seq], list[str]]:
     """Load every recording under ``data_dir`` as a tared ``Seq``; returns (sequences, file names).
 
     The offset is the recording's own ``meta["tare_samples"]`` stretch (or ``spec.tare_samples``).
     A recording without labels, or too short for one window, raises ``RecordingError`` naming it.
     ``label_span`` "slip" extends each label with ``slip_span_labels``, "sliding" with ``sliding_span_labels``
-    (the method: "incipient").
+    (the method: "incipient"). ``skip_partial`` leaves out the recordings ``is_partial_slip`` names: the engine's
+    evaluation scores no outcome for them, while a training label of 0 teaches the members to wait out sliding.
     """
     paths = list_recordings(data_dir)
     if not paths:
@@ -198,6 +214,8 @@ def load_sequences(data_dir: Path, spec: FeatureSpec, max_recordings: int = 0,
             label = slip_span_labels(label, rec.meta.get("events") or {}, rec.t_us / 1e6).astype(np.uint8)
         elif label_span == "sliding":
             label = sliding_span_labels(label, rec.slip, rec.meta.get("events") or {}, rec.t_us / 1e6)
+        if skip_partial and is_partial_slip(label, rec.slip, rec.force - offset):
+            continue
         seqs.append(Seq(rec.force - offset, label, rec.slip))
         names.append(path.name)
     return seqs, names
@@ -235,6 +253,8 @@ def augment_epoch(
             seq = contact_shape(seq, rng)
         if "sensor" in augs:
             seq = sensor_model(seq, rng)
+        if "friction" in augs:
+            seq = friction_scale(seq, rng)
         if "slow" in augs:
             seq = stretch(seq, rng)
         if "speed" in augs:
@@ -580,6 +600,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--exclude-family", action="append", default=[],
                    help="leave out every recording of this physics family (meta physics_family; the offline and "
                         "transfer sets are stick_slip); repeatable: leave-one-family-out folds")
+    p.add_argument("--skip-partial", action="store_true",
+                   help="leave out recordings without a labelled sample in which loaded pillars slide for 20 ms or "
+                        "more (stops and holds that slipped part way): the engine's evaluation scores no outcome "
+                        "for such a recording")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-eval", action="store_true", help="skip the eval-mode pass over all data per member")
@@ -690,7 +714,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         pool, names = [], []
         for folder in args.data:
-            p, n = load_sequences(folder, spec, args.max_recordings, args.label_span, tuple(args.exclude_family))
+            p, n = load_sequences(folder, spec, args.max_recordings, args.label_span, tuple(args.exclude_family),
+                                  args.skip_partial)
             pool += p
             names += n
     except RecordingError as exc:

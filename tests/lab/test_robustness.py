@@ -71,3 +71,16 @@ def test_robustness_tool_runs_end_to_end(tmp_path, capsys):
     assert metrics["robust_test_success"] == round(fam["success"], 4)
     assert metrics["robustness"]["lofo"]["viscoelastic"]["success"] == report["lofo"]["viscoelastic"]["success"]
     assert metrics["holds_p_slip_margin"] == round(holds["all"]["margin"], 4)
+
+
+def test_the_bare_heuristics_flag_keeps_both_heuristics():
+    import argparse
+
+    from sliplab.robustness import BASELINES, detectors
+
+    def names(heuristics):
+        ns = argparse.Namespace(model=None, baselines="/nonexistent.json", heuristics=heuristics, authors=None)
+        return [d["name"] for d in detectors(ns)]
+
+    assert names(None) == names([]) == sorted(BASELINES)
+    assert names(["reference_pillar"]) == ["reference_pillar"]

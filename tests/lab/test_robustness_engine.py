@@ -57,8 +57,18 @@ def test_engine_holdout_report_shape(tmp_path, capsys):
     assert eng["all"]["partial"] == partial and 0 <= eng["all"]["partial_alarmed"] <= partial
     assert "light_grasp" in eng["categories"] and eng["light_grasp_success"] is not None
     assert eng["slow_load_success"] is None  # no slow load among the four
+    whole = eng["all"]
+    if whole["slip"]:
+        assert eng["slip_recall"] == pytest.approx(
+            (eng["offline_success"] * (whole["slip"] + whole["stop"]) - whole["stop"] + whole["stop_alarmed"])
+            / whole["slip"])
+    assert eng["balanced_success"] is None or 0.0 <= eng["balanced_success"] <= 1.0
     rev = report["reverse_holdout"]["slipd"]
     assert rev["online_success"] is None and rev["light_grasp_success"] is None  # a hexapod slip: offline only
     printed = capsys.readouterr().out
     for title in ("Engine held out", "Reverse: trained on the engine only"):
         assert title in printed and title in out.with_suffix(".md").read_text()
+    # The floor beside the detectors: a detector that never alarms leaves every no-slip recording quiet.
+    quiet = whole["stop"] / (whole["slip"] + whole["stop"]) if whole["slip"] + whole["stop"] else None
+    if quiet is not None:
+        assert "(never alarms)" in printed and f"{100 * quiet:.1f} %" in printed

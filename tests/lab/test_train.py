@@ -185,6 +185,22 @@ def test_the_sensor_model_scales_leaks_and_filters_but_keeps_the_truth() -> None
         np.testing.assert_allclose(o.force, np.broadcast_to(o.force[:1], o.force.shape), rtol=1e-5)
 
 
+def test_friction_scales_every_tangential_force_by_one_gain_and_keeps_the_rest() -> None:
+    seq = _seq(np.random.default_rng(6), n=500)
+    gains = []
+    for k in range(40):
+        out = A.friction_scale(seq, np.random.default_rng(k), p=1.0)
+        np.testing.assert_array_equal(out.force[:, :, 2], seq.force[:, :, 2])
+        np.testing.assert_array_equal(out.label, seq.label)
+        g = out.force[:, :, :2] / np.where(seq.force[:, :, :2] == 0, 1.0, seq.force[:, :, :2])
+        g = g[seq.force[:, :, :2] != 0]
+        np.testing.assert_allclose(g, g[0], rtol=1e-5)  # one gain for every pillar, axis and sample
+        gains.append(float(g[0]))
+    assert min(gains) >= A.FRICTION_GAIN[0] and max(gains) <= A.FRICTION_GAIN[1]
+    assert min(gains) < 1.0 < max(gains)  # both more and less friction are drawn
+    assert A.friction_scale(seq, np.random.default_rng(3), p=0.0) is seq
+
+
 def test_stretch_plays_a_sequence_slower_with_its_labels() -> None:
     seq = _seq(np.random.default_rng(6), n=1000)
     out = A.stretch(seq, np.random.default_rng(3), p=1.0)
@@ -411,3 +427,23 @@ def test_early_weights_mark_the_first_windows_of_each_positive_run() -> None:
     assert w[0].tolist() == [1, 5, 5, 1, 1, 5, 5, 1, 1, 1]
     assert w[1].tolist() == [5, 5, 1, 5, 5, 1, 1, 1, 1, 1]
     assert torch.equal(T.early_weights(y, keep, 0, 5.0), torch.ones(2, 10))
+
+
+def test_a_partial_slip_is_a_recording_without_a_label_whose_loaded_pillars_slide() -> None:
+    n = 200
+    force = np.zeros((n, 9, 3), np.float32)
+    force[:, 0, 2] = 2.0  # pillar 0 loaded, pillar 1 barely touching
+    force[:, 1, 2] = 0.1
+    slip = np.zeros((n, 9), bool)
+    label = np.zeros(n, np.uint8)
+    assert not T.is_partial_slip(label, slip, force)
+    slip[50:50 + T.PARTIAL_SLIP_SAMPLES - 1, 0] = True
+    assert not T.is_partial_slip(label, slip, force)  # one sample short
+    slip[100, 0] = True
+    assert T.is_partial_slip(label, slip, force)
+    assert not T.is_partial_slip(label, None, force)  # no truth: nothing to say
+    light = np.zeros((n, 9), bool)
+    light[:, 1] = True
+    assert not T.is_partial_slip(label, light, force)  # an unloaded pillar sliding is not the contact slipping
+    label[150] = 1
+    assert not T.is_partial_slip(label, slip, force)  # a labelled slip is a slip
