@@ -20,11 +20,12 @@ from pathlib import Path
 import numpy as np
 
 from slipd.detect.baselines import load_params
+from slipd.detect.features import stretch_offset
 from slipd.recording import Recording, list_recordings
 from sliplab.evaluate import evaluate_paths
 from sliplab.metrics import EARLY_TOLERANCE_S, NO_SLIP_KINDS
 from sliplab.robustness import DEFAULT_BASELINES
-from sliplab.train import sliding_span_labels, slip_span_labels
+from sliplab.train import is_partial_slip, sliding_span_labels, slip_span_labels
 
 LIGHT_ONSET_N = 0.5
 """The SDK's contact flag: below it a pillar reads as out of contact to every detector's input (the model's
@@ -52,7 +53,7 @@ def onset_pillars(rec: Recording, onset_s: float) -> tuple[list[int], list[float
     if rec.slip is None:
         return [], []
     stretch = rec.meta.get("tare_samples", [0, 100])
-    fz = rec.force[i, :, 2] - rec.force[int(stretch[0]):int(stretch[1]), :, 2].mean(axis=0)
+    fz = rec.force[i, :, 2] - stretch_offset(rec.force, stretch)[:, 2]
     idx = [int(k) for k in np.flatnonzero(np.nan_to_num(rec.slip[i]) > 0)]
     return idx, [round(float(fz[k]), 3) for k in idx]
 
@@ -100,8 +101,12 @@ def run(data: Path, models: list[str]) -> dict:
 def label_stats(data: Path) -> dict:
     """How a training split's labels treat sliding: its slips, those without a labelled sample (no incipient stage),
     and the samples where a pillar slides while the grasp is in contact (a pillar above the contact flag), labelled
-    slip or not under the training spans ``slip`` and ``sliding`` (``sliplab.train``), by recording kind."""
-    out: dict = {"recordings": 0, "slips": 0, "slips_unlabelled": 0}
+    slip or not under the training spans ``slip`` and ``sliding`` (``sliplab.train``), by recording kind; the partial
+    slips ``sliplab.train --skip-partial`` leaves out; and where the sliding pillars' friction utilisation |Ft| / Fz
+    lies (percentiles 10, 50 and 90 over the samples in which a pillar in contact slides): a sliding pillar carries
+    its friction coefficient, so this is the range of friction the split's slips teach."""
+    out: dict = {"recordings": 0, "slips": 0, "slips_unlabelled": 0, "partial_slips": 0}
+    utils = []
     for path in list_recordings(data):
         rec = Recording.load(path)
         if rec.label is None or rec.slip is None:
@@ -112,8 +117,13 @@ def label_stats(data: Path) -> dict:
             out["slips"] += 1
             out["slips_unlabelled"] += int(not np.any(rec.label))
         stretch = rec.meta.get("tare_samples", [0, 100])
-        fz = rec.force[:, :, 2] - rec.force[int(stretch[0]):int(stretch[1]), :, 2].mean(axis=0)
-        sliding = (np.nan_to_num(rec.slip) > 0).any(axis=1) & (fz > LIGHT_ONSET_N).any(axis=1)
+        force = rec.force - stretch_offset(rec.force, stretch)
+        fz = force[:, :, 2]
+        slides = np.nan_to_num(rec.slip) > 0
+        sliding = slides.any(axis=1) & (fz > LIGHT_ONSET_N).any(axis=1)
+        out["partial_slips"] += int(is_partial_slip(rec.label, slides, force))
+        loaded = slides & (fz > LIGHT_ONSET_N)
+        utils.append(np.hypot(force[:, :, 0], force[:, :, 1])[loaded] / fz[loaded])
         events, t_s = rec.meta.get("events") or {}, rec.t_us / 1e6
         for span, lab in (("slip", slip_span_labels(rec.label, events, t_s)),
                           ("sliding", sliding_span_labels(rec.label, rec.slip, events, t_s))):
@@ -121,6 +131,9 @@ def label_stats(data: Path) -> dict:
                                                                    "sliding labelled no slip": 0})
             d["sliding labelled slip"] += int((sliding & (lab > 0)).sum())
             d["sliding labelled no slip"] += int((sliding & (lab == 0)).sum())
+    u = np.concatenate(utils) if utils else np.zeros(0)
+    out["sliding_utilisation_p10_p50_p90"] = [round(float(v), 2) for v in np.percentile(u, [10, 50, 90])] \
+        if len(u) else None
     return out
 
 

@@ -32,6 +32,7 @@ def test_label_stats_count_sliding_that_the_slip_span_leaves_negative(tmp_path) 
     n = 600
     force = np.zeros((n, 9, 3), np.float32)
     force[150:, 4, 2] = 3.0  # in contact from 150 ms
+    force[300:500, 4, 0] = 1.2  # sliding at |Ft| / Fz = 0.4
     slip = np.zeros((n, 9), np.float32)
     slip[300:500, 4] = 1  # one pillar carried the grasp: it slides with no incipient stage
     rec = Recording(t_us=np.arange(n, dtype=np.int64) * 1000, force=force, disp=np.zeros_like(force), slip=slip,
@@ -42,3 +43,5 @@ def test_label_stats_count_sliding_that_the_slip_span_leaves_negative(tmp_path) 
     assert (stats["slips"], stats["slips_unlabelled"]) == (1, 1)
     assert stats["slip span, slip recordings"] == {"sliding labelled slip": 0, "sliding labelled no slip": 200}
     assert stats["sliding span, slip recordings"] == {"sliding labelled slip": 200, "sliding labelled no slip": 0}
+    assert stats["sliding_utilisation_p10_p50_p90"] == [0.4, 0.4, 0.4]
+    assert stats["partial_slips"] == 1  # no labelled sample, yet the loaded pillar slid for 200 ms
