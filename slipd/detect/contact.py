@@ -205,14 +205,22 @@ class ContactStream:
         # risk (``RISK_TOP_SHARE``, ``FRICTION_TOP_SHARE``).
         cut = RISK_TOP_SHARE * top
         p_top = [q if u >= cut else 0.0 for q, u in zip(p, util, strict=True)]
-        # (sum over a list: a generator's frame switches cost more than the nine additions)
-        pressing = grip > (1.0 + FRICTION_PRESS_RISE) * sum([z for _, _, z in first if z > CONTACT_THRESHOLD_N])
-        if pressing:
-            samples = [0.0] * N_PILLARS
+        for q in p:
+            if q >= 0.5:
+                # Some pillar slides: a friction sample unless the window is a press. (Only then: a sample needs a
+                # pillar at 0.5 or above, so a steady grasp skips the press test and the samples, decision after
+                # decision.)
+                # (sum over a list: a generator's frame switches cost more than the nine additions)
+                pressing = grip > (1.0 + FRICTION_PRESS_RISE) * sum([z for _, _, z in first if z > CONTACT_THRESHOLD_N])
+                if pressing:
+                    samples = [0.0] * N_PILLARS
+                else:
+                    cut = FRICTION_TOP_SHARE * top
+                    samples = [q if u >= cut else 0.0 for q, u in zip(p, util, strict=True)]
+                self.friction.add(util, fz, samples)
+                break
         else:
-            cut = FRICTION_TOP_SHARE * top
-            samples = [q if u >= cut else 0.0 for q, u in zip(p, util, strict=True)]
-        self.friction.add(util, fz, samples)
+            self.friction.add(util, fz, p)  # no pillar slides: no sample, the normal forces kept for the next one
         est = self.friction.refute(util, fz, p, FRICTION_REFUTE)
         mu = None if est is None else est.mu
         state = ContactState(
