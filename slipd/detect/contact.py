@@ -168,14 +168,15 @@ class ContactStream:
         w = window.reshape(self.spec.window, N_PILLARS, 3)
         # Nine pillars once per decision: plain floats (a numpy call on nine values costs more than its work).
         first, last = w[0].tolist(), w[-1].tolist()
-        # ``utilisation(last)`` and the contact's sums in one pass (the same operations, in the same order).
+        # ``utilisation(last)``, the contact's sums and the pillar estimate's largest rate in one pass (the same
+        # operations, in the same order).
         thr = CONTACT_THRESHOLD_N
         fz: list[float] = []
         util: list[float] = []
         contact: list[bool] = []
         grip = fx = fy = shear = pressed = top_pressed = 0.0
-        top = -1.0
-        for x, y, z in last:
+        top = ref = -1.0
+        for (x, y, z), (x0, y0, _) in zip(last, first):
             ft = math.hypot(x, y)
             u = ft / (z if z > thr else thr)
             c = z > thr
@@ -193,8 +194,11 @@ class ContactStream:
                 shear += ft
                 if u > top:
                     top = u
+                r = math.hypot(x - x0, y - y0)
+                if r > ref:
+                    ref = r
         if pillar_p is None:
-            p, source = self.pillars.step(first, last, (fz, util, contact)), "features"
+            p, source = self.pillars.step(first, last, (fz, util, contact), (ref, top)), "features"
         else:
             p, source = np.asarray(pillar_p, np.float64).tolist(), "model"
         if top < 0.0:
