@@ -164,13 +164,13 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int, viz
         decision = subs[-1].decision  # one sensor's decisions: the second finger's when there are two
         decision.threshold = 1e-9  # every window alarms ...
         decision.min_consecutive = 1  # (the alarm is cleared after each decision: no run of two could form)
-        update = decision.update
+        advance = decision.advance
 
-        def always_rising(p: float, pm: Any = None, may_raise: bool = True) -> Any:
+        def always_rising(p: float, may_raise: bool = True) -> tuple[bool, bool]:
             decision.reset()  # ... and rises again
-            return update(p, pm, may_raise)
+            return advance(p, may_raise)
 
-        decision.update = always_rising  # type: ignore[method-assign]
+        decision.advance = always_rising  # type: ignore[method-assign]
         emu.call("servo", "clear_writes")
 
         async def main() -> Any:

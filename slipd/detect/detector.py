@@ -459,9 +459,9 @@ class Detector:
                 self.resets += 1
         if is_open:
             return None
-        d = self.decision.update(0.0)
+        alarm, rising = self.decision.advance(0.0)
         self.last_step_s = None
-        return Detection(index, t_us, 0.0, float(d.risk), bool(d.alarm), bool(d.rising_edge), sensor=self.sensor)
+        return Detection(index, t_us, 0.0, self.decision.risk(0.0), alarm, rising, sensor=self.sensor)
 
     def _press(self, load: float, press_rise: float) -> None:
         """One window end's summed load (the tared normal forces of the pressed pillars; ``_gate``) -> ``pressing``:
@@ -486,9 +486,10 @@ class Detector:
             return Detection(index, t_us, float("nan"), 0.0, bool(self.decision.alarm), False, valid=False,
                              sensor=self.sensor, contact=contact)
         # The members' agreement (``DecisionResult.members_alarming``) is evaluation's: a Detection does not carry it.
-        d = self.decision.update(float(p_slip), None, may_raise=not self.pressing)
-        return Detection(index, t_us, float(p_slip), float(d.risk), bool(d.alarm), bool(d.rising_edge),
-                         sensor=self.sensor, contact=contact)
+        p = float(p_slip)
+        decision = self.decision
+        alarm, rising = decision.advance(p, not self.pressing)
+        return Detection(index, t_us, p, decision.risk(p), alarm, rising, sensor=self.sensor, contact=contact)
 
 
 class HeuristicDetector:

@@ -123,7 +123,7 @@ class MultiDetector:
         out: list[tuple[int, Detection]] = []
         self.step_seconds = []
         i = 0
-        while i < k and not all(d._tared for d in subs):
+        while i < k and not self._tared():
             # The start-up tare holds samples back and replays them: rare, sample by sample (each sensor's
             # replayed windows step its own row).
             for s, d in enumerate(subs):
@@ -177,6 +177,7 @@ class MultiDetector:
                 self.last_step_s = step_s
             # The call's outputs as plain values once (indexing an array per sensor makes a numpy scalar each time).
             ps, oks = (p.tolist(), ok.tolist()) if p is not None and ok is not None else ([], [])
+            pillar_rows = self.ensemble.pillar_rows
             for s, d in enumerate(subs):
                 det = gated[s]
                 if group is not None:
@@ -184,9 +185,8 @@ class MultiDetector:
                 else:
                     f_s, state = wins[s][m][2], wins[s][m][3]
                 if det is None:
-                    rows = self.ensemble.pillar_rows
                     valid = bool(oks[s])
-                    d.set_pillars(rows[s] if valid and rows is not None else None)
+                    d.set_pillars(pillar_rows[s] if valid and pillar_rows is not None else None)
                     det = d._finish(float(ps[s]), valid, t, idx, d.contact_state(f_s, state))
                     d.last_step_s = step_s
                     self.step_seconds.append(step_s)
@@ -197,6 +197,13 @@ class MultiDetector:
                     det = det.with_contact(d.contact_state(f_s, state))
                 out.append((kk, det))
         return out
+
+    def _tared(self) -> bool:
+        """Every sensor past its start-up tare (a loop: ``all`` over a generator costs more, once per block)."""
+        for d in self.detectors:  # noqa: SIM110 -- the generator costs more
+            if not d._tared:
+                return False
+        return True
 
     def _gates(self, frame: np.ndarray, t_us: int, index: int) -> list[Detection | None]:
         """Every sensor's ``Detector._gate`` on one window end's frame [S, 9, 3], the arithmetic of all sensors in one
