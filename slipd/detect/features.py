@@ -395,11 +395,9 @@ def window_labels(label: np.ndarray, ends: np.ndarray) -> np.ndarray:
 class FeatureStream:
     """Streaming form of ``batch_windows``: push one raw sample at a time, get a window when one completes.
 
-    Memory is constant: a history of ``median - 1 + window`` prepared samples, and beside it their median-filtered
-    values. The median runs when a window completes, with the same vectorised call as the batch path, on the samples
-    that came since the window before: consecutive windows overlap (``stride < window``), and a filtered sample depends
-    only on the ``median`` prepared samples up to it, so the overlap is kept, not filtered again. Both paths give
-    bit-identical windows (each filtered value is one of its inputs) and the per-sample cost is a copy into a ring.
+    Memory is constant: a history of ``median - 1 + window`` prepared samples. The median of a whole
+    window is computed once, when the window completes, with the same vectorised call as the batch
+    path, so both give bit-identical windows and the per-sample cost is a copy into a ring.
     """
 
     def __init__(self, spec: FeatureSpec, offset: np.ndarray | None = None, derive: bool = True) -> None:
@@ -407,7 +405,6 @@ class FeatureStream:
         self._derive = spec.derive if derive else _identity
         """``derive=False``: windows of the filtered base columns (stage 5, [window * n_base]), left for the caller
         to derive; the detector then reads one filtered window for both its model and the contact state."""
-        self._copy = not (derive and spec.derived)  # a window of the filtered history itself: copied for the caller
         self._cols = np.array(spec.columns, dtype=np.intp)
         self._all_cols = spec.columns == tuple(range(N_PILLARS * 3))  # every column, in order: no selection
         self._clip = np.tile(CLIP_N, N_PILLARS)
@@ -415,8 +412,6 @@ class FeatureStream:
         # Linear buffer twice the history: writes append, and a shift happens once per history
         # length, so the window is always a contiguous slice (no per-sample allocation).
         self._buf = np.zeros((2 * self._hist_len, spec.n_base), np.float32)
-        self._fbuf = np.zeros_like(self._buf)
-        """Row r: the median of ``_buf`` rows r - median + 1 .. r, filled up to ``_fend`` (``_filtered``)."""
         self._last_good = np.zeros(N_PILLARS * 3, np.float32)
         self._scratch = np.zeros(N_PILLARS * 3, np.float32)
         self._abs = np.zeros(N_PILLARS * 3, np.float32)
@@ -445,7 +440,6 @@ class FeatureStream:
         """Forget the history (after a reconnect or a gap): the next sample restarts the stream."""
         self._n = 0  # samples since reset
         self._end = 0  # one past the newest row in _buf
-        self._fend = 0  # one past the newest filtered row in _fbuf (from the first sample's row on)
         self._last_good[:] = 0.0
 
     @property
@@ -475,32 +469,24 @@ class FeatureStream:
         if self._n == 0:
             # Edge padding: the history starts as copies of the first sample.
             self._buf[: spec.median - 1] = row
-            self._end = self._fend = spec.median - 1
+            self._end = spec.median - 1
         if self._end == len(self._buf):
-            self._shift()
+            keep = self._hist_len - 1
+            self._buf[:keep] = self._buf[self._end - keep : self._end]
+            self._end = keep
         self._buf[self._end] = row
         self._end += 1
         self._n += 1
         n = self._n
         if n < spec.window or (n - spec.window) % spec.step:
             return None
-        return self._window(self._end)
+        return self._window(self._buf[self._end - self._hist_len : self._end])
 
-    def _window(self, end: int) -> np.ndarray:
-        """The flattened window that ends before history row ``end``, a fresh array the caller owns."""
-        out: np.ndarray = self._derive(self._filtered(end)).reshape(-1)
-        return out.copy() if self._copy else out
-
-    def _filtered(self, end: int) -> np.ndarray:
-        """The filtered window that ends before history row ``end`` (a view of ``_fbuf``), filtering the rows not
-        filtered yet: the samples since the window before, or the whole window after a restart or a shift."""
-        window = self.spec.window
-        lo = max(self._fend, end - window)
-        if lo < end:
-            width = self.spec.median
-            self._fbuf[lo:end] = causal_median_tail(self._buf[lo - width + 1 : end], width)
-            self._fend = end
-        return self._fbuf[end - window : end]
+    def _window(self, hist: np.ndarray) -> np.ndarray:
+        """The flattened window that ends a history slice, a fresh array the caller owns: the median's output is one
+        (width 1 reads the history itself: copied)."""
+        out: np.ndarray = self._derive(causal_median_tail(hist, self.spec.median)).reshape(-1)
+        return out.copy() if self.spec.median == 1 else out
 
     def push_many(self, samples: np.ndarray) -> list[tuple[int, np.ndarray]]:
         """Add a block of raw samples ([k, 9, 3] or [k, 27]) at once; ``push`` for each, in one pass.
@@ -555,7 +541,7 @@ class FeatureStream:
         spec = self.spec
         if self._n == 0:
             self._buf[: spec.median - 1] = rows[0]
-            self._end = self._fend = spec.median - 1
+            self._end = spec.median - 1
         n0 = self._n
         first = first_window_end(n0, spec)
         out = []
@@ -563,7 +549,8 @@ class FeatureStream:
         for i in range(first, k, spec.step):
             self._append(rows[done : i + 1])
             done = i + 1
-            out.append((i, self._window(self._end)))
+            hist = self._buf[self._end - self._hist_len : self._end]
+            out.append((i, self._window(hist)))
         self._append(rows[done:])
         self._n = n0 + k
         return out
@@ -576,7 +563,8 @@ class FeatureStream:
         first = first_window_end(n0, spec)
         out = []
         for i in range(first, k, spec.step):
-            out.append((i, self._window(end + i + 1)))
+            hist = self._buf[end + i + 1 - self._hist_len : end + i + 1]
+            out.append((i, self._window(hist)))
         self._end = end + k
         self._n = n0 + k
         return out
@@ -593,12 +581,8 @@ class FeatureStream:
         """Move the history to the buffer's start, keeping what the next window's median needs (the same rows push
         keeps when it shifts)."""
         keep = self._hist_len - 1
-        cut = self._end - keep
-        self._buf[:keep] = self._buf[cut : self._end]
-        # The filtered rows move with their samples; only rows from the first sample's on are ever read.
-        fend = max(self._fend - cut, self.spec.median - 1)
-        self._fbuf[:fend] = self._fbuf[cut : cut + fend]
-        self._end, self._fend = keep, fend
+        self._buf[:keep] = self._buf[self._end - keep : self._end]
+        self._end = keep
 
 
 class StreamGroup:
@@ -619,15 +603,12 @@ class StreamGroup:
             raise ValueError("a stream group needs streams of one spec that select every column")
         ns, nb = len(self.streams), first.spec.n_base
         self._buf = np.zeros((len(first._buf), ns * nb), np.float32)
-        self._fbuf = np.zeros_like(self._buf)
         self._offset = np.zeros((ns, nb), np.float32)
         self._last_good = np.zeros((ns, nb), np.float32)
         for s, st in enumerate(self.streams):
             cols = slice(s * nb, (s + 1) * nb)
             self._buf[:, cols] = st._buf
             st._buf = self._buf[:, cols]
-            self._fbuf[:, cols] = st._fbuf
-            st._fbuf = self._fbuf[:, cols]
             self._offset[s] = st._offset
             st._offset = self._offset[s]
             self._last_good[s] = st._last_good
@@ -645,9 +626,8 @@ class StreamGroup:
     def push_many(self, samples: np.ndarray) -> list[tuple[int, np.ndarray]] | None:
         """A block of raw samples [k, S, 9, 3] into every stream at once: ``(i, windows)`` for each sample
         ``samples[i]`` that ends a window, ``windows`` the streams' filtered windows side by side ([window, S * n_base],
-        stream ``s`` in columns ``s * n_base ..``; each stream's ``push_many`` returns the same values; a view of the
-        streams' filtered histories, valid until the next push), and each stream advanced as its own ``push_many``
-        would. None, with nothing pushed, unless the block is the common one (the
+        stream ``s`` in columns ``s * n_base ..``; each stream's ``push_many`` returns the same values), and each stream
+        advanced as its own ``push_many`` would. None, with nothing pushed, unless the block is the common one (the
         streams under way in lockstep, every value finite and within the clip): push it stream by stream then."""
         streams = self.streams
         first = streams[0]
@@ -671,20 +651,15 @@ class StreamGroup:
             return None  # (the rows written after the histories' end are written again by each stream's push)
         self._last_good[:] = x[-1].reshape(self._last_good.shape)
         spec = first.spec
-        window, width = spec.window, spec.median
-        fend = min(st._fend for st in streams)  # (every stream's rows are filtered up to here)
+        hist_len, width = first._hist_len, spec.median
+        start = first_window_end(n0, spec)
         out = []
-        for i in range(first_window_end(n0, spec), k, spec.step):
-            e = end + i + 1
-            lo = max(fend, e - window)  # (the rows every stream filtered already are the same values)
-            self._fbuf[lo:e] = causal_median_tail(self._buf[lo - width + 1 : e], width)
-            fend = e
-            out.append((i, self._fbuf[e - window : e]))
+        for i in range(start, k, spec.step):
+            hist = self._buf[end + i + 1 - hist_len : end + i + 1]
+            out.append((i, causal_median_tail(hist, width).copy() if width == 1 else sliding_median(hist, width)))
         for st in streams:
             st._end = end + k
             st._n = n0 + k
-            if out:
-                st._fend = fend
         return out
 
 
