@@ -33,8 +33,11 @@ def test_hot_path_reports_each_stage_and_restores_the_timed_code(sensors: int) -
     before = (Daemon.__dict__["_on_frames"], Detector.__dict__["contact_state"], Ensemble.__dict__["step_rows"])
     h = mod.hot_path_cost(MODEL, sensors, decisions=12, sleep_s=0.0)
     assert (Daemon.__dict__["_on_frames"], Detector.__dict__["contact_state"], Ensemble.__dict__["step_rows"]) == before
+    # The Python alone (onnxruntime's call skipped) is less than the path with the call.
+    assert h["python_back_to_back_us"] < h["back_to_back_us"]
     for key in ("back_to_back_us", "after_sleep_us", "back_to_back_p10_us", "model_back_to_back_us",
-                "model_after_sleep_us", "model_back_to_back_p10_us"):
+                "model_after_sleep_us", "model_back_to_back_p10_us", "python_back_to_back_us",
+                "python_back_to_back_p10_us"):
         assert h[key] > 0
     stages = h["stages_us"]
     assert list(stages) == [name for name, _ in mod.STAGES] + ["total", "untimed"]

@@ -168,14 +168,15 @@ class ContactStream:
         w = window.reshape(self.spec.window, N_PILLARS, 3)
         # Nine pillars once per decision: plain floats (a numpy call on nine values costs more than its work).
         first, last = w[0].tolist(), w[-1].tolist()
-        # ``utilisation(last)`` and the contact's sums in one pass (the same operations, in the same order).
+        # ``utilisation(last)``, the contact's sums and the pillar estimate's largest rate in one pass (the same
+        # operations, in the same order).
         thr = CONTACT_THRESHOLD_N
         fz: list[float] = []
         util: list[float] = []
         contact: list[bool] = []
         grip = fx = fy = shear = pressed = top_pressed = 0.0
-        top = -1.0
-        for x, y, z in last:
+        top = ref = -1.0
+        for (x, y, z), (x0, y0, _) in zip(last, first):
             ft = math.hypot(x, y)
             u = ft / (z if z > thr else thr)
             c = z > thr
@@ -193,8 +194,11 @@ class ContactStream:
                 shear += ft
                 if u > top:
                     top = u
+                r = math.hypot(x - x0, y - y0)
+                if r > ref:
+                    ref = r
         if pillar_p is None:
-            p, source = self.pillars.step(first, last, (fz, util, contact)), "features"
+            p, source = self.pillars.step(first, last, (fz, util, contact), (ref, top)), "features"
         else:
             p, source = np.asarray(pillar_p, np.float64).tolist(), "model"
         if top < 0.0:
@@ -205,14 +209,22 @@ class ContactStream:
         # risk (``RISK_TOP_SHARE``, ``FRICTION_TOP_SHARE``).
         cut = RISK_TOP_SHARE * top
         p_top = [q if u >= cut else 0.0 for q, u in zip(p, util, strict=True)]
-        # (sum over a list: a generator's frame switches cost more than the nine additions)
-        pressing = grip > (1.0 + FRICTION_PRESS_RISE) * sum([z for _, _, z in first if z > CONTACT_THRESHOLD_N])
-        if pressing:
-            samples = [0.0] * N_PILLARS
+        for q in p:
+            if q >= 0.5:
+                # Some pillar slides: a friction sample unless the window is a press. (Only then: a sample needs a
+                # pillar at 0.5 or above, so a steady grasp skips the press test and the samples, decision after
+                # decision.)
+                # (sum over a list: a generator's frame switches cost more than the nine additions)
+                pressing = grip > (1.0 + FRICTION_PRESS_RISE) * sum([z for _, _, z in first if z > CONTACT_THRESHOLD_N])
+                if pressing:
+                    samples = [0.0] * N_PILLARS
+                else:
+                    cut = FRICTION_TOP_SHARE * top
+                    samples = [q if u >= cut else 0.0 for q, u in zip(p, util, strict=True)]
+                self.friction.add(util, fz, samples)
+                break
         else:
-            cut = FRICTION_TOP_SHARE * top
-            samples = [q if u >= cut else 0.0 for q, u in zip(p, util, strict=True)]
-        self.friction.add(util, fz, samples)
+            self.friction.add(util, fz, p)  # no pillar slides: no sample, the normal forces kept for the next one
         est = self.friction.refute(util, fz, p, FRICTION_REFUTE)
         mu = None if est is None else est.mu
         state = ContactState(

@@ -68,6 +68,18 @@ class Decision:
         A non-finite or out-of-range ``p_slip`` raises ``ValueError`` and leaves the state unchanged.
         """
         p = float(p_slip)
+        alarm, rising = self.advance(p, may_raise)
+        frac = None
+        if p_members is not None:
+            # Five members once per decision: plain floats (float32 values compared exactly as float64).
+            pm = np.asarray(p_members).reshape(-1).tolist()
+            frac = sum(1 for v in pm if v >= self.threshold) / len(pm) if pm else 0.0
+        return DecisionResult(alarm, rising, self.risk(p), frac)
+
+    def advance(self, p_slip: float, may_raise: bool = True) -> tuple[bool, bool]:
+        """``update`` without its result object: (alarm, rising edge). The detector's call, once per decision and
+        sensor."""
+        p = p_slip
         if not (math.isfinite(p) and 0.0 <= p <= 1.0):
             raise ValueError(f"p_slip must be a probability in [0, 1], got {p_slip!r}")
         # Raised at the threshold; once raised, held down to threshold - hysteresis.
@@ -79,12 +91,11 @@ class Decision:
             alarm = may_raise and self._above >= self.min_consecutive
         rising = alarm and not self.alarm
         self.alarm = alarm
-        frac = None
-        if p_members is not None:
-            # Five members once per decision: plain floats (float32 values compared exactly as float64).
-            pm = np.asarray(p_members).reshape(-1).tolist()
-            frac = sum(1 for v in pm if v >= self.threshold) / len(pm) if pm else 0.0
-        return DecisionResult(alarm, rising, min(1.0, p / self.threshold), frac)
+        return alarm, rising
+
+    def risk(self, p_slip: float) -> float:
+        """The risk level of a probability (see the module docstring)."""
+        return min(1.0, p_slip / self.threshold)
 
 
 @dataclass(frozen=True, slots=True)

@@ -110,7 +110,7 @@ class ContactGate:
         self._alpha = float(min(1.0, period_s / self.BASELINE_TAU_S))
         self.open = False
         self._since: int | None = None  # sample index of the first check that disagreed with ``open``
-        self._baseline = np.zeros(9, np.float64)
+        self._baseline = np.zeros(9, np.float64)  # written in place (``MultiDetector`` holds the gates' side by side)
 
     def touching(self, fz_tared: np.ndarray) -> bool | None:
         """Raw contact of one sample: some pillar above the baseline by the SDK threshold (None: no finite value)."""
@@ -125,7 +125,11 @@ class ContactGate:
 
     def check(self, fz_tared: np.ndarray, index: int) -> tuple[bool, bool]:
         """One check at sample ``index``: update the baseline in free air, then the gate."""
-        touching = self.touching(fz_tared)
+        return self.follow(fz_tared, self.touching(fz_tared), index)
+
+    def follow(self, fz_tared: np.ndarray, touching: bool | None, index: int) -> tuple[bool, bool]:
+        """``check`` once the sample's raw contact is known (``touching(fz_tared)``; the fingers of a gripper have
+        theirs computed together, ``slipd.detect.multisensor``)."""
         if touching is False and not self.open:
             rel = np.asarray(fz_tared, np.float64) - self._baseline
             ok = np.isfinite(rel)
@@ -224,6 +228,11 @@ class Detector:
         self._load_i = 0
         self.pressing = False
         """The press hold is on: the latest window's summed normal force rose by ``press_rise`` in a window."""
+        # A window end's tared normal forces and their pressed part (``_gate``: written in place, read at once).
+        # (np.nansum costs ten times more on the hot path; add.reduce is ndarray.sum without its Python wrapper; the
+        # zeros an array: a scalar operand is the slow loop)
+        self._fz = np.zeros(9, np.float32)
+        self._fz_pressed = np.zeros(9, np.float32)
         self.index = -1
         self.windows = 0
         self.resets = 0
@@ -422,13 +431,19 @@ class Detector:
         if self.press_rise is None and not self.contact_gate:
             return None
         # Checked once per window, on its last sample (tared, as the model sees it).
-        fz = np.subtract(np.asarray(force, np.float32).reshape(9, 3)[:, 2], self.features.offset_z)
+        fz = np.subtract(np.asarray(force, np.float32).reshape(9, 3)[:, 2], self.features.offset_z, out=self._fz)
+        load = float(np.add.reduce(np.maximum(fz, _ZEROS, out=self._fz_pressed)))
+        return self._gated(fz, load, self.gate.touching(fz) if self.contact_gate else None, t_us, index)
+
+    def _gated(self, fz: np.ndarray, load: float, touching: bool | None, t_us: int, index: int) -> Detection | None:
+        """``_gate`` on a window end's tared normal forces ``fz`` [9], their summed load (pressed pillars only, the
+        press hold's) and raw contact (``ContactGate.touching``): computed here, or for every sensor at once."""
         if self.press_rise is not None:
-            self._press(fz, self.press_rise)
+            self._press(load, self.press_rise)
         if not self.contact_gate:
             return None
         was_open = self.gate.open
-        is_open, changed = self.gate.check(fz, index)
+        is_open, changed = self.gate.follow(fz, touching, index)
         if changed:
             if not is_open:
                 # Released: the next grasp may be another object (the contact state's own release test, no pillar
@@ -444,14 +459,13 @@ class Detector:
                 self.resets += 1
         if is_open:
             return None
-        d = self.decision.update(0.0)
+        alarm, rising = self.decision.advance(0.0)
         self.last_step_s = None
-        return Detection(index, t_us, 0.0, float(d.risk), bool(d.alarm), bool(d.rising_edge), sensor=self.sensor)
+        return Detection(index, t_us, 0.0, self.decision.risk(0.0), alarm, rising, sensor=self.sensor)
 
-    def _press(self, fz: np.ndarray, press_rise: float) -> None:
-        """One window end's tared normal forces [9] -> ``pressing``: the summed load against one window back."""
-        # (np.nansum costs ten times more on the hot path; add.reduce is ndarray.sum without its Python wrapper)
-        load = float(np.add.reduce(np.maximum(fz, _ZEROS)))  # (an array of zeros: a scalar operand is the slow loop)
+    def _press(self, load: float, press_rise: float) -> None:
+        """One window end's summed load (the tared normal forces of the pressed pillars; ``_gate``) -> ``pressing``:
+        that load against one window back."""
         if not math.isfinite(load):
             load = math.nan  # a non-finite sample: no rise can be measured against it, nor one window on
         before = self._loads[self._load_i]  # the slot written n_streams windows (one window) ago
@@ -472,9 +486,10 @@ class Detector:
             return Detection(index, t_us, float("nan"), 0.0, bool(self.decision.alarm), False, valid=False,
                              sensor=self.sensor, contact=contact)
         # The members' agreement (``DecisionResult.members_alarming``) is evaluation's: a Detection does not carry it.
-        d = self.decision.update(float(p_slip), None, may_raise=not self.pressing)
-        return Detection(index, t_us, float(p_slip), float(d.risk), bool(d.alarm), bool(d.rising_edge),
-                         sensor=self.sensor, contact=contact)
+        p = float(p_slip)
+        decision = self.decision
+        alarm, rising = decision.advance(p, not self.pressing)
+        return Detection(index, t_us, p, decision.risk(p), alarm, rising, sensor=self.sensor, contact=contact)
 
 
 class HeuristicDetector:

@@ -94,9 +94,10 @@ class FrictionEstimator:
         more than ``factor`` times it: a sticking tip carries at most mu_s, so its samples were misjudged ones. Returns
         the estimate that stands (None: none, or refuted)."""
         est = self.estimate()
+        if est is None:
+            return None
         floor = self._floor(fz)
-        if est is not None and any(q < 0.5 and w > floor and u > factor * est.mu
-                                   for u, w, q in zip(util, fz, p_slip, strict=True)):
+        if any(q < 0.5 and w > floor and u > factor * est.mu for u, w, q in zip(util, fz, p_slip, strict=True)):
             self.reset()
             return None
         return est

@@ -12,6 +12,7 @@ reacts to a rising edge on any of them.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from typing import cast
@@ -21,6 +22,7 @@ import numpy as np
 from slipd.detect.decision import Detection
 from slipd.detect.detector import Detector
 from slipd.detect.features import FeatureStream, StreamGroup
+from slipd.geometry import CONTACT_THRESHOLD_N
 
 
 class MultiDetector:
@@ -40,6 +42,17 @@ class MultiDetector:
         # model's layout): their feature streams run the common block as one (``StreamGroup``).
         self._group = StreamGroup([d.features for d in self.detectors]) if self.sensors > 1 and all(
             d._shared and d.features._all_cols for d in self.detectors) else None
+        self._shared = all(d._shared for d in self.detectors)
+        # The contact gates' free-air baselines side by side (each gate writes its row in place), and buffers for a
+        # window end's tared normal forces of every sensor: ``_gates`` checks all sensors in one pass.
+        self._baselines = np.zeros((self.sensors, 9), np.float64)
+        for s, d in enumerate(self.detectors):
+            self._baselines[s] = d.gate._baseline
+            d.gate._baseline = self._baselines[s]
+        self._fz = np.zeros((self.sensors, 9), np.float32)
+        self._fz_pressed = np.zeros((self.sensors, 9), np.float32)
+        self._rel = np.zeros((self.sensors, 9), np.float64)
+        self._zeros = np.zeros((self.sensors, 9), np.float32)
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
         """Model call time behind each returned detection: on the first stepped sensor of a call, None on
@@ -110,7 +123,7 @@ class MultiDetector:
         out: list[tuple[int, Detection]] = []
         self.step_seconds = []
         i = 0
-        while i < k and not all(d._tared for d in subs):
+        while i < k and not self._tared():
             # The start-up tare holds samples back and replays them: rare, sample by sample (each sensor's
             # replayed windows step its own row).
             for s, d in enumerate(subs):
@@ -125,7 +138,7 @@ class MultiDetector:
         n0 = subs[0].features.samples_seen
         # Detectors that share their filtered windows with the contact state (the shipped model's layout) derive the
         # model windows of all sensors in one pass, straight into the model call's batch.
-        shared = all(d._shared for d in subs)
+        shared = self._shared
         for d in subs:
             d.index += k - i
         # The common block through every sensor's feature stream at once: each window end's filtered windows of all
@@ -140,7 +153,8 @@ class MultiDetector:
         for m, j in enumerate(ends):
             kk = i + j
             t, idx = int(t_us[kk]), base + kk
-            gated = [d._gate(x[kk, s], t, idx) for s, d in enumerate(subs)]
+            gated = self._gates(x[kk], t, idx) if group is not None else [
+                d._gate(x[kk, s], t, idx) for s, d in enumerate(subs)]
             stepping = [g is None for g in gated]
             # Every sensor in contact (a grasp, decision after decision): one array made once, no new one per call.
             active = self._all_rows if all(stepping) else np.array(stepping)
@@ -163,6 +177,7 @@ class MultiDetector:
                 self.last_step_s = step_s
             # The call's outputs as plain values once (indexing an array per sensor makes a numpy scalar each time).
             ps, oks = (p.tolist(), ok.tolist()) if p is not None and ok is not None else ([], [])
+            pillar_rows = self.ensemble.pillar_rows
             for s, d in enumerate(subs):
                 det = gated[s]
                 if group is not None:
@@ -170,9 +185,8 @@ class MultiDetector:
                 else:
                     f_s, state = wins[s][m][2], wins[s][m][3]
                 if det is None:
-                    rows = self.ensemble.pillar_rows
                     valid = bool(oks[s])
-                    d.set_pillars(rows[s] if valid and rows is not None else None)
+                    d.set_pillars(pillar_rows[s] if valid and pillar_rows is not None else None)
                     det = d._finish(float(ps[s]), valid, t, idx, d.contact_state(f_s, state))
                     d.last_step_s = step_s
                     self.step_seconds.append(step_s)
@@ -182,6 +196,36 @@ class MultiDetector:
                     d.pillar_p = None
                     det = det.with_contact(d.contact_state(f_s, state))
                 out.append((kk, det))
+        return out
+
+    def _tared(self) -> bool:
+        """Every sensor past its start-up tare (a loop: ``all`` over a generator costs more, once per block)."""
+        for d in self.detectors:  # noqa: SIM110 -- the generator costs more
+            if not d._tared:
+                return False
+        return True
+
+    def _gates(self, frame: np.ndarray, t_us: int, index: int) -> list[Detection | None]:
+        """Every sensor's ``Detector._gate`` on one window end's frame [S, 9, 3], the arithmetic of all sensors in one
+        pass (the same operations on the same values, row by row; the tare offsets are the stream group's)."""
+        assert self._group is not None
+        fz = np.subtract(frame[:, :, 2], self._group._offset[:, 2::3], out=self._fz)
+        loads = np.add.reduce(np.maximum(fz, self._zeros, out=self._fz_pressed), axis=1).tolist()
+        tops = np.fmax.reduce(np.subtract(fz, self._baselines, out=self._rel), axis=1).tolist()
+        out: list[Detection | None] = []
+        thr = CONTACT_THRESHOLD_N
+        for s, d in enumerate(self.detectors):
+            if d.press_rise is None and not d.contact_gate:
+                out.append(None)
+                continue
+            top = tops[s]
+            if not d.contact_gate:
+                touching = None
+            elif math.isfinite(top):
+                touching = top > thr
+            else:  # (rare: an infinite or no finite pillar; ``touching`` tells them apart)
+                touching = d.gate.touching(fz[s])
+            out.append(d._gated(fz[s], loads[s], touching, t_us, index))
         return out
 
     def _stacked_rows(self, windows: np.ndarray) -> np.ndarray:

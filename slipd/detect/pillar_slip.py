@@ -109,20 +109,25 @@ class PillarSlip:
         return np.array(self.step(w[0].tolist(), w[-1].tolist()))
 
     def step(self, first: list[list[float]], last: list[list[float]],
-             ends: tuple[list[float], list[float], list[bool]] | None = None) -> list[float]:
+             ends: tuple[list[float], list[float], list[bool]] | None = None,
+             peaks: tuple[float, float] | None = None) -> list[float]:
         """``update`` on a window's first and last samples (``[[fx, fy, fz], ...]``: only those two matter). Plain
         loops over the nine pillars: this runs on the hot path once per decision and sensor. ``ends``:
-        ``utilisation(last)`` where the caller has it already."""
+        ``utilisation(last)``, and ``peaks`` the largest rate and utilisation of the pillars in contact (-1 for none),
+        where the caller has them already."""
         p = self.p
         fz, util, contact = ends or utilisation(last)
-        ref = top = -1.0
-        for (ax, ay, _), (bx, by, _), c, u in zip(first, last, contact, util):
-            if c:  # the largest rate and utilisation in contact (``max`` keeps the first of equals, as here)
-                r = math.hypot(bx - ax, by - ay)
-                if r > ref:
-                    ref = r
-                if u > top:
-                    top = u
+        if peaks is None:
+            ref = top = -1.0
+            for (ax, ay, _), (bx, by, _), c, u in zip(first, last, contact, util):
+                if c:  # the largest rate and utilisation in contact (``max`` keeps the first of equals, as here)
+                    r = math.hypot(bx - ax, by - ay)
+                    if r > ref:
+                        ref = r
+                    if u > top:
+                        top = u
+        else:
+            ref, top = peaks
         if ref < 0.0:  # no pillar in contact
             self.reset()
             return self.probability_list()
