@@ -21,13 +21,14 @@ import numpy as np
 
 from slipd.detect.baselines import load_params
 from slipd.detect.features import stretch_offset
+from slipd.geometry import CONTACT_THRESHOLD_N
 from slipd.recording import Recording, list_recordings
 from sliplab.evaluate import evaluate_paths
 from sliplab.metrics import EARLY_TOLERANCE_S, NO_SLIP_KINDS
 from sliplab.robustness import DEFAULT_BASELINES
 from sliplab.train import is_partial_slip, sliding_span_labels, slip_span_labels
 
-LIGHT_ONSET_N = 0.5
+LIGHT_ONSET_N = CONTACT_THRESHOLD_N
 """The SDK's contact flag: below it a pillar reads as out of contact to every detector's input (the model's
 utilisation divides by at least 0.5 N; the heuristics' speeds skip such pillars)."""
 SHORT_INCIPIENT_S = 0.03

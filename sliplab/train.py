@@ -214,9 +214,10 @@ def load_sequences(data_dir: Path, spec: FeatureSpec, max_recordings: int = 0,
             label = slip_span_labels(label, rec.meta.get("events") or {}, rec.t_us / 1e6).astype(np.uint8)
         elif label_span == "sliding":
             label = sliding_span_labels(label, rec.slip, rec.meta.get("events") or {}, rec.t_us / 1e6)
-        if skip_partial and is_partial_slip(label, rec.slip, rec.force - offset):
+        force = rec.force - offset
+        if skip_partial and is_partial_slip(label, rec.slip, force):
             continue
-        seqs.append(Seq(rec.force - offset, label, rec.slip))
+        seqs.append(Seq(force, label, rec.slip))
         names.append(path.name)
     return seqs, names
 
