@@ -21,6 +21,9 @@ Families (hexapod scenes; gripper scenes keep the default):
                   while the tip stays put. Friction as in stick-slip, on the total force.
 ``mujoco``        the MuJoCo engine (``slipd.sim.engine``): physics none of the families above shares code with. It
                   runs engine scenes (``family: engine``) only; its parameters are the solver's settings.
+``bullet``        the same engine scenes on Bullet (``slipd.sim.engine.bullet``), a second physics code base: rigid
+                  contacts solved by sequential impulses on a box friction cone, where MuJoCo's are soft constraints
+                  on an elliptic cone.
 ``stribeck``      velocity-weakening friction: while sliding, mu(v) = mu_k + (mu_s - mu_k) exp(-v / v_s)
                   (v the tip's slip speed), and neighbouring tips are coupled through the membrane by a
                   spring ``coupling kt`` between their deflections (a tip that slips unloads or loads its
@@ -40,7 +43,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from slipd.geometry import HEIGHT_OFFSET_MM, N_PILLARS, PILLAR_XY_MM
 from slipd.sim.effects import scene_params
-from slipd.sim.engine.model import EngineParams
+from slipd.sim.engine.model import BulletParams, EngineParams
 from slipd.sim.physics import (
     DT_S,
     SensorParams,
@@ -157,6 +160,13 @@ class Stribeck(ContactModel):
 class Mujoco(ContactModel):
     name = "mujoco"
     Params = EngineParams
+    engine = True
+
+
+@register
+class Bullet(ContactModel):
+    name = "bullet"
+    Params = BulletParams
     engine = True
 
 

@@ -3,7 +3,8 @@ physics family, both sensors, randomised scenario timelines), ``holds`` (long no
 ``grips`` (gripper trials whose grip closes at random rates and holds still for random times before the move).
 
 ``engine`` (grasps on the MuJoCo engine, ``slipd.sim.engine.draws``: physics written independently of this simulator)
-is tagged the same way (physics family ``engine``, its scenario).
+and ``bullet`` (the same scenarios, drawn afresh, on the Bullet engine: a second independent physics) are tagged the
+same way (physics family ``engine`` or ``bullet``, the scenario).
 
 ``robust``, ``holds`` and ``grips`` recordings carry ``meta["physics_family"]`` (one of ``FAMILIES``) and
 ``meta["scenario"]`` (the scenario kind: ``ROBUST_SCENARIOS`` or ``HOLD_TYPES``), also listed per recording in
@@ -26,8 +27,8 @@ from typing import Any
 import numpy as np
 
 from slipd.geometry import CORNERS, HEIGHT_OFFSET_MM
+from slipd.sim.engine.draws import BULLET_FAMILY, engine_scene
 from slipd.sim.engine.draws import PHYSICS_FAMILY as ENGINE_FAMILY
-from slipd.sim.engine.draws import engine_scene
 from slipd.sim.physics import compression_for_force, sensor_params
 from slipd.sim.scene import (
     GENERATOR_VERSION,
@@ -39,11 +40,12 @@ from slipd.sim.scene import (
     secure_grip_n,
 )
 
-SETS = ("offline", "transfer", "robust", "holds", "grips", "twists", "engine")
+SETS = ("offline", "transfer", "robust", "holds", "grips", "twists", "engine", "bullet")
 SPLITS = ("train", "test")
 _SPLIT_BASE = {"train": 0, "test": 1 << 30}
-_SET_ID = {"offline": 1, "transfer": 2, "robust": 3, "holds": 4, "grips": 5, "twists": 6, "engine": 7}
-_TAGGED = ("robust", "holds", "grips", "twists", "engine")
+_SET_ID = {"offline": 1, "transfer": 2, "robust": 3, "holds": 4, "grips": 5, "twists": 6, "engine": 7, "bullet": 8}
+_ENGINES = ("engine", "bullet")
+_TAGGED = ("robust", "holds", "grips", "twists", "engine", "bullet")
 
 # Effects of a realistic measurement chain, listed by every data-set scene.
 MEASUREMENT = [{"name": "lowpass"}, {"name": "noise"}, {"name": "quantisation"}]
@@ -214,7 +216,8 @@ def dataset_scenes(set_name: str, split: str, count: int | None, seed: int,
         for i in range(n):
             rng = np.random.default_rng([_SET_ID[set_name], _SPLIT_BASE[split] >> 20, seed, i])
             d = (robust_scene(rng, i) if set_name == "robust" else grip_scene(rng, i) if set_name == "grips"
-                 else twist_scene(rng, i) if set_name == "twists" else engine_scene(rng, i) if set_name == "engine"
+                 else twist_scene(rng, i) if set_name == "twists"
+                 else engine_scene(rng, i, "mujoco" if set_name == "engine" else "bullet") if set_name in _ENGINES
                  else hold_scene(rng, i, hold_s))
             out.append((d, scene_seed(set_name, split, seed, i)))
         return out
@@ -280,7 +283,7 @@ def write_dataset(set_name: str, split: str, out: str | Path, count: int | None 
         "recordings": entries,
     }
     if set_name in _TAGGED:
-        fams = (ENGINE_FAMILY,) if set_name == "engine" else FAMILIES
+        fams = (ENGINE_FAMILY,) if set_name == "engine" else (BULLET_FAMILY,) if set_name == "bullet" else FAMILIES
         index["physics_family"] = {f: sum(e.get("physics_family") == f for e in entries) for f in fams}
         index["scenario"] = {}
         for e in entries:

@@ -138,7 +138,7 @@ def test_engine_scenes_are_validated():
                      "motion": {"kind": "translation"}})
     with pytest.raises(SceneError, match="only signal and meta effects"):
         parse_scene(_scene({}, [{"op": "hold", "duration_s": 0.1}], effects=[{"name": "tilt"}]))
-    with pytest.raises(SceneError, match="engine scenes run on 'mujoco'"):
+    with pytest.raises(SceneError, match=r"engine scenes run on one of \('mujoco', 'bullet'\)"):
         parse_scene(_scene({}, [{"op": "hold", "duration_s": 0.1}], physics={"name": "stribeck"}))
     with pytest.raises(SceneError, match="shape"):
         parse_scene(_scene({"shape": "torus"}, [{"op": "hold", "duration_s": 0.1}]))

@@ -29,6 +29,8 @@ from slipd.sim.physics import sensor_params
 
 ENGINE_SCENARIOS = ("lift_slip", "secure_lift", "light_grasp", "curved", "slow_load", "stop", "hold", "push_twist")
 PHYSICS_FAMILY = "engine"
+BULLET_FAMILY = "bullet"
+"""The ``bullet`` set: the same scenarios drawn afresh and run on the second engine (``physics: {name: bullet}``)."""
 MEASUREMENT = [{"name": "lowpass"}, {"name": "noise"}, {"name": "quantisation"}]
 G = 9.81
 ARM_LEVELS = ((4.0, 10.0), (10.0, 50.0), (40.0, 100.0), (100.0, 500.0), (250.0, 1500.0))
@@ -129,8 +131,9 @@ def _slip_turn(index: int) -> bool:
     return (index // len(ENGINE_SCENARIOS)) % 10 in (0, 1, 3, 4, 6, 7, 9)
 
 
-def engine_scene(rng: np.random.Generator, index: int) -> dict[str, Any]:
-    """One scene of the ``engine`` set (a dict for ``parse_scene``, with ``_tags``)."""
+def engine_scene(rng: np.random.Generator, index: int, engine: str = "mujoco") -> dict[str, Any]:
+    """One scene of the ``engine`` set (``engine="bullet"``: of the ``bullet`` set), a dict for ``parse_scene`` with
+    ``_tags``."""
     scenario = ENGINE_SCENARIOS[index % len(ENGINE_SCENARIOS)]
     sensor = str(rng.choice(["v1", "v2"]))
     grav = _gravity(rng)
@@ -182,7 +185,8 @@ def engine_scene(rng: np.random.Generator, index: int) -> dict[str, Any]:
         effects.append({"name": "drift"})
     if rng.random() < 0.2:
         effects.append({"name": "glitches", "rate_hz": 1.0})
-    return {"family": "engine", "name": f"engine_{index:05d}_{scenario}_{obj['shape']}", "sensor": sensor,
-            "physics": {"name": "mujoco"}, "object": obj, "gravity": grav,
+    family = BULLET_FAMILY if engine == "bullet" else PHYSICS_FAMILY
+    return {"family": "engine", "name": f"{family}_{index:05d}_{scenario}_{obj['shape']}", "sensor": sensor,
+            "physics": {"name": engine}, "object": obj, "gravity": grav,
             "pre_s": round(float(rng.uniform(0.1, 0.5)), 3), "timeline": tl, "effects": effects,
-            "_tags": {"physics_family": PHYSICS_FAMILY, "scenario": scenario}}
+            "_tags": {"physics_family": family, "scenario": scenario}}

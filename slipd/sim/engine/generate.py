@@ -16,7 +16,7 @@ import numpy as np
 from slipd.geometry import N_PILLARS
 from slipd.recording import Recording
 from slipd.sim import effects as fx
-from slipd.sim.engine.model import ObjectGeometry
+from slipd.sim.engine.model import BulletParams, ObjectGeometry
 from slipd.sim.engine.spec import EngineScene, GripSeg, HoldSeg, LiftSeg, LoadSeg
 from slipd.sim.engine.stepping import EngineOutput, EngineSim
 from slipd.sim.labels import considered_pillars
@@ -162,7 +162,16 @@ def object_geometry(sc: EngineScene) -> ObjectGeometry:
 
 
 def simulate(sc: EngineScene, prof: Profiles) -> EngineOutput:
-    sim = EngineSim(sensor_params(sc.sensor), object_geometry(sc), sc.engine_params())
+    params = sc.engine_params()
+    if isinstance(params, BulletParams):
+        from slipd.sim.engine.bullet import BulletSim  # pybullet only where a scene asks for it
+
+        bullet = BulletSim(sensor_params(sc.sensor), object_geometry(sc), params)
+        try:
+            return bullet.run(prof.grip, prof.accel, prof.force, prof.torque)
+        finally:
+            bullet.close()
+    sim = EngineSim(sensor_params(sc.sensor), object_geometry(sc), params)
     return sim.run(prof.grip, prof.accel, prof.force, prof.torque)
 
 

@@ -71,6 +71,23 @@ class EngineParams(BaseModel):
     """Sliding interrupted for at most this many samples is one episode (a tip on the cone's edge flickers)."""
 
 
+class BulletParams(BaseModel):
+    """Solver settings of the second engine, Bullet (a scene's ``physics: {name: bullet, ...}``; ``bullet``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    timestep_ms: float = Field(0.2, gt=0.0, le=1.0)
+    solver_iterations: int = Field(100, ge=1, le=1000)
+    erp: float = Field(0.2, gt=0.0, le=1.0)
+    slip_speed_mm_s: float = Field(0.2, gt=0.0)
+    """A tip slides when its contact's tangential relative speed exceeds this ..."""
+    cone_fraction: float = Field(0.95, gt=0.0, le=1.0)
+    """... while its friction force is at least this fraction of mu x normal ..."""
+    min_slide_mm: float = Field(0.02, ge=0.0)
+    """... in an episode that carries it at least this far."""
+    slide_gap_samples: int = Field(5, ge=0)
+
+
 @dataclass(frozen=True)
 class ObjectGeometry:
     """What the object is: its shape, size and mass, and the friction of its contacts."""

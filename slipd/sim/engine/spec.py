@@ -1,6 +1,7 @@
 """Engine scenes (``family: engine``): what a scene file says, validated; no MuJoCo import here.
 
-A scene names the engine with ``physics: {name: mujoco, <solver settings>}`` (``model.EngineParams``), the object
+A scene names the engine with ``physics: {name: mujoco, <solver settings>}`` (``model.EngineParams``) or
+``{name: bullet, ...}`` (``model.BulletParams``: the same scene on a second engine), the object
 (shape, mass, friction, size), the grasp's gravity (magnitude, direction in the sensor plane, tilt out of it) and
 a timeline of segments run after ``pre_s`` with the grip open:
 
@@ -36,9 +37,10 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from slipd.sim import contact_models as cm
 from slipd.sim import effects as fx
-from slipd.sim.engine.model import SHAPES, EngineParams
+from slipd.sim.engine.model import SHAPES, BulletParams, EngineParams
 
 ENGINE_NAME = "mujoco"
+ENGINE_NAMES = ("mujoco", "bullet")
 
 
 class _P(BaseModel):
@@ -111,7 +113,7 @@ class EngineScene(_P):
     name: str = "engine_scene"
     sensor: Literal["v1", "v2"] = "v2"
     physics: dict[str, Any] = Field(default_factory=lambda: {"name": ENGINE_NAME})
-    """``{name: mujoco, <EngineParams>}``."""
+    """``{name: mujoco, <EngineParams>}`` or ``{name: bullet, <BulletParams>}``."""
     object: EngineObject
     gravity: EngineGravity = EngineGravity()
     pre_s: float = Field(0.3, ge=0.05)
@@ -144,7 +146,7 @@ class EngineScene(_P):
     def build_effects(self) -> list[fx.Effect]:
         return [fx.build_effect(s, f"effects.{i}") for i, s in enumerate(self.effects)]
 
-    def engine_params(self) -> EngineParams:
+    def engine_params(self) -> EngineParams | BulletParams:
         return engine_params(self.physics)
 
     @property
@@ -154,13 +156,13 @@ class EngineScene(_P):
         return "stop" if loads else "hold"
 
 
-def engine_params(spec: dict[str, Any]) -> EngineParams:
-    """The solver settings of a ``physics`` entry naming the engine; ValueError naming the key otherwise."""
+def engine_params(spec: dict[str, Any]) -> EngineParams | BulletParams:
+    """The solver settings of a ``physics`` entry naming an engine; ValueError naming the key otherwise."""
     model = cm.build_model(spec)
     if not model.engine:
-        raise ValueError(f"physics.name: engine scenes run on {ENGINE_NAME!r}, not {model.name!r}")
-    assert isinstance(model.p, EngineParams)
+        raise ValueError(f"physics.name: engine scenes run on one of {ENGINE_NAMES}, not {model.name!r}")
+    assert isinstance(model.p, EngineParams | BulletParams)
     return model.p
 
 
-__all__ = ["ENGINE_NAME", "MOVE_OPS", "SHAPES", "EngineObject", "EngineScene", "engine_params"]
+__all__ = ["ENGINE_NAME", "ENGINE_NAMES", "MOVE_OPS", "SHAPES", "EngineObject", "EngineScene", "engine_params"]
