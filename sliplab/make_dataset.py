@@ -22,7 +22,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="output folder (created)")
     p.add_argument("--count", type=int, default=None,
                    help="number of scenes (default: 200 offline, 216 transfer, 200 robust, 100 holds, 200 grips, "
-                   "200 twists, 200 engine, 200 bullet)")
+                   "200 twists, 200 engine, 200 bullet, 200 coulomb)")
     p.add_argument("--hold-s", type=float, default=HOLD_S,
                    help="holds: seconds of stillness per recording (5 types x 2 sensors, round-robin)")
     p.add_argument("--seed", type=int, default=0, help="data-set seed 0..999")

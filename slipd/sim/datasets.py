@@ -4,7 +4,8 @@ physics family, both sensors, randomised scenario timelines), ``holds`` (long no
 
 ``engine`` (grasps on the MuJoCo engine, ``slipd.sim.engine.draws``: physics written independently of this simulator)
 and ``bullet`` (the same scenarios, drawn afresh, on the Bullet engine: a second independent physics) are tagged the
-same way (physics family ``engine`` or ``bullet``, the scenario).
+same way (physics family ``engine`` or ``bullet``, the scenario). ``coulomb`` holds ``robust`` scenes and ``grips``
+trials drawn afresh with one friction coefficient (kinetic = static, as both engines have).
 
 ``robust``, ``holds`` and ``grips`` recordings carry ``meta["physics_family"]`` (one of ``FAMILIES``) and
 ``meta["scenario"]`` (the scenario kind: ``ROBUST_SCENARIOS`` or ``HOLD_TYPES``), also listed per recording in
@@ -40,12 +41,12 @@ from slipd.sim.scene import (
     secure_grip_n,
 )
 
-SETS = ("offline", "transfer", "robust", "holds", "grips", "twists", "engine", "bullet")
+SETS = ("offline", "transfer", "robust", "holds", "grips", "twists", "engine", "bullet", "coulomb")
 SPLITS = ("train", "test")
 _SPLIT_BASE = {"train": 0, "test": 1 << 30}
-_SET_ID = {"offline": 1, "transfer": 2, "robust": 3, "holds": 4, "grips": 5, "twists": 6, "engine": 7, "bullet": 8}
+_SET_ID = {"offline": 1, "transfer": 2, "robust": 3, "holds": 4, "grips": 5, "twists": 6, "engine": 7, "bullet": 8, "coulomb": 9}
 _ENGINES = ("engine", "bullet")
-_TAGGED = ("robust", "holds", "grips", "twists", "engine", "bullet")
+_TAGGED = ("robust", "holds", "grips", "twists", "engine", "bullet", "coulomb")
 
 # Effects of a realistic measurement chain, listed by every data-set scene.
 MEASUREMENT = [{"name": "lowpass"}, {"name": "noise"}, {"name": "quantisation"}]
@@ -218,6 +219,7 @@ def dataset_scenes(set_name: str, split: str, count: int | None, seed: int,
             d = (robust_scene(rng, i) if set_name == "robust" else grip_scene(rng, i) if set_name == "grips"
                  else twist_scene(rng, i) if set_name == "twists"
                  else engine_scene(rng, i, "mujoco" if set_name == "engine" else "bullet") if set_name in _ENGINES
+                 else coulomb_scene(rng, i) if set_name == "coulomb"
                  else hold_scene(rng, i, hold_s))
             out.append((d, scene_seed(set_name, split, seed, i)))
         return out
@@ -418,6 +420,28 @@ def grip_scene(rng: np.random.Generator, index: int) -> dict[str, Any]:
                       settle_s=_pre_motion_hold(rng), sensor=str(rng.choice(["v1", "v2"])))
     d["name"] = f"grip_{index:05d}_{d['name']}"
     return {**d, "_tags": {"physics_family": "stick_slip", "scenario": "grip"}}
+
+
+def one_coefficient(d: dict[str, Any]) -> dict[str, Any]:
+    """The scene with its kinetic friction coefficient set to the static one (hexapod ``friction`` or gripper
+    ``object``): a pillar that starts to slide keeps its force at mu x normal instead of dropping to mu_k x normal."""
+    d = dict(d)
+    if "friction" in d:
+        d["friction"] = {**d["friction"], "mu_k": d["friction"]["mu_s"]}
+    if isinstance(d.get("object"), dict) and "mu_s" in d["object"]:
+        d["object"] = {**d["object"], "mu_k": d["object"]["mu_s"]}
+    return d
+
+
+def coulomb_scene(rng: np.random.Generator, index: int) -> dict[str, Any]:
+    """One recording of the ``coulomb`` set: a ``robust`` scene (even indices) or a ``grips`` trial (odd) with one
+    friction coefficient. Every other set draws the kinetic coefficient at 0.75-0.95 of the static one, so every
+    slip they hold shows the force drop of breaking away; many real contacts (and both engines) show none, only a
+    force that stops growing at mu x normal."""
+    d = robust_scene(rng, index // 2) if index % 2 == 0 else grip_scene(rng, index // 2)
+    d = one_coefficient(d)
+    d["name"] = f"coulomb_{index:05d}_{d['name']}"
+    return d
 
 
 TWIST_OFFSET_MM = (8.0, 20.0)

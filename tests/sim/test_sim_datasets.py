@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from slipd.recording import Recording
-from slipd.sim.datasets import dataset_scenes, scene_seed, transfer_design, write_dataset
+from slipd.sim.datasets import dataset_scenes, one_coefficient, scene_seed, transfer_design, write_dataset
 from sliplab import make_dataset, realism
 
 
@@ -113,3 +113,28 @@ def test_the_twists_set_is_off_centre_slip_trials_beyond_any_secure_grip():
     assert all(TWIST_OFFSET_MM[0] <= x <= TWIST_OFFSET_MM[1] for x in offsets) and len(set(offsets)) == 20
     with pytest.raises(ValueError, match="stop trial"):
         gripper_scene("coffee_jar", "lift_offcentre", "high", None, offcentre_mm=15.0)
+
+
+def test_the_coulomb_set_has_one_friction_coefficient_and_slips_without_a_force_drop():
+    from slipd.sim import generate, parse_scene
+
+    scenes = dataset_scenes("coulomb", "test", 6, 0)
+    assert [d["family"] for d, _ in scenes] == ["hexapod", "gripper"] * 3
+    for d, _ in scenes:
+        fr = d["friction"] if d["family"] == "hexapod" else d["object"]
+        assert fr["mu_k"] == fr["mu_s"]
+    # The same slip with the other sets' kinetic coefficient drops the sliding pillar's utilisation after it breaks
+    # away; with one coefficient it stays at mu_s.
+    grip = next(d for d, _ in dataset_scenes("grips", "test", 40, 0) if d["trial"] == "slip")
+    peaks = {}
+    for name, d in (("drop", grip), ("coulomb", one_coefficient(grip))):
+        rec = generate(parse_scene({k: v for k, v in d.items() if k != "_tags"}), seed=3)
+        assert rec.slip is not None and rec.slip.any()
+        f = rec.force
+        util = np.hypot(f[..., 0], f[..., 1]) / np.maximum(f[..., 2], 0.5)
+        p = int(np.argmax(rec.slip.any(0) * f[int(np.argmax(rec.slip.any(1))), :, 2]))  # the most loaded slider
+        start = int(np.argmax(rec.slip[:, p]))
+        peaks[name] = (util[: start + 1, p].max(), np.median(util[start + 20: start + 120, p]))
+    mu_s, mu_k = grip["object"]["mu_s"], grip["object"]["mu_k"]
+    assert peaks["drop"][1] < peaks["drop"][0] * (mu_k / mu_s + 1) / 2
+    assert peaks["coulomb"][1] > peaks["coulomb"][0] * 0.97
