@@ -44,7 +44,8 @@ from slipd.sim.scene import (
 SETS = ("offline", "transfer", "robust", "holds", "grips", "twists", "engine", "bullet", "coulomb")
 SPLITS = ("train", "test")
 _SPLIT_BASE = {"train": 0, "test": 1 << 30}
-_SET_ID = {"offline": 1, "transfer": 2, "robust": 3, "holds": 4, "grips": 5, "twists": 6, "engine": 7, "bullet": 8, "coulomb": 9}
+_SET_ID = {"offline": 1, "transfer": 2, "robust": 3, "holds": 4, "grips": 5, "twists": 6, "engine": 7, "bullet": 8,
+           "coulomb": 9}
 _ENGINES = ("engine", "bullet")
 _TAGGED = ("robust", "holds", "grips", "twists", "engine", "bullet", "coulomb")
 
