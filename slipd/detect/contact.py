@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -66,9 +66,11 @@ centre); with the share the robust and transfer figures held (94.1 % of 271 with
 it)."""
 
 
-@dataclass(frozen=True, slots=True)
-class ContactState:
-    """One window's contact state (forces in N, tared and median-filtered)."""
+class ContactState(NamedTuple):
+    """One window's contact state (forces in N, tared and median-filtered).
+
+    Immutable (a named tuple, as ``Detection``: made once per decision and sensor on the hot path, where a frozen
+    dataclass's construction costs several times a tuple's)."""
 
     pillar_slip: tuple[float, ...]
     """P(slip) of each of the nine pillars (SDK order)."""
@@ -256,5 +258,5 @@ def grasp_state(states: Sequence[ContactState | None]) -> ContactState | None:
     known = [s for s in touching if s.friction is not None]
     grippiest = max(known, key=lambda s: s.friction or 0.0) if known else decider
     pressed = [s.pressed_n if s.pressed_n is not None else s.grip_n for s in touching]
-    return replace(decider, risk=max(s.risk for s in touching), friction=grippiest.friction,
+    return decider._replace(risk=max(s.risk for s in touching), friction=grippiest.friction,
                    friction_sd=grippiest.friction_sd, pressed_n=sum(pressed) / len(pressed))

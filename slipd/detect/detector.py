@@ -395,12 +395,11 @@ class Detector:
             return det.with_contact(self.contact_state(filtered, state))
         t0 = time.perf_counter()
         if self.row is None:
-            stream = self.windows % self.n_streams
             try:
-                result = self.ensemble.step(window, stream=stream)
-                p, valid = result.p_slip, result.valid
+                p, pillars = self.ensemble.step_one(window, self.windows % self.n_streams)
+                valid = p == p  # (NaN: no decision)
                 if valid:
-                    self.set_pillars(result.p_pillars)
+                    self.set_pillars(pillars)
             except StepError:
                 p, valid = float("nan"), False
         else:
