@@ -460,7 +460,7 @@ class Detector:
             return None
         alarm, rising = self.decision.advance(0.0)
         self.last_step_s = None
-        return Detection(index, t_us, 0.0, self.decision.risk(0.0), alarm, rising, sensor=self.sensor)
+        return Detection(index, t_us, 0.0, self.decision.risk(0.0), alarm, rising, True, self.sensor)
 
     def _press(self, load: float, press_rise: float) -> None:
         """One window end's summed load (the tared normal forces of the pressed pillars; ``_gate``) -> ``pressing``:
@@ -488,7 +488,7 @@ class Detector:
         p = float(p_slip)
         decision = self.decision
         alarm, rising = decision.advance(p, not self.pressing)
-        return Detection(index, t_us, p, decision.risk(p), alarm, rising, sensor=self.sensor, contact=contact)
+        return Detection(index, t_us, p, decision.risk(p), alarm, rising, True, self.sensor, contact)  # (positional)
 
 
 class HeuristicDetector:
