@@ -320,18 +320,19 @@ def sliding_median(hist: np.ndarray, width: int) -> np.ndarray:
         a, b, c = hist[0:n], hist[1 : n + 1], hist[2 : n + 2]
         return _median3(a, b, c).astype(np.float32, copy=False)
     if width == 5:
-        a, b, c, d, e = hist[0:n], hist[1 : n + 1], hist[2 : n + 2], hist[3 : n + 3], hist[4 : n + 4]
-        # median5 = median3(e, max(min(a, b), min(c, d)), min(max(a, b), max(c, d))): the larger of the two
-        # pair minima and the smaller of the two pair maxima bracket the median of a..d's middle pair. Three
-        # arrays written in place (this runs once per decision on the daemon's hot path).
-        lo = np.minimum(a, b)
-        t = np.minimum(c, d)
-        np.maximum(lo, t, out=lo)
-        hi = np.maximum(a, b)
-        np.maximum(c, d, out=t)
-        np.minimum(hi, t, out=hi)
+        # median5 = median3(e, max(min(a, b), min(c, d)), min(max(a, b), max(c, d))) of the rows a..e of each run: the
+        # larger of the two pair minima and the smaller of the two pair maxima bracket the median of a..d's middle
+        # pair. A pair (a, b) is two consecutive rows, and so is (c, d), two rows further: one minimum and one maximum
+        # of every two consecutive rows serve both pairs. Arrays written in place (this runs once per decision on the
+        # daemon's hot path, where the number of numpy calls sets the cost).
+        m = n + 2
+        pair_min = np.minimum(hist[0:m], hist[1 : m + 1])
+        pair_max = np.maximum(hist[0:m], hist[1 : m + 1])
+        lo = np.maximum(pair_min[0:n], pair_min[2 : n + 2])
+        hi = np.minimum(pair_max[0:n], pair_max[2 : n + 2])
+        e = hist[4 : n + 4]
         # median3(e, lo, hi) = max(min(e, lo), min(max(e, lo), hi)), as ``_median3``
-        np.maximum(e, lo, out=t)
+        t = np.maximum(e, lo, out=pair_max[0:n])
         np.minimum(t, hi, out=t)
         np.minimum(e, lo, out=lo)
         np.maximum(lo, t, out=lo)
