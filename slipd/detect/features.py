@@ -513,13 +513,14 @@ class FeatureStream:
                 y = np.subtract(x, offset, out=rows)
             else:
                 y = np.subtract(x, offset)
-            # Every value finite and within the clip (NaN fails the comparison): one count over kept scratch arrays
-            # (ndarray.all goes through a Python wrapper that costs more than the comparison on a decision's block).
+            # Every value finite and within the clip (NaN fails the comparison), over kept scratch arrays: no zero byte
+            # among the flags (a byte search; ndarray.all goes through a Python wrapper that costs more than the
+            # comparison on a decision's block).
             if small:
                 within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip_rows[:k], out=self._ok[:k])
             else:
                 within = np.abs(y) <= self._clip
-            if np.count_nonzero(within) == within.size:
+            if 0 not in within.tobytes():
                 if not self._all_cols:
                     np.take(y, self._cols, axis=1, out=rows)
                 return self._windows_in_place(x, k)
@@ -648,7 +649,7 @@ class StreamGroup:
         rows = self._buf[end : end + k]
         y = np.subtract(x, self._offset_rows[:k], out=rows)
         within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip_rows[:k], out=self._ok[:k])
-        if np.count_nonzero(within) != within.size:
+        if 0 in within.tobytes():  # (some value beyond the clip or not finite: ``FeatureStream.push_many``'s test)
             return None  # (the rows written after the histories' end are written again by each stream's push)
         self._last_good[:] = x[-1].reshape(self._last_good.shape)
         spec = first.spec
