@@ -418,7 +418,8 @@ STAGES: tuple[tuple[str, tuple[tuple[str, str, str], ...]], ...] = (
     ("recorder", tuple(("slipd.daemon.recorder", "Recorder", f) for f in
                        ("push_frames", "push_decision", "settle", "trigger"))),
     ("metrics", (("prometheus_client.metrics", "Counter", "inc"), ("prometheus_client.metrics", "Histogram", "observe"),
-                 ("prometheus_client.metrics", "Gauge", "set"))),
+                 ("prometheus_client.metrics", "Gauge", "set"), ("slipd.metrics", "DecisionHistogram", "observe"),
+                 ("slipd.metrics", "DecisionCount", "inc"))),
 )
 """The hot path's stages and the functions each one's time is spent in. Time is exclusive: a function's nested calls
 of another stage count there: "decision" is the detector's own work around the features, the step and the contact
