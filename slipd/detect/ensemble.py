@@ -269,7 +269,7 @@ class Ensemble:
             st = self._streams[stream] = _Stream(self._session, w.shape[0], self._z, self._d, self._h, self._p)
         elif st.batch != w.shape[0]:
             raise ValueError(f"stream {stream} holds {st.batch} sequences, window has {w.shape[0]}; reset it first")
-        np.copyto(st.x, w)  # (casting same_kind: the default)
+        st.x[...] = w  # (np.copyto's copy, without its Python-level dispatcher)
         self._session.run_with_iobinding(st.bindings[st.cur])
         if not _all_finite(st.checked):  # the window, p_slip, p_members, h_next (and p_pillars) in one pass
             if not _all_finite(st.x):
@@ -309,7 +309,7 @@ class Ensemble:
         if st is not None and 0 not in act.tobytes():  # (every flag set: a byte search, cheaper than ndarray.all)
             # Every row steps (the fingers of a grasp, decision after decision): no row to keep aside, and when the
             # windows and every output are finite (one check after the call), every row is valid.
-            np.copyto(st.x, w)  # (casting same_kind: the default)
+            st.x[...] = w  # (np.copyto's copy, without its Python-level dispatcher)
             self._session.run_with_iobinding(st.bindings[st.cur])
             if _all_finite(st.checked):
                 st.cur = 1 - st.cur
@@ -338,7 +338,7 @@ class Ensemble:
             idle = ~run
             h_cur, h_next = st.h[st.cur], st.h[1 - st.cur]
             kept = h_cur[:, idle].copy() if idle.any() else None
-            np.copyto(st.x, w)  # (casting same_kind: the default)
+            np.copyto(st.x, w, casting="same_kind")
             if kept is not None:
                 first = int(np.argmax(run))
                 st.x[idle] = st.x[first]

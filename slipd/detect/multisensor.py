@@ -236,5 +236,6 @@ class MultiDetector:
         rows = self._rows
         if rows is None or rows.shape[1] != width:
             rows = self._rows = np.empty((self.sensors, width), np.float32)
-        np.copyto(rows.reshape(self.sensors, t, -1), windows.reshape(t, self.sensors, -1).transpose(1, 0, 2))
+        # (slice assignment: np.copyto's copy without its Python-level dispatcher)
+        rows.reshape(self.sensors, t, -1)[...] = windows.reshape(t, self.sensors, -1).transpose(1, 0, 2)
         return rows
