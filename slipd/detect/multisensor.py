@@ -90,7 +90,7 @@ class MultiDetector:
 
     def samples_to_decision(self) -> int:
         """Samples still to push until the next decision (the same for every sensor)."""
-        return min(d.samples_to_decision() for d in self.detectors)
+        return min([d.samples_to_decision() for d in self.detectors])  # (a list: a generator's frames cost more)
 
     def set_offset(self, offset: np.ndarray) -> None:
         """Each sensor's tare offset ([S, 9, 3]) from the next sample on (``Detector.set_offset``)."""
@@ -155,16 +155,16 @@ class MultiDetector:
             t, idx = int(t_us[kk]), base + kk
             gated = self._gates(x[kk], t, idx) if group is not None else [
                 d._gate(x[kk, s], t, idx) for s, d in enumerate(subs)]
-            stepping = [g is None for g in gated]
             # Every sensor in contact (a grasp, decision after decision): one array made once, no new one per call.
-            active = self._all_rows if all(stepping) else np.array(stepping)
+            stepped = gated.count(None)
+            active = self._all_rows if stepped == len(gated) else np.array([g is None for g in gated])
             p = ok = None
             step_s: float | None = None
             if group is not None:
                 # The sensors' filtered windows in rows, one per sensor (row s is sensor s's window, as its own stream
                 # returns it; read by its contact state below, before the next window overwrites the buffer).
                 filtered = self._stacked_rows(group[m][1])
-            if any(stepping):
+            if stepped:
                 if group is not None:
                     batch = subs[0].derive_rows(filtered)
                 else:
