@@ -424,6 +424,7 @@ class FeatureStream:
         # fast loop, one that broadcasts a row costs several times more on a decision's block.
         self._offset_rows = np.zeros((spec.window + 1, N_PILLARS * 3), np.float32)
         self._clip_rows = np.tile(self._clip, (spec.window + 1, 1))
+        self._block_rows: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}  # ``_rows_of``
         self.set_offset(offset)
         self.nonfinite_count = 0
         self.clipped_count = 0
@@ -508,7 +509,10 @@ class FeatureStream:
             # history, every window's median reads them there. The same values as below, fewer copies.
             rows = self._buf[self._end : self._end + k]
             small = k <= len(self._ok)
-            offset = self._offset_rows[:k] if small else self._offset
+            if small:
+                offset, absk, clip, ok = self._rows_of(k)
+            else:
+                offset = self._offset
             if self._all_cols:
                 y = np.subtract(x, offset, out=rows)
             else:
@@ -517,7 +521,7 @@ class FeatureStream:
             # among the flags (a byte search; ndarray.all goes through a Python wrapper that costs more than the
             # comparison on a decision's block).
             if small:
-                within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip_rows[:k], out=self._ok[:k])
+                within = np.less_equal(np.abs(y, out=absk), clip, out=ok)
             else:
                 within = np.abs(y) <= self._clip
             if 0 not in within.tobytes():
@@ -556,6 +560,14 @@ class FeatureStream:
         self._append(rows[done:])
         self._n = n0 + k
         return out
+
+    def _rows_of(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The first ``k`` rows of the block buffers (offset, |tared| scratch, clip bound, in-range flags): views made
+        once per block length (a decision's reads are one length, stride frames), not four slices per block."""
+        views = self._block_rows.get(k)
+        if views is None:
+            views = self._block_rows[k] = (self._offset_rows[:k], self._absk[:k], self._clip_rows[:k], self._ok[:k])
+        return views
 
     def _windows_in_place(self, x: np.ndarray, k: int) -> list[tuple[int, np.ndarray]]:
         """``push_many`` once the block's ``k`` prepared rows are in the history after its end: the windows they end."""
@@ -621,9 +633,18 @@ class StreamGroup:
         for s, st in enumerate(self.streams):
             self._offset_rows[:, s * nb : (s + 1) * nb] = st._offset_rows
             st._offset_rows = self._offset_rows[:, s * nb : (s + 1) * nb]
+            st._block_rows.clear()  # (views of the buffer replaced here)
         self._clip_rows = np.tile(first._clip, (first.spec.window + 1, ns))
         self._absk = np.zeros((first.spec.window + 1, ns * nb), np.float32)
         self._ok = np.zeros((first.spec.window + 1, ns * nb), bool)
+        self._block_rows: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def _rows_of(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``FeatureStream._rows_of`` for the group's side-by-side buffers."""
+        views = self._block_rows.get(k)
+        if views is None:
+            views = self._block_rows[k] = (self._offset_rows[:k], self._absk[:k], self._clip_rows[:k], self._ok[:k])
+        return views
 
     def push_many(self, samples: np.ndarray) -> list[tuple[int, np.ndarray]] | None:
         """A block of raw samples [k, S, 9, 3] into every stream at once: ``(i, windows)`` for each sample
@@ -647,8 +668,9 @@ class StreamGroup:
             end = first._end
         x = samples.reshape(k, -1)
         rows = self._buf[end : end + k]
-        y = np.subtract(x, self._offset_rows[:k], out=rows)
-        within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip_rows[:k], out=self._ok[:k])
+        offset, absk, clip, ok = self._rows_of(k)
+        y = np.subtract(x, offset, out=rows)
+        within = np.less_equal(np.abs(y, out=absk), clip, out=ok)
         if 0 in within.tobytes():  # (some value beyond the clip or not finite: ``FeatureStream.push_many``'s test)
             return None  # (the rows written after the histories' end are written again by each stream's push)
         self._last_good[:] = x[-1].reshape(self._last_good.shape)
