@@ -20,7 +20,7 @@ from typing import cast
 import numpy as np
 
 from slipd.detect.decision import Detection
-from slipd.detect.detector import Detector
+from slipd.detect.detector import Detector, top_rise
 from slipd.detect.features import FeatureStream, StreamGroup
 from slipd.geometry import CONTACT_THRESHOLD_N
 
@@ -51,7 +51,6 @@ class MultiDetector:
             d.gate._baseline = self._baselines[s]
         self._fz = np.zeros((self.sensors, 9), np.float32)
         self._fz_pressed = np.zeros((self.sensors, 9), np.float32)
-        self._rel = np.zeros((self.sensors, 9), np.float64)
         self._zeros = np.zeros((self.sensors, 9), np.float32)
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
@@ -211,7 +210,7 @@ class MultiDetector:
         assert self._group is not None
         fz = np.subtract(frame[:, :, 2], self._group._offset[:, 2::3], out=self._fz)
         loads = np.add.reduce(np.maximum(fz, self._zeros, out=self._fz_pressed), axis=1).tolist()
-        tops = np.fmax.reduce(np.subtract(fz, self._baselines, out=self._rel), axis=1).tolist()
+        tops = [top_rise(z, b) for z, b in zip(fz.tolist(), self._baselines.tolist(), strict=True)]
         out: list[Detection | None] = []
         thr = CONTACT_THRESHOLD_N
         for s, d in enumerate(self.detectors):
