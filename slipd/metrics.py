@@ -9,12 +9,20 @@ config: never a value from the wire).
 
 from __future__ import annotations
 
+from bisect import bisect_left
+from collections.abc import Callable, Iterable, Sequence
+from itertools import accumulate
 from typing import TYPE_CHECKING
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Info, start_http_server
+from prometheus_client.core import CounterMetricFamily, HistogramMetricFamily, Metric
+from prometheus_client.utils import floatToGoString
 
 if TYPE_CHECKING:
     from wsgiref.simple_server import WSGIServer
+
+_go_float: Callable[[float], str] = floatToGoString
+"""A bucket bound as prometheus_client's ``Histogram`` writes it in ``le``."""
 
 # Sub-millisecond buckets: a 1 kHz loop and a 25 Hz model step are judged in tens of microseconds.
 FAST_BUCKETS = (
@@ -27,6 +35,79 @@ TAPS = ("ros2", "viz")
 RECORDING_FAILURES = ("no_space", "read_only", "permission", "io", "backlog")
 """Why a recording was lost (``slipd_recordings_failed_total{reason}``): the disk full, the file system read-only,
 no permission, another I/O error, or more writes pending than ``Recorder.max_pending``."""
+
+
+class DecisionHistogram:
+    """A histogram observed on every decision: ``observe`` costs a bisection and two additions, and the registry reads
+    the numbers when it is scraped (a collector; the same series as a ``Histogram``'s, without ``_created``).
+
+    prometheus_client's ``Histogram`` takes one lock for the sum and one for the bucket, and checks its state, on every
+    observation: about a microsecond, twice per decision, against a scrape every few seconds. Only the loop's thread
+    observes; a scrape reads plain numbers, each whole, so it sees every observation made before it (the one under way
+    in its bucket perhaps, not yet in the sum)."""
+
+    def __init__(self, name: str, documentation: str, buckets: Sequence[float], registry: CollectorRegistry) -> None:
+        self._name, self._doc = name, documentation
+        self._bounds = tuple(float(b) for b in buckets)
+        self._le = [_go_float(b) for b in self._bounds] + ["+Inf"]
+        self._counts = [0] * (len(self._bounds) + 1)  # per bucket, not cumulative: [-inf, b0], (b0, b1], ..., (bn, inf)
+        self._sum = 0.0
+        registry.register(self)
+
+    def observe(self, amount: float) -> None:
+        """One observation (seconds)."""
+        self._counts[bisect_left(self._bounds, amount)] += 1  # the first bound at or above it: le semantics
+        self._sum += amount
+
+    def collect(self) -> Iterable[Metric]:
+        """The series for a scrape: cumulative buckets, the count and the sum."""
+        total = self._sum
+        buckets = list(zip(self._le, accumulate(list(self._counts)), strict=True))
+        return [HistogramMetricFamily(self._name, self._doc, buckets=buckets, sum_value=total)]
+
+    def describe(self) -> Iterable[Metric]:
+        """The series' names, for the registry's check against duplicates."""
+        return [HistogramMetricFamily(self._name, self._doc)]
+
+
+class DecisionCount:
+    """One label value's count of a ``DecisionCounter``."""
+
+    def __init__(self) -> None:
+        self.value = 0.0
+
+    def inc(self, amount: float = 1.0) -> None:
+        """Count ``amount`` (>= 0) more."""
+        self.value += amount
+
+
+class DecisionCounter:
+    """A counter with one label, incremented on every decision: ``labels(value)`` once (the daemon keeps the child),
+    then ``inc`` adds to a plain number; the registry reads the numbers when it is scraped (a collector; the series of a
+    ``Counter``, ``_total``, without ``_created``). prometheus_client's ``Counter`` takes a lock and checks its state on
+    every ``inc``; only the loop's thread counts, and a scrape reads each number whole."""
+
+    def __init__(self, name: str, documentation: str, label: str, registry: CollectorRegistry) -> None:
+        self._name, self._doc, self._label = name, documentation, label
+        self._children: dict[str, DecisionCount] = {}
+        registry.register(self)
+
+    def labels(self, **values: str) -> DecisionCount:
+        """The child of one label value (made on first use, served from then on, at 0 until counted)."""
+        if list(values) != [self._label]:
+            raise ValueError(f"{self._name} has one label, {self._label}; got {sorted(values)}")
+        return self._children.setdefault(str(values[self._label]), DecisionCount())
+
+    def collect(self) -> Iterable[Metric]:
+        """The series for a scrape, one per label value."""
+        family = CounterMetricFamily(self._name, self._doc, labels=[self._label])
+        for value, child in list(self._children.items()):
+            family.add_metric([value], child.value)
+        return [family]
+
+    def describe(self) -> Iterable[Metric]:
+        """The series' names, for the registry's check against duplicates."""
+        return [CounterMetricFamily(self._name, self._doc, labels=[self._label])]
 
 
 class Metrics:
@@ -83,11 +164,12 @@ class Metrics:
             "slipd_model_step_errors", "Windows that produced no decision (refused or non-finite output)", ["sensor"],
             registry=r,
         )
-        self.loop_seconds = Histogram(
-            "slipd_loop_duration_seconds", "Work per control-loop iteration", buckets=FAST_BUCKETS, registry=r
+        # Observed or counted on every decision: the decision path's own collectors (see ``DecisionHistogram``).
+        self.loop_seconds = DecisionHistogram(
+            "slipd_loop_duration_seconds", "Work per control-loop iteration", FAST_BUCKETS, r
         )
-        self.inference_seconds = Histogram(
-            "slipd_inference_duration_seconds", "Ensemble step time", buckets=FAST_BUCKETS, registry=r
+        self.inference_seconds = DecisionHistogram(
+            "slipd_inference_duration_seconds", "Ensemble step time", FAST_BUCKETS, r
         )
         self.reaction_seconds = Histogram(
             "slipd_reaction_latency_seconds",
@@ -123,7 +205,7 @@ class Metrics:
         )
         for reason in ("risk", "limit", "twist"):  # the bounded reasons, served at 0 from the start
             self.grip_stops.labels(reason=reason)
-        self.decisions = Counter("slipd_decisions", "Model decisions made", ["sensor"], registry=r)
+        self.decisions = DecisionCounter("slipd_decisions", "Model decisions made", "sensor", r)
         self.failsafe = Counter("slipd_failsafe_stops", "Fail-safe arm stops by reason", ["reason"], registry=r)
         self.device_errors = Counter(
             "slipd_device_errors", "Errors talking to a device", ["device", "kind"], registry=r

@@ -47,3 +47,15 @@ def test_hot_path_reports_each_stage_and_restores_the_timed_code(sensors: int) -
     assert sum(v for k, v in stages.items() if k not in ("total", "untimed")) <= stages["total"]
     line = mod._stages_line(stages)
     assert "contact state" in line and "instrumented total" in line and "untimed" in line
+
+
+def test_the_instruction_counts_child_runs_each_kind_and_the_totals_parse() -> None:
+    # ``--instructions`` runs this child under callgrind (not here: valgrind is slow and optional); each kind must run
+    # on the same set-up, and a callgrind file's total must be read from its summary (or totals) line.
+    mod = _bench()
+    for kind in ("none", *mod.INSTR_KINDS):
+        mod.instructions_child(MODEL, 1, kind, 3)
+    assert mod.callgrind_total("# callgrind format\nevents: Ir\nsummary: 12345\n") == 12345
+    assert mod.callgrind_total("events: Ir\ntotals: 678\n") == 678
+    with pytest.raises(ValueError, match="no summary"):
+        mod.callgrind_total("events: Ir\n")

@@ -4,6 +4,7 @@ decision strides 40 / 20 / 10, the decode-only baseline and the machine's floor 
     python tools/bench_daemon.py [--seconds 30] [--model slipd/models/slip_ensemble_int8.json] [--json FILE]
     python tools/bench_daemon.py --baseline-tree /tmp/base --strides 10 [--reps 4] [--seconds 15]
     python tools/bench_daemon.py --viz --sensors 1 --strides 10 [--seconds 30] [--cpu-runs 4]
+    python tools/bench_daemon.py --instructions [--sensors 1 2] [--instr-decisions 2000] [--json FILE]
 
 Per configuration (sensors x stride):
 
@@ -30,6 +31,14 @@ both run at once, each on its own stream, and the difference per pair is reporte
    "after_sleep": .., "back_to_back_p10": ..}``: medians, and the back-to-back 10th percentile), ``python_us`` (the
    same path back to back with onnxruntime's call skipped: the Python around the model) and ``stages_us``; the
    idle event loop's share is ``idle_loop_percent`` at the top level, the loop with the model's step ``step_loop``.
+
+``--instructions`` (opt-in; needs valgrind): the same hot path counted in instructions, which a loaded machine does not
+change: per decision at stride 10, the hot path back to back, the same path with onnxruntime's call skipped (the
+Python around the model) and the model step alone, each from a child process under ``valgrind --tool=callgrind``
+(``instruction_counts``: the count of a run of ``--instr-decisions`` decisions less that of the same set-up with
+none). For comparing trees or changes on a busy machine. Not a measure of time: valgrind runs the model's kernels
+without the wider vector instructions the machine has, and an instruction of the model's does more work than one of
+the interpreter's, so the ratio of the counts is not the ratio of the times.
 
 Beside them: a process that only reads and decodes the same frames (``--decode-only``, one and two sensors,
 reading every frame as it arrives), an event loop that only wakes 100 times a second (``idle_loop``: what this
@@ -407,7 +416,8 @@ STAGES: tuple[tuple[str, tuple[tuple[str, str, str], ...]], ...] = (
                   ("slipd.detect.detector", "Detector", "derive_rows"),
                   ("slipd.detect.features", "StreamGroup", "push_many"),
                   ("slipd.detect.multisensor", "MultiDetector", "_stacked_rows"))),
-    ("step", (("slipd.detect.ensemble", "Ensemble", "step"), ("slipd.detect.ensemble", "Ensemble", "step_rows"))),
+    ("step", (("slipd.detect.ensemble", "Ensemble", "step"), ("slipd.detect.ensemble", "Ensemble", "step_one"),
+              ("slipd.detect.ensemble", "Ensemble", "step_rows"))),
     ("decision", (("slipd.detect.detector", "Detector", "push_many"), ("slipd.detect.multisensor", "MultiDetector",
                   "push_many"), ("slipd.detect.detector", "Detector", "_decide"),
                   ("slipd.detect.detector", "Detector", "_gate"), ("slipd.detect.detector", "Detector", "_finish"))),
@@ -417,7 +427,8 @@ STAGES: tuple[tuple[str, tuple[tuple[str, str, str], ...]], ...] = (
     ("recorder", tuple(("slipd.daemon.recorder", "Recorder", f) for f in
                        ("push_frames", "push_decision", "settle", "trigger"))),
     ("metrics", (("prometheus_client.metrics", "Counter", "inc"), ("prometheus_client.metrics", "Histogram", "observe"),
-                 ("prometheus_client.metrics", "Gauge", "set"))),
+                 ("prometheus_client.metrics", "Gauge", "set"), ("slipd.metrics", "DecisionHistogram", "observe"),
+                 ("slipd.metrics", "DecisionCount", "inc"))),
 )
 """The hot path's stages and the functions each one's time is spent in. Time is exclusive: a function's nested calls
 of another stage count there: "decision" is the detector's own work around the features, the step and the contact
@@ -518,6 +529,72 @@ def _warm_and_cold(call: Any, decisions: int, sleep_s: float) -> tuple[float, fl
         got[cold].append(time.perf_counter() - t0)
     return (float(np.median(got[0][5:])) * 1e6, float(np.median(got[1][5:])) * 1e6,
             float(np.percentile(got[0][5:], 10)) * 1e6)
+
+
+# ---------------------------------------------------------------------------------------------- instructions
+INSTR_KINDS = ("hot_path", "python", "step")
+"""What ``--instructions`` counts per decision: the hot path, the hot path with onnxruntime's call skipped, the step."""
+
+
+def instructions_child(model: Path, sensors: int, kind: str, decisions: int) -> None:
+    """The run ``instruction_counts`` counts: the hot path's set-up (``_hot_path_setup``, stride 10) and 20 reads and
+    model steps to warm up, then ``decisions`` of ``kind`` (``INSTR_KINDS``; "none": nothing more, the set-up's own
+    count). The same set-up whatever ``kind`` and ``decisions``, so the difference of two counts is their work."""
+    with tempfile.TemporaryDirectory() as tmp:
+        daemon, dec, chunks = _hot_path_setup(model, sensors, 10, 1020, Path(tmp))
+        ens = daemon.ensemble
+        window = np.zeros((sensors, ens.feature_spec.input_size), np.float32)
+        for k in range(20):
+            daemon._on_frames(dec.feed_block(chunks[k]))
+            ens.step(window, stream=1_000)
+        if kind == "python":
+            ens._session.run_with_iobinding = lambda *a, **k: None  # as ``_python_alone``
+        if kind in ("hot_path", "python"):
+            for k in range(20, 20 + decisions):
+                daemon._on_frames(dec.feed_block(chunks[k]))
+        elif kind == "step":
+            for _ in range(decisions):
+                ens.step(window, stream=1_000)
+        daemon.close()
+
+
+def callgrind_total(text: str) -> int:
+    """The instruction count of a callgrind output file (its ``summary:`` or ``totals:`` line)."""
+    for line in text.splitlines():
+        if line.startswith(("summary:", "totals:")):
+            return int(line.split()[1])
+    raise ValueError("no summary or totals line in the callgrind output")
+
+
+def instruction_counts(model: Path, sensors: int, decisions: int) -> dict[str, float]:
+    """Instructions per decision of each of ``INSTR_KINDS`` (``instructions_child`` under callgrind, the set-up's own
+    count subtracted), and ``decisions``."""
+    totals = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for kind in ("none", *INSTR_KINDS):
+            out = Path(tmp) / f"callgrind.{kind}"
+            n = 0 if kind == "none" else decisions
+            cmd = ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", sys.executable, __file__,
+                   "--instructions-child", kind, str(n), "--sensors", str(sensors), "--model", str(model)]
+            env = {**os.environ, "PYTHONHASHSEED": "0"}  # (the same dict layouts in every run)
+            subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            totals[kind] = callgrind_total(out.read_text())
+    return {**{kind: (totals[kind] - totals["none"]) / decisions for kind in INSTR_KINDS}, "decisions": decisions}
+
+
+def print_instructions(args: argparse.Namespace) -> int:
+    """``--instructions``: the counts per decision for each of ``--sensors``; ``--json`` writes them."""
+    rows = []
+    for sensors in args.sensors:
+        c = instruction_counts(args.model, sensors, args.instr_decisions)
+        rows.append({"sensors": sensors, **c})
+        print(f"{sensors} sensor(s), stride 10, instructions per decision (callgrind, {args.instr_decisions} "
+              f"decisions): hot path {c['hot_path'] / 1e3:.1f} k, with onnxruntime's call skipped (the Python around "
+              f"the model) {c['python'] / 1e3:.1f} k, the model step alone {c['step'] / 1e3:.1f} k; hot path / step "
+              f"{c['hot_path'] / c['step']:.2f}x (counts, not times: see --help)", flush=True)
+    if args.json:
+        write_json(args.json, json.dumps({"instruction_counts": rows, "model": str(args.model)}, indent=1))
+    return 0
 
 
 # ---------------------------------------------------------------------------------------------- floor
@@ -671,6 +748,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="only the hot-path line, after each of these sleeps (ms): its cost against the idle time")
     p.add_argument("--viz", action="store_true",
                    help="the live view off and on (a Foxglove viewer that never reads): p99, frames lost, CPU")
+    p.add_argument("--instructions", action="store_true",
+                   help="only the hot path's instruction counts per decision (valgrind's callgrind; load does not "
+                        "change them): hot path, the Python around the model, the step alone; counts, not times")
+    p.add_argument("--instr-decisions", type=int, default=2000,
+                   help="with --instructions: decisions counted per run (valgrind runs Python about 50 times slower)")
+    p.add_argument("--instructions-child", nargs=2, metavar=("KIND", "N"), help=argparse.SUPPRESS)
     p.add_argument("--decode-only", metavar="PORT", help=argparse.SUPPRESS)
     p.add_argument("--idle-loop", type=float, metavar="HZ", help=argparse.SUPPRESS)
     p.add_argument("--idle-step", action="store_true", help=argparse.SUPPRESS)
@@ -678,6 +761,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.decode_only:
         decode_only(args.decode_only, args.sensors[0])
         return 0
+    if args.instructions_child:
+        instructions_child(args.model, args.sensors[0], args.instructions_child[0], int(args.instructions_child[1]))
+        return 0
+    if args.instructions:
+        return print_instructions(args)
     if args.idle_loop:
         idle_loop(args.idle_loop, args.model if args.idle_step else None, args.sensors[0])
         return 0

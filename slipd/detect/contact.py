@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -66,9 +66,11 @@ centre); with the share the robust and transfer figures held (94.1 % of 271 with
 it)."""
 
 
-@dataclass(frozen=True, slots=True)
-class ContactState:
-    """One window's contact state (forces in N, tared and median-filtered)."""
+class ContactState(NamedTuple):
+    """One window's contact state (forces in N, tared and median-filtered).
+
+    Immutable (a named tuple, as ``Detection``: made once per decision and sensor on the hot path, where a frozen
+    dataclass's construction costs several times a tuple's)."""
 
     pillar_slip: tuple[float, ...]
     """P(slip) of each of the nine pillars (SDK order)."""
@@ -169,42 +171,49 @@ class ContactStream:
         # Nine pillars once per decision: plain floats (a numpy call on nine values costs more than its work).
         first, last = w[0].tolist(), w[-1].tolist()
         # ``utilisation(last)``, the contact's sums and the pillar estimate's largest rate in one pass (the same
-        # operations, in the same order).
+        # operations, in the same order; the contact flags are left to the pillar estimate, which needs them only while
+        # a pillar moves).
         thr = CONTACT_THRESHOLD_N
+        hypot = math.hypot
         fz: list[float] = []
         util: list[float] = []
-        contact: list[bool] = []
+        add_fz, add_util = fz.append, util.append
         grip = fx = fy = shear = pressed = top_pressed = 0.0
         top = ref = -1.0
         for (x, y, z), (x0, y0, _) in zip(last, first):
-            ft = math.hypot(x, y)
-            u = ft / (z if z > thr else thr)
-            c = z > thr
-            fz.append(z)
-            util.append(u)
-            contact.append(c)
-            if z > 0.0:
+            ft = hypot(x, y)
+            add_fz(z)
+            if z > thr:  # in contact (pressed too: the threshold is above zero)
+                u = ft / z
+                add_util(u)
                 pressed += z
                 if u > top_pressed:  # max(top_pressed, u)
                     top_pressed = u
-            if c:
                 grip += z
                 fx += x
                 fy += y
                 shear += ft
                 if u > top:
                     top = u
-                r = math.hypot(x - x0, y - y0)
+                r = hypot(x - x0, y - y0)
                 if r > ref:
                     ref = r
+            else:
+                u = ft / thr
+                add_util(u)
+                if z > 0.0:
+                    pressed += z
+                    if u > top_pressed:
+                        top_pressed = u
+        p: tuple[float, ...] | list[float]
         if pillar_p is None:
-            p, source = self.pillars.step(first, last, (fz, util, contact), (ref, top)), "features"
+            p, source = self.pillars.step(first, last, (fz, util, None), (ref, top)), "features"
         else:
             p, source = np.asarray(pillar_p, np.float64).tolist(), "model"
         if top < 0.0:
             self.friction.reset()  # released: the next grasp may be another object
             top = 0.0
-        load = math.hypot(fx, fy)
+        load = hypot(fx, fy)
         # Only sliding pillars near the contact's top utilisation are samples of mu, and only they put the grip at
         # risk (``RISK_TOP_SHARE``, ``FRICTION_TOP_SHARE``).
         cut = RISK_TOP_SHARE * top
@@ -224,14 +233,13 @@ class ContactStream:
                 self.friction.add(util, fz, samples)
                 break
         else:
-            self.friction.add(util, fz, p)  # no pillar slides: no sample, the normal forces kept for the next one
+            self.friction.keep(fz)  # no pillar slides: no sample, the normal forces kept for the next one
         est = self.friction.refute(util, fz, p, FRICTION_REFUTE)
         mu = None if est is None else est.mu
-        state = ContactState(
-            pillar_slip=tuple(p), friction=mu, friction_sd=None if est is None else est.sd,
-            risk=contact_risk(fz, util, p_top, mu, self.risk_margin), grip_n=grip, load_n=load, source=source,
-            shear_n=shear, pressed_n=pressed, top_util=top_pressed,
-        )
+        # (positional, in the fields' order: keywords cost a named tuple three times as much)
+        state = ContactState(tuple(p), mu, None if est is None else est.sd,
+                             contact_risk(fz, util, p_top, mu, self.risk_margin), grip, load, source, shear, pressed,
+                             top_pressed)
         self.latest = state
         return state
 
@@ -256,5 +264,5 @@ def grasp_state(states: Sequence[ContactState | None]) -> ContactState | None:
     known = [s for s in touching if s.friction is not None]
     grippiest = max(known, key=lambda s: s.friction or 0.0) if known else decider
     pressed = [s.pressed_n if s.pressed_n is not None else s.grip_n for s in touching]
-    return replace(decider, risk=max(s.risk for s in touching), friction=grippiest.friction,
+    return decider._replace(risk=max(s.risk for s in touching), friction=grippiest.friction,
                    friction_sd=grippiest.friction_sd, pressed_n=sum(pressed) / len(pressed))

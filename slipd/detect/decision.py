@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -98,12 +98,15 @@ class Decision:
         return min(1.0, p_slip / self.threshold)
 
 
-@dataclass(frozen=True, slots=True)
-class Detection:
+class Detection(NamedTuple):
     """One decision: made after sample ``index`` (counted since the detector started), on sensor ``sensor``
-    (0, or 1 for the second finger's array)."""
+    (0, or 1 for the second finger's array).
 
-    index: int
+    Immutable: the loop hands it to other threads (taps, scrape-time metrics), which read it whole. A named tuple, not a
+    frozen dataclass: it is made once per decision and sensor on the hot path, and a frozen dataclass's construction
+    (one ``object.__setattr__`` per field) costs several times a tuple's."""
+
+    index: int  # type: ignore[assignment]  # (the field hides tuple.index, which nothing here calls)
     t_us: int
     p_slip: float
     risk: float
@@ -116,6 +119,6 @@ class Detection:
     detector keeps no contact state."""
 
     def with_contact(self, contact: ContactState | None) -> Detection:
-        """This decision with its contact state (``dataclasses.replace`` costs ten times more per decision)."""
+        """This decision with its contact state."""
         return Detection(self.index, self.t_us, self.p_slip, self.risk, self.alarm, self.rising_edge, self.valid,
                          self.sensor, contact)

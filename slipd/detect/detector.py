@@ -114,9 +114,9 @@ class ContactGate:
 
     def touching(self, fz_tared: np.ndarray) -> bool | None:
         """Raw contact of one sample: some pillar above the baseline by the SDK threshold (None: no finite value)."""
-        rel = np.subtract(fz_tared, self._baseline)  # in float64 (the baseline's type; float32 values convert exactly)
-        top = float(np.fmax.reduce(rel))  # one pass; skips NaN pillars
+        top = top_rise(fz_tared.tolist(), self._baseline.tolist())
         if not math.isfinite(top):  # rare: an infinite pillar (ignored, as a NaN one) or none finite
+            rel = np.subtract(fz_tared, self._baseline)  # in float64 (the baseline's type)
             finite = np.isfinite(rel)
             if not finite.any():
                 return None
@@ -159,6 +159,19 @@ class ContactGate:
         self.open, self._since = False, None
         if retare:
             self._baseline[:] = 0.0
+
+
+def top_rise(fz_tared: list[float], baseline: list[float]) -> float:
+    """The largest rise of a pillar's normal force over its free-air baseline, NaN pillars skipped: what ``np.fmax``
+    reduces to over ``fz_tared - baseline`` (float32 values convert to float64 exactly, and each difference is the same
+    float64 subtraction) wherever it is finite; -inf where no pillar is finite (NaN there), +-inf where an infinite
+    pillar decides. Nine plain floats: a loop costs less than numpy's subtraction and reduction on nine values."""
+    top = -math.inf
+    for z, b in zip(fz_tared, baseline, strict=True):
+        r = z - b
+        if r > top:  # (NaN compares False: skipped)
+            top = r
+    return top
 
 
 def gate_windows(force_tared: np.ndarray, spec: FeatureSpec) -> np.ndarray:
@@ -395,12 +408,11 @@ class Detector:
             return det.with_contact(self.contact_state(filtered, state))
         t0 = time.perf_counter()
         if self.row is None:
-            stream = self.windows % self.n_streams
             try:
-                result = self.ensemble.step(window, stream=stream)
-                p, valid = result.p_slip, result.valid
+                p, pillars = self.ensemble.step_one(window, self.windows % self.n_streams)
+                valid = p == p  # (NaN: no decision)
                 if valid:
-                    self.set_pillars(result.p_pillars)
+                    self.set_pillars(pillars)
             except StepError:
                 p, valid = float("nan"), False
         else:
@@ -461,7 +473,7 @@ class Detector:
             return None
         alarm, rising = self.decision.advance(0.0)
         self.last_step_s = None
-        return Detection(index, t_us, 0.0, self.decision.risk(0.0), alarm, rising, sensor=self.sensor)
+        return Detection(index, t_us, 0.0, self.decision.risk(0.0), alarm, rising, True, self.sensor)
 
     def _press(self, load: float, press_rise: float) -> None:
         """One window end's summed load (the tared normal forces of the pressed pillars; ``_gate``) -> ``pressing``:
@@ -489,7 +501,7 @@ class Detector:
         p = float(p_slip)
         decision = self.decision
         alarm, rising = decision.advance(p, not self.pressing)
-        return Detection(index, t_us, p, decision.risk(p), alarm, rising, sensor=self.sensor, contact=contact)
+        return Detection(index, t_us, p, decision.risk(p), alarm, rising, True, self.sensor, contact)  # (positional)
 
 
 class HeuristicDetector:

@@ -16,8 +16,9 @@ Non-finite policy (the second line of defence; ``slipd.detect.features`` already
 ``step`` does not raise for these; it returns an invalid ``StepResult`` (``valid`` False, ``p_slip`` NaN,
 ``status`` saying why) so a 25 Hz loop needs no try/except, and a NaN used by mistake is refused by
 ``Decision.update``:
-  * ``status == "nonfinite_input"``: the window contains NaN or +-Inf and never reaches the model; the
-    stream's state is untouched, so the next good window continues the sequence;
+  * ``status == "nonfinite_input"``: the window contains NaN or +-Inf; the stream's state is untouched, so the
+    next good window continues the sequence (a stream under way checks its window with the outputs, in one pass after
+    the call, and drops that call's outputs; a new stream is made for a finite window only);
   * ``status == "nonfinite_output"``: an output or the next hidden state came back non-finite; it is not
     stored: the stream is reset to zeros (the model's initial state).
 Both are counted (``refused_inputs``, ``nonfinite_outputs``). ``step_batch`` (offline evaluation) raises
@@ -90,13 +91,15 @@ class _Stream:
 
     def __init__(self, session: ort.InferenceSession, batch: int, z: int, d: int, h: int, pillars: int = 0) -> None:
         self.batch = batch
-        self.x = np.zeros((batch, d), np.float32)
-        # Everything the session writes, and both states, side by side in one buffer: a step checks all of it for
-        # non-finite values in one call (the state being replaced is finite already: only finite states are kept).
-        sizes = (batch, z * batch, z * batch * h, z * batch * h, batch * pillars)
-        self.outputs = np.zeros(sum(sizes), np.float32)
+        # The input, everything the session writes and both states side by side in one buffer: a step checks its
+        # window and its outputs for non-finite values in one call after the run (``checked``; the state being replaced
+        # is finite already: only finite states are kept), ``outputs`` without the window.
+        sizes = (batch * d, batch, z * batch, z * batch * h, z * batch * h, batch * pillars)
+        self.checked = np.zeros(sum(sizes), np.float32)
         cuts = np.cumsum(sizes)[:-1]
-        p_slip, p_members, h0, h1, p_pillars = np.split(self.outputs, cuts)
+        x, p_slip, p_members, h0, h1, p_pillars = np.split(self.checked, cuts)
+        self.x = x.reshape(batch, d)
+        self.outputs = self.checked[batch * d :]
         self.p_slip = p_slip
         self.p_members = p_members.reshape(z, batch)
         self.h = [h0.reshape(z, batch, h), h1.reshape(z, batch, h)]
@@ -127,9 +130,9 @@ class _Stream:
 
 
 def _all_finite(a: np.ndarray) -> bool:
-    """No NaN or +-Inf in ``a``. One reduction where the sum is finite (a NaN or an infinity in the values makes the sum
-    NaN or infinite), the exact test only when it is not (finite values whose sum overflows)."""
-    return math.isfinite(np.add.reduce(a, axis=None)) or bool(np.isfinite(a).all())  # (ndarray.sum, less its wrapper)
+    """No NaN or +-Inf in ``a``: no zero byte among its flags (a byte search; ndarray.all goes through a Python wrapper,
+    and a finite sum needs a reduction, both costing more on the hot path)."""
+    return 0 not in np.isfinite(a).tobytes()
 
 
 def session_options(threads: int = 1) -> ort.SessionOptions:
@@ -233,26 +236,51 @@ class Ensemble:
             w = w[None, :]
         if w.ndim != 2 or w.shape[1] != self._d:
             raise ValueError(f"window must be [{self._d}] or [B, {self._d}], got {np.shape(window)}")
-        if not _all_finite(w):
-            self.refused_inputs += 1
-            return self._invalid(w.shape[0], single, STATUS_NONFINITE_INPUT)
-        st = self._streams.get(stream)
-        if st is None:
-            st = self._streams[stream] = _Stream(self._session, w.shape[0], self._z, self._d, self._h, self._p)
-        elif st.batch != w.shape[0]:
-            raise ValueError(f"stream {stream} holds {st.batch} sequences, window has {w.shape[0]}; reset it first")
-        np.copyto(st.x, w, casting="same_kind")
-        self._session.run_with_iobinding(st.bindings[st.cur])
-        if not _all_finite(st.outputs):  # p_slip, p_members, h_next (and p_pillars) in one pass
-            st.reset()
-            self.nonfinite_outputs += 1
-            return self._invalid(w.shape[0], single, STATUS_NONFINITE_OUTPUT)
-        st.cur = 1 - st.cur
+        st = self._run(w, stream)
+        if isinstance(st, str):
+            return self._invalid(w.shape[0], single, st)
         pp = st.p_pillars
         if single:
             return StepResult(float(st.p_slip[0]), st.p_members[:, 0].copy(),
                               p_pillars=None if pp is None else pp[0].copy())
         return StepResult(st.p_slip.copy(), st.p_members.copy(), p_pillars=None if pp is None else pp.copy())
+
+    def step_one(self, window: np.ndarray, stream: int = 0) -> tuple[float, np.ndarray | None]:
+        """``step`` on one window [T*C] without its result object (the detector's call, once per decision): the mean
+        P(slip) and a copy of the per-pillar P(slip) [P] (None without a per-pillar head); NaN and None where the step
+        made no decision (counted as in ``step``)."""
+        w = np.asarray(window)
+        if w.shape != (self._d,):
+            raise ValueError(f"window must be [{self._d}], got {w.shape}")
+        st = self._run(w[None, :], stream)
+        if isinstance(st, str):
+            return math.nan, None
+        pp = st.p_pillars
+        return float(st.p_slip[0]), None if pp is None else pp[0].copy()
+
+    def _run(self, w: np.ndarray, stream: int) -> _Stream | str:
+        """One model call on ``w`` [B, T*C] in ``stream``: the stream, its outputs in its buffers and its state
+        advanced, or the status of a step that made no decision (see the module docstring)."""
+        st = self._streams.get(stream)
+        if st is None:
+            if not _all_finite(w):  # (a stream is made for a finite window only)
+                self.refused_inputs += 1
+                return STATUS_NONFINITE_INPUT
+            st = self._streams[stream] = _Stream(self._session, w.shape[0], self._z, self._d, self._h, self._p)
+        elif st.batch != w.shape[0]:
+            raise ValueError(f"stream {stream} holds {st.batch} sequences, window has {w.shape[0]}; reset it first")
+        st.x[...] = w  # (np.copyto's copy, without its Python-level dispatcher)
+        self._session.run_with_iobinding(st.bindings[st.cur])
+        if not _all_finite(st.checked):  # the window, p_slip, p_members, h_next (and p_pillars) in one pass
+            if not _all_finite(st.x):
+                # Refused: the outputs of a non-finite window are dropped, and its state (the other buffer) stands.
+                self.refused_inputs += 1
+                return STATUS_NONFINITE_INPUT
+            st.reset()
+            self.nonfinite_outputs += 1
+            return STATUS_NONFINITE_OUTPUT
+        st.cur = 1 - st.cur
+        return st
 
     def step_rows(
         self, windows: np.ndarray, stream: int, active: np.ndarray
@@ -277,19 +305,22 @@ class Ensemble:
         st = self._streams.get(stream)
         if st is not None and st.batch != b:
             raise ValueError(f"stream {stream} holds {st.batch} sequences, windows has {b}; reset it first")
-        if np.count_nonzero(act) == b and _all_finite(w):  # (count_nonzero: a fraction of ndarray.all's cost)
-            # Every row steps on a finite window (the fingers of a grasp, decision after decision): no row to keep
-            # aside, and when every output is finite too, every row is valid.
-            run = act
-            if st is None:
-                st = self._streams[stream] = _Stream(self._session, b, self._z, self._d, self._h, self._p)
-            np.copyto(st.x, w, casting="same_kind")
+        common = False
+        if st is not None and 0 not in act.tobytes():  # (every flag set: a byte search, cheaper than ndarray.all)
+            # Every row steps (the fingers of a grasp, decision after decision): no row to keep aside, and when the
+            # windows and every output are finite (one check after the call), every row is valid.
+            st.x[...] = w  # (np.copyto's copy, without its Python-level dispatcher)
             self._session.run_with_iobinding(st.bindings[st.cur])
-            if _all_finite(st.outputs):
+            if _all_finite(st.checked):
                 st.cur = 1 - st.cur
                 if st.p_pillars is not None:
                     self.pillar_rows = st.p_pillars.copy()
-                return st.p_slip.copy(), st.p_members.copy(), run.copy()
+                return st.p_slip.copy(), st.p_members.copy(), act.copy()
+            # Something non-finite: an output (checked below), or a window: then this call's outputs are dropped
+            # (every state stands) and the call is made again below without that row.
+            common = _all_finite(st.x)
+        if common and st is not None:
+            run = act
             kept = None
             h_next = st.h[1 - st.cur]
             p = np.full(b, np.nan, np.float32)

@@ -320,18 +320,19 @@ def sliding_median(hist: np.ndarray, width: int) -> np.ndarray:
         a, b, c = hist[0:n], hist[1 : n + 1], hist[2 : n + 2]
         return _median3(a, b, c).astype(np.float32, copy=False)
     if width == 5:
-        a, b, c, d, e = hist[0:n], hist[1 : n + 1], hist[2 : n + 2], hist[3 : n + 3], hist[4 : n + 4]
-        # median5 = median3(e, max(min(a, b), min(c, d)), min(max(a, b), max(c, d))): the larger of the two
-        # pair minima and the smaller of the two pair maxima bracket the median of a..d's middle pair. Three
-        # arrays written in place (this runs once per decision on the daemon's hot path).
-        lo = np.minimum(a, b)
-        t = np.minimum(c, d)
-        np.maximum(lo, t, out=lo)
-        hi = np.maximum(a, b)
-        np.maximum(c, d, out=t)
-        np.minimum(hi, t, out=hi)
+        # median5 = median3(e, max(min(a, b), min(c, d)), min(max(a, b), max(c, d))) of the rows a..e of each run: the
+        # larger of the two pair minima and the smaller of the two pair maxima bracket the median of a..d's middle
+        # pair. A pair (a, b) is two consecutive rows, and so is (c, d), two rows further: one minimum and one maximum
+        # of every two consecutive rows serve both pairs. Arrays written in place (this runs once per decision on the
+        # daemon's hot path, where the number of numpy calls sets the cost).
+        m = n + 2
+        pair_min = np.minimum(hist[0:m], hist[1 : m + 1])
+        pair_max = np.maximum(hist[0:m], hist[1 : m + 1])
+        lo = np.maximum(pair_min[0:n], pair_min[2 : n + 2])
+        hi = np.minimum(pair_max[0:n], pair_max[2 : n + 2])
+        e = hist[4 : n + 4]
         # median3(e, lo, hi) = max(min(e, lo), min(max(e, lo), hi)), as ``_median3``
-        np.maximum(e, lo, out=t)
+        t = np.maximum(e, lo, out=pair_max[0:n])
         np.minimum(t, hi, out=t)
         np.minimum(e, lo, out=lo)
         np.maximum(lo, t, out=lo)
@@ -423,6 +424,7 @@ class FeatureStream:
         # fast loop, one that broadcasts a row costs several times more on a decision's block.
         self._offset_rows = np.zeros((spec.window + 1, N_PILLARS * 3), np.float32)
         self._clip_rows = np.tile(self._clip, (spec.window + 1, 1))
+        self._block_rows: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}  # ``_rows_of``
         self.set_offset(offset)
         self.nonfinite_count = 0
         self.clipped_count = 0
@@ -507,18 +509,22 @@ class FeatureStream:
             # history, every window's median reads them there. The same values as below, fewer copies.
             rows = self._buf[self._end : self._end + k]
             small = k <= len(self._ok)
-            offset = self._offset_rows[:k] if small else self._offset
+            if small:
+                offset, absk, clip, ok = self._rows_of(k)
+            else:
+                offset = self._offset
             if self._all_cols:
                 y = np.subtract(x, offset, out=rows)
             else:
                 y = np.subtract(x, offset)
-            # Every value finite and within the clip (NaN fails the comparison): one count over kept scratch arrays
-            # (ndarray.all goes through a Python wrapper that costs more than the comparison on a decision's block).
+            # Every value finite and within the clip (NaN fails the comparison), over kept scratch arrays: no zero byte
+            # among the flags (a byte search; ndarray.all goes through a Python wrapper that costs more than the
+            # comparison on a decision's block).
             if small:
-                within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip_rows[:k], out=self._ok[:k])
+                within = np.less_equal(np.abs(y, out=absk), clip, out=ok)
             else:
                 within = np.abs(y) <= self._clip
-            if np.count_nonzero(within) == within.size:
+            if 0 not in within.tobytes():
                 if not self._all_cols:
                     np.take(y, self._cols, axis=1, out=rows)
                 return self._windows_in_place(x, k)
@@ -554,6 +560,14 @@ class FeatureStream:
         self._append(rows[done:])
         self._n = n0 + k
         return out
+
+    def _rows_of(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The first ``k`` rows of the block buffers (offset, |tared| scratch, clip bound, in-range flags): views made
+        once per block length (a decision's reads are one length, stride frames), not four slices per block."""
+        views = self._block_rows.get(k)
+        if views is None:
+            views = self._block_rows[k] = (self._offset_rows[:k], self._absk[:k], self._clip_rows[:k], self._ok[:k])
+        return views
 
     def _windows_in_place(self, x: np.ndarray, k: int) -> list[tuple[int, np.ndarray]]:
         """``push_many`` once the block's ``k`` prepared rows are in the history after its end: the windows they end."""
@@ -619,9 +633,18 @@ class StreamGroup:
         for s, st in enumerate(self.streams):
             self._offset_rows[:, s * nb : (s + 1) * nb] = st._offset_rows
             st._offset_rows = self._offset_rows[:, s * nb : (s + 1) * nb]
+            st._block_rows.clear()  # (views of the buffer replaced here)
         self._clip_rows = np.tile(first._clip, (first.spec.window + 1, ns))
         self._absk = np.zeros((first.spec.window + 1, ns * nb), np.float32)
         self._ok = np.zeros((first.spec.window + 1, ns * nb), bool)
+        self._block_rows: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def _rows_of(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``FeatureStream._rows_of`` for the group's side-by-side buffers."""
+        views = self._block_rows.get(k)
+        if views is None:
+            views = self._block_rows[k] = (self._offset_rows[:k], self._absk[:k], self._clip_rows[:k], self._ok[:k])
+        return views
 
     def push_many(self, samples: np.ndarray) -> list[tuple[int, np.ndarray]] | None:
         """A block of raw samples [k, S, 9, 3] into every stream at once: ``(i, windows)`` for each sample
@@ -645,9 +668,10 @@ class StreamGroup:
             end = first._end
         x = samples.reshape(k, -1)
         rows = self._buf[end : end + k]
-        y = np.subtract(x, self._offset_rows[:k], out=rows)
-        within = np.less_equal(np.abs(y, out=self._absk[:k]), self._clip_rows[:k], out=self._ok[:k])
-        if np.count_nonzero(within) != within.size:
+        offset, absk, clip, ok = self._rows_of(k)
+        y = np.subtract(x, offset, out=rows)
+        within = np.less_equal(np.abs(y, out=absk), clip, out=ok)
+        if 0 in within.tobytes():  # (some value beyond the clip or not finite: ``FeatureStream.push_many``'s test)
             return None  # (the rows written after the histories' end are written again by each stream's push)
         self._last_good[:] = x[-1].reshape(self._last_good.shape)
         spec = first.spec

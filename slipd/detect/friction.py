@@ -88,6 +88,11 @@ class FrictionEstimator:
                 self._s += w * d * (u - self._m)
             self.samples += len(use)
 
+    def keep(self, fz: list[float]) -> None:
+        """``add`` for a decision where no pillar slides (no sample): its normal forces kept for the next decision's
+        rise test. The list is kept as it is (the caller does not change it)."""
+        self._fz = fz
+
     def refute(self, util: Sequence[float], fz: Sequence[float], p_slip: Sequence[float],
                factor: float) -> FrictionEstimate | None:
         """Forget the estimate when a pillar judged sticking (P(slip) < 0.5), among those that could be samples, uses

@@ -20,7 +20,7 @@ from typing import cast
 import numpy as np
 
 from slipd.detect.decision import Detection
-from slipd.detect.detector import Detector
+from slipd.detect.detector import Detector, top_rise
 from slipd.detect.features import FeatureStream, StreamGroup
 from slipd.geometry import CONTACT_THRESHOLD_N
 
@@ -51,7 +51,6 @@ class MultiDetector:
             d.gate._baseline = self._baselines[s]
         self._fz = np.zeros((self.sensors, 9), np.float32)
         self._fz_pressed = np.zeros((self.sensors, 9), np.float32)
-        self._rel = np.zeros((self.sensors, 9), np.float64)
         self._zeros = np.zeros((self.sensors, 9), np.float32)
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
@@ -90,7 +89,7 @@ class MultiDetector:
 
     def samples_to_decision(self) -> int:
         """Samples still to push until the next decision (the same for every sensor)."""
-        return min(d.samples_to_decision() for d in self.detectors)
+        return min([d.samples_to_decision() for d in self.detectors])  # (a list: a generator's frames cost more)
 
     def set_offset(self, offset: np.ndarray) -> None:
         """Each sensor's tare offset ([S, 9, 3]) from the next sample on (``Detector.set_offset``)."""
@@ -155,16 +154,16 @@ class MultiDetector:
             t, idx = int(t_us[kk]), base + kk
             gated = self._gates(x[kk], t, idx) if group is not None else [
                 d._gate(x[kk, s], t, idx) for s, d in enumerate(subs)]
-            stepping = [g is None for g in gated]
             # Every sensor in contact (a grasp, decision after decision): one array made once, no new one per call.
-            active = self._all_rows if all(stepping) else np.array(stepping)
+            stepped = gated.count(None)
+            active = self._all_rows if stepped == len(gated) else np.array([g is None for g in gated])
             p = ok = None
             step_s: float | None = None
             if group is not None:
                 # The sensors' filtered windows in rows, one per sensor (row s is sensor s's window, as its own stream
                 # returns it; read by its contact state below, before the next window overwrites the buffer).
                 filtered = self._stacked_rows(group[m][1])
-            if any(stepping):
+            if stepped:
                 if group is not None:
                     batch = subs[0].derive_rows(filtered)
                 else:
@@ -211,7 +210,7 @@ class MultiDetector:
         assert self._group is not None
         fz = np.subtract(frame[:, :, 2], self._group._offset[:, 2::3], out=self._fz)
         loads = np.add.reduce(np.maximum(fz, self._zeros, out=self._fz_pressed), axis=1).tolist()
-        tops = np.fmax.reduce(np.subtract(fz, self._baselines, out=self._rel), axis=1).tolist()
+        tops = [top_rise(z, b) for z, b in zip(fz.tolist(), self._baselines.tolist(), strict=True)]
         out: list[Detection | None] = []
         thr = CONTACT_THRESHOLD_N
         for s, d in enumerate(self.detectors):
@@ -236,5 +235,6 @@ class MultiDetector:
         rows = self._rows
         if rows is None or rows.shape[1] != width:
             rows = self._rows = np.empty((self.sensors, width), np.float32)
-        np.copyto(rows.reshape(self.sensors, t, -1), windows.reshape(t, self.sensors, -1).transpose(1, 0, 2))
+        # (slice assignment: np.copyto's copy without its Python-level dispatcher)
+        rows.reshape(self.sensors, t, -1)[...] = windows.reshape(t, self.sensors, -1).transpose(1, 0, 2)
         return rows

@@ -97,7 +97,7 @@ class PillarSlip:
         self.p = params or PillarSlipParams()
         self._logit = [-self.p.limit] * N_PILLARS
         # The probabilities of the latest logits: a hold leaves the logits where they are decision after decision.
-        self._probs: tuple[list[float], list[float]] = ([], [])
+        self._probs: tuple[list[float], tuple[float, ...]] = ([], ())
 
     def reset(self) -> None:
         """A new contact: every pillar sticks."""
@@ -109,14 +109,15 @@ class PillarSlip:
         return np.array(self.step(w[0].tolist(), w[-1].tolist()))
 
     def step(self, first: list[list[float]], last: list[list[float]],
-             ends: tuple[list[float], list[float], list[bool]] | None = None,
-             peaks: tuple[float, float] | None = None) -> list[float]:
-        """``update`` on a window's first and last samples (``[[fx, fy, fz], ...]``: only those two matter). Plain
-        loops over the nine pillars: this runs on the hot path once per decision and sensor. ``ends``:
-        ``utilisation(last)``, and ``peaks`` the largest rate and utilisation of the pillars in contact (-1 for none),
-        where the caller has them already."""
+             ends: tuple[list[float], list[float], list[bool] | None] | None = None,
+             peaks: tuple[float, float] | None = None) -> tuple[float, ...]:
+        """``update`` on a window's first and last samples (``[[fx, fy, fz], ...]``: only those two matter); P(slip)
+        per pillar. Plain loops over the nine pillars: this runs on the hot path once per decision and sensor.
+        ``ends``: ``utilisation(last)`` (its contact flags may be None: made here when needed), and ``peaks`` the
+        largest rate and utilisation of the pillars in contact (-1 for none), where the caller has them already."""
         p = self.p
-        fz, util, contact = ends or utilisation(last)
+        fz, util, flags = ends or utilisation(last)
+        contact = flags if flags is not None else [z > CONTACT_THRESHOLD_N for z in fz] if peaks is None else []
         if peaks is None:
             ref = top = -1.0
             for (ax, ay, _), (bx, by, _), c, u in zip(first, last, contact, util):
@@ -130,11 +131,13 @@ class PillarSlip:
             ref, top = peaks
         if ref < 0.0:  # no pillar in contact
             self.reset()
-            return self.probability_list()
+            return self.probabilities()
         if ref <= p.rate_floor_n and self._logit.count(-p.limit) == N_PILLARS:
             # No load change, every pillar at the stick bound (a steady grasp, decision after decision): every step
             # below is towards stick or none (holding needs a pillar that slid), so every logit stays at the bound.
-            return self.probability_list()
+            return self.probabilities()
+        if flags is None and peaks is not None:
+            contact = [z > CONTACT_THRESHOLD_N for z in fz]
         near = [u / top for u in util] if top > 0 else [0.0] * N_PILLARS
         if ref > p.rate_floor_n:
             # Equal utilisation across pillars of different normal force: a sticking contact shares its
@@ -172,16 +175,16 @@ class PillarSlip:
             v = logit[i] + s
             v = v if v > -lim else -lim
             logit[i] = v if v < lim else lim
-        return self.probability_list()
+        return self.probabilities()
 
-    def probability_list(self) -> list[float]:
-        """P(slip) per pillar, as plain floats (a fresh list)."""
+    def probabilities(self) -> tuple[float, ...]:
+        """P(slip) per pillar, as plain floats (a tuple: the states of a hold share it, decision after decision)."""
         logits, probs = self._probs
         if logits != self._logit:
-            logits, probs = list(self._logit), [1.0 / (1.0 + math.exp(-lg)) for lg in self._logit]
+            logits, probs = list(self._logit), tuple([1.0 / (1.0 + math.exp(-lg)) for lg in self._logit])
             self._probs = (logits, probs)
-        return list(probs)
+        return probs
 
     def probability(self) -> np.ndarray:
         """P(slip) per pillar [9] (a fresh array)."""
-        return np.array(self.probability_list())
+        return np.array(self.probabilities())

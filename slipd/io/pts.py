@@ -775,9 +775,10 @@ class FrameDecoder:
                 views = self._keep_views((p0, n, stride, m), (self._counter[m : m + n], counter, self._t[m : m + n], t,
                                                                self._vals[:, m : m + n], src.transpose(3, 0, 1, 2, 4)))
             counter, counter_src, t, t_src, vals, vals_src = views
-            np.copyto(counter, counter_src)
-            np.copyto(t, t_src)
-            np.copyto(vals, vals_src)
+            # (slice assignment: the copy np.copyto makes, without its Python-level dispatcher)
+            counter[...] = counter_src
+            t[...] = t_src
+            vals[...] = vals_src
         else:
             hub = p0 + hub_off
             self._counter[m : m + n] = np.ndarray((n,), dtype=_LE_U32, buffer=buf, offset=hub, strides=(stride,))

@@ -314,3 +314,20 @@ def test_a_release_forgets_the_friction_estimate_even_after_a_drift() -> None:
     assert any(d.contact is not None and d.contact.friction is not None for _, d in out)  # the slip gave one
     last = out[-1][1]
     assert not det.gate.open and last.contact is not None and last.contact.friction is None
+
+
+def test_the_gates_top_rise_is_fmax_of_the_rises_wherever_that_is_finite() -> None:
+    # The contact gate reads the largest rise over the free-air baseline in plain floats; it must be numpy's fmax
+    # reduction bit for bit where that is finite, and not finite where it is not (the exact path takes over there).
+    from slipd.detect.detector import top_rise
+
+    rng = np.random.default_rng(5)
+    for _ in range(3000):
+        fz = rng.normal(1.0, 2.0, 9).astype(np.float32)
+        fz[rng.random(9) < 0.15] = rng.choice([np.nan, np.inf, -np.inf, 0.0, -0.0])
+        if rng.random() < 0.05:
+            fz[:] = np.nan
+        base = rng.normal(0.0, 0.3, 9)
+        want = float(np.fmax.reduce(np.subtract(fz, base)))
+        got = top_rise(fz.tolist(), base.tolist())
+        assert (got == want) if np.isfinite(want) else not np.isfinite(got)
