@@ -28,7 +28,7 @@ import pybullet as pb
 
 from slipd.geometry import HEIGHT_OFFSET_MM, N_PILLARS, PILLAR_XY_MM
 from slipd.sim.engine.model import START_GAP_MM, BulletParams, ObjectGeometry, object_half_height_mm
-from slipd.sim.engine.stepping import EngineOutput, sustained_slides
+from slipd.sim.engine.stepping import EngineOutput, sustained_slides, tip_readout
 from slipd.sim.physics import DT_S, SensorParams, normal_force
 
 F = 1e3
@@ -213,13 +213,8 @@ class BulletSim:
         """Advance over ``len(grip_n)`` samples; ``accel_m_s2``/``ext_force_n``/``ext_torque_nm`` are [N, 3]."""
         n = len(grip_n)
         c = self.client
-        force = np.empty((n, N_PILLARS, 3))
-        disp = np.empty((n, N_PILLARS, 3))
+        out = EngineOutput.allocate(n)
         speed = np.empty((n, N_PILLARS))
-        cfn = np.empty((n, N_PILLARS))
-        cft = np.empty((n, N_PILLARS))
-        pose = np.empty((n, 3))
-        kt = self.sensor.kt_n_mm
         m = self.obj.mass_kg
         for k in range(n):
             load = (m * np.asarray(accel_m_s2[k]) + np.asarray(ext_force_n[k])) * F  # N -> mN
@@ -232,12 +227,7 @@ class BulletSim:
                 pb.applyExternalTorque(self.object, -1, torque.tolist(), pb.WORLD_FRAME, physicsClientId=c)
                 pb.stepSimulation(physicsClientId=c)
             q, _, _, _ = self._states()
-            qq = q.reshape(N_PILLARS, 3)
-            comp = np.maximum(-qq[:, 2], 0.0)
-            disp[k, :, :2] = qq[:, :2]
-            disp[k, :, 2] = comp
-            force[k, :, :2] = kt * qq[:, :2]
-            force[k, :, 2] = normal_force(comp, self.sensor)
-            speed[k], cfn[k], cft[k], pose[k] = self._sample()
-        slip = sustained_slides(speed, self.params.min_slide_mm, self.params.slide_gap_samples)
-        return EngineOutput(force, disp, slip, cfn, cft, pose)
+            out.force[k], out.disp[k] = tip_readout(q.reshape(N_PILLARS, 3), self.sensor)
+            speed[k], out.contact_fn[k], out.contact_ft[k], out.pose[k] = self._sample()
+        out.slip = sustained_slides(speed, self.params.min_slide_mm, self.params.slide_gap_samples)
+        return out

@@ -43,6 +43,12 @@ class EngineOutput:
     pose: np.ndarray
     """[N, 3]: object position x, y (mm) relative to its start, and its turn about the sensor normal (deg)."""
 
+    @classmethod
+    def allocate(cls, n: int) -> EngineOutput:
+        """Arrays for ``n`` samples, filled by an engine's run (``slip`` last, from the sliding speeds)."""
+        return cls(np.empty((n, N_PILLARS, 3)), np.empty((n, N_PILLARS, 3)), np.zeros((n, N_PILLARS), bool),
+                   np.empty((n, N_PILLARS)), np.empty((n, N_PILLARS)), np.empty((n, 3)))
+
 
 class EngineSim:
     """One scene's model and data; ``run`` advances it over input profiles."""
@@ -132,13 +138,8 @@ class EngineSim:
         """Advance over ``len(grip_n)`` samples; ``accel_m_s2``/``ext_force_n``/``ext_torque_nm`` are [N, 3]."""
         n = len(grip_n)
         d, m = self.data, self.model
-        force = np.empty((n, N_PILLARS, 3))
-        disp = np.empty((n, N_PILLARS, 3))
+        out = EngineOutput.allocate(n)
         speed = np.empty((n, N_PILLARS))
-        cfn = np.empty((n, N_PILLARS))
-        cft = np.empty((n, N_PILLARS))
-        pose = np.empty((n, 3))
-        kt = self.sensor.kt_n_mm
         xfrc = d.xfrc_applied[self.obj_body]
         for k in range(n):
             d.ctrl[0] = -float(grip_n[k])
@@ -148,15 +149,19 @@ class EngineSim:
             for _ in range(self.substeps):
                 self._normal_forces()
                 mujoco.mj_step(m, d)
-            q = d.qpos[self.qpos_adr] * 1e3  # [9, 3] mm
-            c = np.maximum(-q[:, 2], 0.0)
-            disp[k, :, :2] = q[:, :2]
-            disp[k, :, 2] = c
-            force[k, :, :2] = kt * q[:, :2]
-            force[k, :, 2] = normal_force(c, self.sensor)
-            speed[k], cfn[k], cft[k], pose[k] = self._sample()
-        slip = sustained_slides(speed, self.params.min_slide_mm, self.params.slide_gap_samples)
-        return EngineOutput(force, disp, slip, cfn, cft, pose)
+            out.force[k], out.disp[k] = tip_readout(d.qpos[self.qpos_adr] * 1e3, self.sensor)
+            speed[k], out.contact_fn[k], out.contact_ft[k], out.pose[k] = self._sample()
+        out.slip = sustained_slides(speed, self.params.min_slide_mm, self.params.slide_gap_samples)
+        return out
+
+
+def tip_readout(q_mm: np.ndarray, sensor: SensorParams) -> tuple[np.ndarray, np.ndarray]:
+    """The sensor's forces and the deflections ([9, 3] each) from the tips' joint positions [9, 3] (mm): ``kt u``
+    tangentially and the normal law of the compression (how far a tip is pushed down), as the sensor computes them."""
+    c = np.maximum(-q_mm[:, 2], 0.0)
+    disp = np.column_stack([q_mm[:, :2], c])
+    force = np.column_stack([sensor.kt_n_mm * q_mm[:, :2], normal_force(c, sensor)])
+    return force, disp
 
 
 def sustained_slides(speed_mm_s: np.ndarray, min_slide_mm: float, gap: int) -> np.ndarray:
