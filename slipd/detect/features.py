@@ -562,12 +562,8 @@ class FeatureStream:
         return out
 
     def _rows_of(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The first ``k`` rows of the block buffers (offset, |tared| scratch, clip bound, in-range flags): views made
-        once per block length (a decision's reads are one length, stride frames), not four slices per block."""
-        views = self._block_rows.get(k)
-        if views is None:
-            views = self._block_rows[k] = (self._offset_rows[:k], self._absk[:k], self._clip_rows[:k], self._ok[:k])
-        return views
+        """The first ``k`` rows of the block buffers (``block_views``)."""
+        return block_views(self._block_rows, k, self._offset_rows, self._absk, self._clip_rows, self._ok)
 
     def _windows_in_place(self, x: np.ndarray, k: int) -> list[tuple[int, np.ndarray]]:
         """``push_many`` once the block's ``k`` prepared rows are in the history after its end: the windows they end."""
@@ -640,11 +636,8 @@ class StreamGroup:
         self._block_rows: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def _rows_of(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``FeatureStream._rows_of`` for the group's side-by-side buffers."""
-        views = self._block_rows.get(k)
-        if views is None:
-            views = self._block_rows[k] = (self._offset_rows[:k], self._absk[:k], self._clip_rows[:k], self._ok[:k])
-        return views
+        """The first ``k`` rows of the group's side-by-side block buffers (``block_views``)."""
+        return block_views(self._block_rows, k, self._offset_rows, self._absk, self._clip_rows, self._ok)
 
     def push_many(self, samples: np.ndarray) -> list[tuple[int, np.ndarray]] | None:
         """A block of raw samples [k, S, 9, 3] into every stream at once: ``(i, windows)`` for each sample
@@ -685,6 +678,18 @@ class StreamGroup:
             st._end = end + k
             st._n = n0 + k
         return out
+
+
+def block_views(cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], k: int,
+                *buffers: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The first ``k`` rows of four block buffers (offset, |tared| scratch, clip bound, in-range flags), kept in
+    ``cache``: views made once per block length (a decision's reads are one length, stride frames), not four slices
+    per block."""
+    views = cache.get(k)
+    if views is None:
+        a, b, c, d = buffers
+        views = cache[k] = (a[:k], b[:k], c[:k], d[:k])
+    return views
 
 
 def first_window_end(n0: int, spec: FeatureSpec) -> int:

@@ -116,9 +116,10 @@ class PillarSlip:
         ``ends``: ``utilisation(last)`` (its contact flags may be None: made here when needed), and ``peaks`` the
         largest rate and utilisation of the pillars in contact (-1 for none), where the caller has them already."""
         p = self.p
-        fz, util, flags = ends or utilisation(last)
-        contact = flags if flags is not None else [z > CONTACT_THRESHOLD_N for z in fz] if peaks is None else []
+        fz, util, contact = ends or utilisation(last)
         if peaks is None:
+            if contact is None:
+                contact = [z > CONTACT_THRESHOLD_N for z in fz]
             ref = top = -1.0
             for (ax, ay, _), (bx, by, _), c, u in zip(first, last, contact, util):
                 if c:  # the largest rate and utilisation in contact (``max`` keeps the first of equals, as here)
@@ -136,7 +137,7 @@ class PillarSlip:
             # No load change, every pillar at the stick bound (a steady grasp, decision after decision): every step
             # below is towards stick or none (holding needs a pillar that slid), so every logit stays at the bound.
             return self.probabilities()
-        if flags is None and peaks is not None:
+        if contact is None:  # (made only now: a steady grasp returned above without them)
             contact = [z > CONTACT_THRESHOLD_N for z in fz]
         near = [u / top for u in util] if top > 0 else [0.0] * N_PILLARS
         if ref > p.rate_floor_n:
