@@ -595,6 +595,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--median", type=int, default=21, help="causal median width, odd (the method: 21)")
     p.add_argument("--clip-grad", type=float, default=0.0, help="gradient norm clip (0 = off)")
     p.add_argument("--enc", type=int)
+    p.add_argument("--tied-units", type=int, default=0,
+                   help="units per pillar of an encoder with one set of weights for every pillar "
+                        "(sliplab.model.PillarTiedLinear; exported in the dense layout, so --enc is ignored); "
+                        "0 = the method's dense encoder")
     p.add_argument("--hidden", type=int)
     p.add_argument("--pred", type=int, nargs=2)
     p.add_argument("--max-recordings", type=int, help="use only the first N recordings (0 = all)")
@@ -659,8 +663,10 @@ def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureS
     """Train member ``k`` and return its checkpoint dict (also logs one line per epoch to ``log``)."""
     rng = np.random.default_rng([args.seed, k])
     torch.manual_seed(args.seed * 1000 + k)
+    units = getattr(args, "tied_units", 0)
+    tied = (spec.window, len(spec.pillars), len(spec.channels), units) if units > 0 else None
     net = SlipNet(spec.input_size, hidden=args.hidden, enc=args.enc, pred=args.pred,
-                  aux=len(spec.pillars) if getattr(args, "aux_weight", 0.0) > 0 else 0).to(args.device)
+                  aux=len(spec.pillars) if getattr(args, "aux_weight", 0.0) > 0 else 0, tied=tied).to(args.device)
     opt = make_optimizer(net, args)
     augs = set(args.augs)
     n_lanes = max(1, args.batch // args.chunk)
@@ -698,7 +704,7 @@ def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureS
     log.write(json.dumps(result) + "\n")
     log.flush()
     net.cpu().eval()
-    return {"state_dict": net.state_dict(), "config": net.config(), "feature_spec": spec.to_dict(),
+    return {"state_dict": net.dense_state_dict(), "config": net.config(), "feature_spec": spec.to_dict(),
             "provenance": {"data": [str(d) for d in args.data], "index": [_index_summary(d) for d in args.data],
                            "seed": args.seed,
                            "member": k, "args": _jsonable(vars(args)), "git": _git_commit(),

@@ -447,3 +447,58 @@ def test_a_partial_slip_is_a_recording_without_a_label_whose_loaded_pillars_slid
     assert not T.is_partial_slip(label, light, force)  # an unloaded pillar sliding is not the contact slipping
     label[150] = 1
     assert not T.is_partial_slip(label, slip, force)  # a labelled slip is a slip
+
+
+def _trained_tied_net(seed: int = 0) -> SlipNet:
+    """A tied-encoder net after a few train-mode passes (BatchNorm statistics away from their defaults)."""
+    torch.manual_seed(seed)
+    net = SlipNet(40 * 9 * 2, hidden=16, enc=0, pred=(8, 8), aux=9, tied=(40, 9, 2, 6))
+    x = torch.randn(64, 40 * 9 * 2) * 3 + 1
+    net.train()
+    with torch.no_grad():
+        for _ in range(3):
+            net(x, torch.zeros(64, 16))
+    return net.eval()
+
+
+def test_a_tied_encoder_is_written_in_the_dense_layout_with_the_same_outputs() -> None:
+    net = _trained_tied_net()
+    dense = SlipNet(**net.config())
+    dense.load_state_dict(net.dense_state_dict())  # strict: every key of the method's layout, nothing more
+    dense.eval()
+    assert net.config()["enc"] == 9 * 6
+    x, h = torch.randn(5, 720) * 2, torch.rand(5, 16) - 0.5
+    with torch.no_grad():
+        p_tied, h_tied = net(x, h)
+        p_dense, h_dense = dense(x, h)
+    torch.testing.assert_close(p_dense, p_tied, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(h_dense, h_tied, atol=1e-5, rtol=1e-5)
+
+
+def test_a_tied_encoder_reads_every_pillar_by_the_same_rule() -> None:
+    """Which pillar carries a load does not matter to the encoder: permuting the pillars of a window leaves
+    its output unchanged, while moving a load from one time to another changes it."""
+    net = _trained_tied_net(1)
+    x = torch.randn(4, 40, 9, 2)
+    perm = torch.tensor([4, 0, 8, 2, 6, 1, 3, 7, 5])
+    with torch.no_grad():
+        enc = net.projector(x.reshape(4, -1))
+        enc_perm = net.projector(x[:, :, perm].reshape(4, -1))
+        enc_time = net.projector(x.flip(1).reshape(4, -1))
+    torch.testing.assert_close(enc_perm, enc, atol=1e-5, rtol=1e-5)
+    assert (enc_time - enc).abs().max() > 1e-3
+
+
+def test_tiny_training_with_a_tied_encoder_exports(data_dir: Path, tmp_path: Path) -> None:
+    from sliplab.export import load_run
+
+    out = tmp_path / "run"
+    assert T.main(["--data", str(data_dir), "--out", str(out), "--tiny", "--quiet", "--seed", "3", "--threads", "1",
+                   "--members", "1", "--pillars", "all", "--channels", "util", "--tied-units", "4",
+                   "--aux-weight", "1"]) == 0
+    ckpt = torch.load(out / "member_0.pt", map_location="cpu", weights_only=False)
+    assert ckpt["config"]["enc"] == 9 * 4 and ckpt["provenance"]["args"]["tied_units"] == 4
+    net = SlipNet(**ckpt["config"])
+    net.load_state_dict(ckpt["state_dict"])
+    members, spec, _ = load_run(out)
+    assert members[0].input_size == spec.input_size == 40 * 9
