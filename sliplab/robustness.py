@@ -392,7 +392,8 @@ def tables(report: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                  _pct(f["best_heuristic_balanced"]), _num(f["margin_points"]), f["manifest"]]
                 for fam, f in report["lofo"].items()]
         out.append(("Leave-one-family-out: each fold's model on the family it was trained without", head, rows))
-    for key, title in (("engine_holdout", "Engine held out: trained on our own families, tested on the engine"),
+    tested_on = report.get("engine_data") or "the engine"
+    for key, title in (("engine_holdout", f"Engine held out: the model tested on {tested_on}"),
                        ("reverse_holdout", "Reverse: trained on the engine only, tested on our own families")):
         if not report.get(key):
             continue
