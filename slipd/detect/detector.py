@@ -347,9 +347,9 @@ class Detector:
         base = self.index + 1 - i  # sample index of force[0]
         self.index += len(force) - i
         if self._shared:  # (the shipped model's layout: the windows straight from the stream)
-            for j, window, filtered in self.features.push_views(force[i:]):
+            for j, window, filtered, tared in self.features.push_views(force[i:]):
                 k = i + j
-                out.append((k, self._decide(window, force[k], int(t_us[k]), base + k, filtered, None)))
+                out.append((k, self._decide(window, force[k], int(t_us[k]), base + k, filtered, None, tared)))
                 self.step_seconds.append(self.last_step_s)
             return out
         for j, window, _, state in self.feature_windows(force[i:]):
@@ -366,9 +366,9 @@ class Detector:
         returns them (``contact_state`` turns them into the state once the model has stepped), the state None;
         otherwise the contact stream's own state, the rows None."""
         if self._shared:
-            return [(j, w, f, None) for j, w, f in self.features.push_views(force)]
+            return [(j, w, f, None) for j, w, f, _ in self.features.push_views(force)]
         contact = dict(self.contact.push_many(force))
-        return [(j, w, None, contact.get(j)) for j, w, _ in self.features.push_views(force)]
+        return [(j, w, None, contact.get(j)) for j, w, _, _ in self.features.push_views(force)]
 
     def contact_state(self, filtered: np.ndarray | None, state: ContactState | None) -> ContactState | None:
         """The contact state of a decided window: from the shared ``filtered`` rows, with the model's own
@@ -386,11 +386,12 @@ class Detector:
         return self._decide(window, force, t_us, index, self.features.filtered() if self._shared else None, state)
 
     def _decide(self, window: np.ndarray, force: np.ndarray, t_us: int, index: int, filtered: np.ndarray | None,
-                state: ContactState | None) -> Detection:
+                state: ContactState | None, tared: np.ndarray | None = None) -> Detection:
         """A completed window (its last sample ``force``, ``index``): contact gate, model step, decision, and the
-        window's contact state (``contact_state`` of ``filtered`` or ``state``)."""
+        window's contact state (``contact_state`` of ``filtered`` or ``state``). ``tared``: ``force`` tared as the
+        feature stream prepared it, every column (``FeatureStream.push_views``), where it is at hand."""
         self.pillar_p = None
-        det = self._gate(force, t_us, index)
+        det = self._gate(force, t_us, index, tared)
         if det is not None:
             return det.with_contact(self.contact_state(filtered, state))
         t0 = time.perf_counter()
@@ -424,13 +425,18 @@ class Detector:
         """The stream (window phase) of the window that ends at the ``samples``-th sample since the restart."""
         return ((samples - self.spec.window) // self.spec.step) % self.n_streams
 
-    def _gate(self, force: np.ndarray, t_us: int, index: int) -> Detection | None:
+    def _gate(self, force: np.ndarray, t_us: int, index: int, tared: np.ndarray | None = None) -> Detection | None:
         """The contact gate on a completed window: its Detection (p 0) while closed, None when the model
-        must step. Also tracks the press hold (``pressing``) that ``_finish`` applies."""
+        must step. Also tracks the press hold (``pressing``) that ``_finish`` applies. ``tared``: ``force`` tared by
+        the feature stream (its 27 values in SDK order), where it is at hand."""
         if self.press_rise is None and not self.contact_gate:
             return None
-        # Checked once per window, on its last sample (tared, as the model sees it).
-        fz = np.subtract(np.asarray(force, np.float32).reshape(9, 3)[:, 2], self.features.offset_z, out=self._fz)
+        # Checked once per window, on its last sample (tared, as the model sees it): the feature stream's prepared row
+        # where it hands one over (a finite sample within the clip: the same float32 subtraction, the same values).
+        if tared is None:
+            fz = np.subtract(np.asarray(force, np.float32).reshape(9, 3)[:, 2], self.features.offset_z, out=self._fz)
+        else:
+            fz = tared[2::3]
         load = float(np.add.reduce(np.maximum(fz, _ZEROS, out=self._fz_pressed)))
         return self._gated(fz, load, self.gate.touching(fz) if self.contact_gate else None, t_us, index)
 

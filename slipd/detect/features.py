@@ -552,7 +552,8 @@ class FeatureStream:
         window [input_size] and the filtered rows [window, n_base], views of the buffers (a ``windowed`` spec's model
         window a new array)."""
         self._filter(lo, e)
-        return self._plans.window(e)
+        model, filt, _ = self._plans.window(e)
+        return model, filt
 
     def _filter(self, lo: int, e: int) -> None:
         """Stages 5 and 5b on the rows ``lo .. e - 1`` that are not computed yet."""
@@ -568,12 +569,14 @@ class FeatureStream:
         windows, bit for bit, and the same counters as k calls of ``push``. Each window is a fresh copy owned by the
         caller.
         """
-        return [(i, w.copy()) for i, w, _ in self.push_views(samples)]
+        return [(i, w.copy()) for i, w, _, _ in self.push_views(samples)]
 
-    def push_views(self, samples: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
-        """``push_many`` with each window's filtered rows: ``(i, window, filtered)``, the flattened model window
-        [input_size] and the filtered rows [window, n_base] (the contact state's). Views of the stream's buffers,
-        valid until the next push (copies where the block is too long for that).
+    def push_views(self, samples: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]]:
+        """``push_many`` with each window's filtered rows: ``(i, window, filtered, prepared)``, the flattened model
+        window [input_size], the filtered rows [window, n_base] (the contact state's) and, in the common block (every
+        value finite and within the clip, so stages 1-4 changed nothing but the tare), the prepared row of the window's
+        last sample [n_base] (its tared values: the contact gate's), else None. Views of the stream's buffers, valid
+        until the next push (copies where the block is too long for that).
 
         Sanitise, tare and clip run as one vectorised call per block; the median and the derived channels once per
         block too, on the rows the block's windows need.
@@ -631,14 +634,14 @@ class FeatureStream:
             self._end = spec.median - 1
         n0 = self._n
         first = first_window_end(n0, spec)
-        out = []
+        out: list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]] = []
         done = 0
         for i in range(first, k, spec.step):
             self._append(rows[done : i + 1])
             done = i + 1
             # (copies: a later window's rows may shift the buffers)
             w, f = self._window(self._end - spec.window, self._end)
-            out.append((i, w.copy(), f.copy()))
+            out.append((i, w.copy(), f.copy(), None))
         self._append(rows[done:])
         self._n = n0 + k
         return out
@@ -647,7 +650,7 @@ class FeatureStream:
         """The first ``k`` rows of the block buffers (``block_views``)."""
         return block_views(self._block_rows, k, self._offset_rows, self._absk, self._clip_rows, self._ok)
 
-    def _advance(self, k: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    def _advance(self, k: int) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]]:
         """``push_views`` once the block's ``k`` prepared rows are in the history after its end: the windows they end,
         their rows filtered and derived in one pass."""
         spec = self.spec
@@ -708,7 +711,7 @@ class RowPlans:
         self._scratch = np.zeros((4, len(buf), buf.shape[1]), np.float32)  # (the median's intermediate values)
         self._fz = np.zeros(len(buf) * (0 if der is None else der.shape[1]), np.float32)  # (util's floored Fz)
         self._ops: dict[tuple[int, int], list[Op]] = {}
-        self._windows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._windows: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def ops(self, lo: int, e: int) -> list[Op]:
         """The calls that filter and derive rows ``lo .. e - 1`` (the median reads the prepared rows from
@@ -737,9 +740,9 @@ class RowPlans:
         self._ops[(lo, e)] = ops
         return ops
 
-    def window(self, e: int) -> tuple[np.ndarray, np.ndarray]:
+    def window(self, e: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The window that ends before row ``e``: the model's (flattened, [input_size]; a ``windowed`` spec's derived
-        anew) and its filtered rows [window, n_base], views of the buffers."""
+        anew), its filtered rows [window, n_base] and the prepared row of its last sample, views of the buffers."""
         views = self._windows.get(e)
         if views is None:
             if len(self._windows) >= self.MAX_KEPT:
@@ -747,11 +750,11 @@ class RowPlans:
             start = e - self.spec.window
             filt = self.filt[start:e]
             if self.der is None:
-                return self.spec.derive(filt).reshape(-1), filt
+                return self.spec.derive(filt).reshape(-1), filt, self.buf[e - 1]
             der = self.der[start:e]
             if not der.flags.c_contiguous:  # (a stream's columns of a group's rows: flattened, a copy, not kept)
-                return der.reshape(-1), filt
-            views = self._windows[e] = (der.reshape(-1), filt)
+                return der.reshape(-1), filt, self.buf[e - 1]
+            views = self._windows[e] = (der.reshape(-1), filt, self.buf[e - 1])
         return views
 
 
@@ -821,11 +824,12 @@ class StreamGroup:
         """The first ``k`` rows of the group's side-by-side block buffers (``block_views``)."""
         return block_views(self._block_rows, k, self._offset_rows, self._absk, self._clip_rows, self._ok)
 
-    def push_views(self, samples: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]] | None:
-        """A block of raw samples [k, S, 9, 3] into every stream at once: ``(i, windows, filtered)`` for each sample
-        ``samples[i]`` that ends a window, ``windows`` the streams' model windows side by side ([window, S *
-        n_channels], stream ``s`` in columns ``s * n_channels ..``) and ``filtered`` their filtered rows ([window, S *
-        n_base]), views valid until the next push (each stream's ``push_views`` gives the same values), and each
+    def push_views(self, samples: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] | None:
+        """A block of raw samples [k, S, 9, 3] into every stream at once: ``(i, windows, filtered, prepared)`` for each
+        sample ``samples[i]`` that ends a window, ``windows`` the streams' model windows side by side (flattened
+        [window, S * n_channels], stream ``s`` in columns ``s * n_channels ..``), ``filtered`` their filtered rows
+        ([window, S * n_base]) and ``prepared`` the prepared rows of the window's last sample ([S * n_base]: the tared
+        values), views valid until the next push (each stream's ``push_views`` gives the same values), and each
         stream advanced as its own ``push_views`` would. None, with nothing pushed, unless the block is the common one
         (the streams under way in lockstep, every value finite and within the clip): push it stream by stream then."""
         streams = self.streams

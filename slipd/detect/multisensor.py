@@ -47,9 +47,9 @@ class MultiDetector:
         for s, d in enumerate(self.detectors):
             self._baselines[s] = d.gate._baseline
             d.gate._baseline = self._baselines[s]
-        self._fz = np.zeros((self.sensors, 9), np.float32)
         self._fz_pressed = np.zeros((self.sensors, 9), np.float32)
-        self._zeros = np.zeros((self.sensors, 9), np.float32)
+        self._fz_pressed_flat = self._fz_pressed.reshape(-1)
+        self._zeros_flat = np.zeros(self.sensors * 9, np.float32)
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
         """Model call time behind each returned detection: on the first stepped sensor of a call, None on
@@ -144,11 +144,11 @@ class MultiDetector:
             wins = [d.feature_windows(x[i:, s]) for s, d in enumerate(subs)]
             ends = [j for j, _, _, _ in wins[0]]
         else:
-            ends = [j for j, _, _ in group]
+            ends = [j for j, _, _, _ in group]
         for m, j in enumerate(ends):
             kk = i + j
             t, idx = int(t_us[kk]), base + kk
-            gated = self._gates(x[kk], t, idx) if group is not None else [
+            gated = self._gates(group[m][3], t, idx) if group is not None else [
                 d._gate(x[kk, s], t, idx) for s, d in enumerate(subs)]
             # Every sensor in contact (a grasp, decision after decision): one array made once, no new one per call.
             stepped = gated.count(None)
@@ -197,12 +197,15 @@ class MultiDetector:
                 return False
         return True
 
-    def _gates(self, frame: np.ndarray, t_us: int, index: int) -> list[Detection | None]:
-        """Every sensor's ``Detector._gate`` on one window end's frame [S, 9, 3], the arithmetic of all sensors in one
-        pass (the same operations on the same values, row by row; the tare offsets are the stream group's)."""
-        assert self._group is not None
-        fz = np.subtract(frame[:, :, 2], self._group._offset[:, 2::3], out=self._fz)
-        loads = np.add.reduce(np.maximum(fz, self._zeros, out=self._fz_pressed), axis=1).tolist()
+    def _gates(self, tared: np.ndarray, t_us: int, index: int) -> list[Detection | None]:
+        """Every sensor's ``Detector._gate`` on one window end's frame, tared by the stream group (``tared`` [S * 27],
+        the sensors side by side, the prepared row of a common block: finite, within the clip, so the same values as
+        the frame less its offsets), the arithmetic of all sensors in one pass (the same operations on the same values,
+        row by row)."""
+        flat = tared[2::3]  # (every sensor's nine normal forces in a row: 27 columns a sensor, three a pillar)
+        np.maximum(flat, self._zeros_flat, out=self._fz_pressed_flat)
+        loads = np.add.reduce(self._fz_pressed, axis=1).tolist()
+        fz = flat.reshape(self.sensors, 9)
         tops = [top_rise(z, b) for z, b in zip(fz.tolist(), self._baselines.tolist(), strict=True)]
         out: list[Detection | None] = []
         thr = CONTACT_THRESHOLD_N
