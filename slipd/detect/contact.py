@@ -165,10 +165,11 @@ class ContactStream:
         return [(i, self.state(w)) for i, w in self.features.push_many(force)]
 
     def state(self, window: np.ndarray, pillar_p: np.ndarray | None = None) -> ContactState:
-        """The state at the end of one filtered window (fx, fy, fz of the nine pillars, [window * 27]); with
+        """The state at the end of one filtered window (fx, fy, fz of the nine pillars, [window, 27] or flattened); with
         ``pillar_p`` (a model's per-pillar P(slip), [9]) that is the slip map instead of the feature estimate."""
-        w = window.reshape(self.spec.window, N_PILLARS, 3)
-        # Nine pillars once per decision: plain floats (a numpy call on nine values costs more than its work).
+        w = window.reshape(self.spec.window, N_PILLARS * 3)
+        # Nine pillars once per decision: plain floats (a numpy call on nine values costs more than its work), each
+        # sample one flat list (a nested one makes a list per pillar).
         first, last = w[0].tolist(), w[-1].tolist()
         # ``utilisation(last)``, the contact's sums and the pillar estimate's largest rate in one pass (the same
         # operations, in the same order; the contact flags are left to the pillar estimate, which needs them only while
@@ -180,7 +181,8 @@ class ContactStream:
         add_fz, add_util = fz.append, util.append
         grip = fx = fy = shear = pressed = top_pressed = 0.0
         top = ref = -1.0
-        for (x, y, z), (x0, y0, _) in zip(last, first):
+        it, it0 = iter(last), iter(first)
+        for x, y, z, x0, y0, _ in zip(it, it, it, it0, it0, it0):  # (a pillar's fx, fy, fz of each sample)
             ft = hypot(x, y)
             add_fz(z)
             if z > thr:  # in contact (pressed too: the threshold is above zero)
@@ -224,7 +226,7 @@ class ContactStream:
                 # pillar at 0.5 or above, so a steady grasp skips the press test and the samples, decision after
                 # decision.)
                 # (sum over a list: a generator's frame switches cost more than the nine additions)
-                pressing = grip > (1.0 + FRICTION_PRESS_RISE) * sum([z for _, _, z in first if z > CONTACT_THRESHOLD_N])
+                pressing = grip > (1.0 + FRICTION_PRESS_RISE) * sum([z for z in first[2::3] if z > CONTACT_THRESHOLD_N])
                 if pressing:
                     samples = [0.0] * N_PILLARS
                 else:

@@ -227,9 +227,9 @@ class Detector:
         self._shared = self.contact.shares_window(self.spec)
         self.pillar_p: np.ndarray | None = None
         """The model's per-pillar P(slip) on the latest stepped window (SDK order), or None."""
-        # Shared: the stream yields filtered base windows, derived here for the model and read as they are for
-        # the contact state, so the 1 kHz path sanitises, tares and median-filters each sample once, not twice.
-        self.features = FeatureStream(self.spec, offset, derive=not self._shared)
+        # Shared: the stream's filtered rows of a window serve the contact state as they are, so the 1 kHz path
+        # sanitises, tares and median-filters each sample once, not twice.
+        self.features = FeatureStream(self.spec, offset)
         self.tare_samples = 0 if offset is not None else int(tare_samples)
         self._tare_buf = np.zeros((max(self.tare_samples, 1), 9, 3), np.float32)
         self._tare_t = np.zeros(max(self.tare_samples, 1), np.int64)
@@ -346,42 +346,32 @@ class Detector:
             return out
         base = self.index + 1 - i  # sample index of force[0]
         self.index += len(force) - i
-        for j, window, filtered, state in self.feature_windows(force[i:]):
+        if self._shared:  # (the shipped model's layout: the windows straight from the stream)
+            for j, window, filtered, tared in self.features.push_views(force[i:]):
+                k = i + j
+                out.append((k, self._decide(window, force[k], int(t_us[k]), base + k, filtered, None, tared)))
+                self.step_seconds.append(self.last_step_s)
+            return out
+        for j, window, _, state in self.feature_windows(force[i:]):
             k = i + j
-            assert window is not None
-            out.append((k, self._decide(window, force[k], int(t_us[k]), base + k, filtered, state)))
+            out.append((k, self._decide(window, force[k], int(t_us[k]), base + k, None, state)))
             self.step_seconds.append(self.last_step_s)
         return out
 
-    def feature_windows(self, force: np.ndarray, derive: bool = True
-                        ) -> list[tuple[int, np.ndarray | None, np.ndarray | None, ContactState | None]]:
-        """The feature stages on a block of tared-phase samples: ``(i, model window, filtered window, contact
-        state)`` for each sample that ends a window (the model is not stepped here). A detector that shares its
-        filtered window with the contact state returns that window (``contact_state`` turns it into the state
-        once the model has stepped); otherwise the contact stream's own state. ``derive`` False: a shared detector
-        leaves the model window to the caller (None; ``derive_rows`` makes the windows of several sensors at once)."""
+    def feature_windows(self, force: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray | None,
+                                                                ContactState | None]]:
+        """The feature stages on a block of tared-phase samples: ``(i, model window, filtered rows, contact state)``
+        for each sample that ends a window (the model is not stepped here; window and rows are views of the feature
+        stream's buffers, valid until its next push). A detector that shares its filtered rows with the contact state
+        returns them (``contact_state`` turns them into the state once the model has stepped), the state None;
+        otherwise the contact stream's own state, the rows None."""
         if self._shared:
-            if not derive:
-                return [(j, None, w, None) for j, w in self.features.push_many(force)]
-            return [(j, self._derive(w), w, None) for j, w in self.features.push_many(force)]
+            return [(j, w, f, None) for j, w, f, _ in self.features.push_views(force)]
         contact = dict(self.contact.push_many(force))
-        return [(j, w, None, contact.get(j)) for j, w in self.features.push_many(force)]
-
-    def _derive(self, filtered: np.ndarray) -> np.ndarray:
-        """A shared filtered window [window * n_base] -> the model's window (stage 5b)."""
-        spec = self.spec
-        out: np.ndarray = spec.derive(filtered.reshape(spec.window, spec.n_base)).reshape(-1)
-        return out
-
-    def derive_rows(self, filtered: np.ndarray) -> np.ndarray:
-        """Shared filtered windows of several sensors [B, window * n_base] -> their model windows [B, input_size] in
-        one pass (stage 5b works sample by sample: the same values as ``_derive`` on each)."""
-        spec = self.spec
-        out: np.ndarray = spec.derive(filtered.reshape(-1, spec.n_base)).reshape(len(filtered), spec.input_size)
-        return out
+        return [(j, w, None, contact.get(j)) for j, w, _, _ in self.features.push_views(force)]
 
     def contact_state(self, filtered: np.ndarray | None, state: ContactState | None) -> ContactState | None:
-        """The contact state of a decided window: from the shared ``filtered`` window, with the model's own
+        """The contact state of a decided window: from the shared ``filtered`` rows, with the model's own
         per-pillar P(slip) where its graph has a per-pillar head and it stepped on this window
         (``pillar_p``), else the feature pipeline's estimate; ``state`` as it is otherwise."""
         if filtered is None:
@@ -393,17 +383,15 @@ class Detector:
         window = self.features.push(force)
         if window is None:
             return None
-        filtered = None
-        if self._shared:
-            filtered, window = window, self._derive(window)
-        return self._decide(window, force, t_us, index, filtered, state)
+        return self._decide(window, force, t_us, index, self.features.filtered() if self._shared else None, state)
 
     def _decide(self, window: np.ndarray, force: np.ndarray, t_us: int, index: int, filtered: np.ndarray | None,
-                state: ContactState | None) -> Detection:
+                state: ContactState | None, tared: np.ndarray | None = None) -> Detection:
         """A completed window (its last sample ``force``, ``index``): contact gate, model step, decision, and the
-        window's contact state (``contact_state`` of ``filtered`` or ``state``)."""
+        window's contact state (``contact_state`` of ``filtered`` or ``state``). ``tared``: ``force`` tared as the
+        feature stream prepared it, every column (``FeatureStream.push_views``), where it is at hand."""
         self.pillar_p = None
-        det = self._gate(force, t_us, index)
+        det = self._gate(force, t_us, index, tared)
         if det is not None:
             return det.with_contact(self.contact_state(filtered, state))
         t0 = time.perf_counter()
@@ -437,13 +425,18 @@ class Detector:
         """The stream (window phase) of the window that ends at the ``samples``-th sample since the restart."""
         return ((samples - self.spec.window) // self.spec.step) % self.n_streams
 
-    def _gate(self, force: np.ndarray, t_us: int, index: int) -> Detection | None:
+    def _gate(self, force: np.ndarray, t_us: int, index: int, tared: np.ndarray | None = None) -> Detection | None:
         """The contact gate on a completed window: its Detection (p 0) while closed, None when the model
-        must step. Also tracks the press hold (``pressing``) that ``_finish`` applies."""
+        must step. Also tracks the press hold (``pressing``) that ``_finish`` applies. ``tared``: ``force`` tared by
+        the feature stream (its 27 values in SDK order), where it is at hand."""
         if self.press_rise is None and not self.contact_gate:
             return None
-        # Checked once per window, on its last sample (tared, as the model sees it).
-        fz = np.subtract(np.asarray(force, np.float32).reshape(9, 3)[:, 2], self.features.offset_z, out=self._fz)
+        # Checked once per window, on its last sample (tared, as the model sees it): the feature stream's prepared row
+        # where it hands one over (a finite sample within the clip: the same float32 subtraction, the same values).
+        if tared is None:
+            fz = np.subtract(np.asarray(force, np.float32).reshape(9, 3)[:, 2], self.features.offset_z, out=self._fz)
+        else:
+            fz = tared[2::3]
         load = float(np.add.reduce(np.maximum(fz, _ZEROS, out=self._fz_pressed)))
         return self._gated(fz, load, self.gate.touching(fz) if self.contact_gate else None, t_us, index)
 

@@ -29,7 +29,7 @@ windows; ``tests/detect/test_features.py`` proves it.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from functools import cached_property
 from typing import Any
@@ -152,22 +152,49 @@ class FeatureSpec:
         """Columns selected in stage 4 and median-filtered (equals ``n_channels`` without derived channels)."""
         return len(self._cols)
 
-    def derive(self, filtered: np.ndarray) -> np.ndarray:
-        """Stage 5b: [T, n_base] filtered samples -> [T, n_channels]; the identity without derived channels.
+    def derive(self, filtered: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Stage 5b: [T, n_base] filtered samples -> [T, n_channels]; the identity without derived channels. Written
+        into ``out`` ([T, n_channels]) where given (the feature stream's derived rows), else a new array (or
+        ``filtered`` itself, the identity).
 
         Elementwise float32 arithmetic per sample, so any split of a recording into pieces gives the same
         values bit for bit (the streaming and batch paths both call this). A ``windowed`` spec takes whole
         windows, ``T`` a multiple of ``window`` (one window, or several stacked).
         """
         if not self.derived:
-            return filtered
+            if out is None:
+                return filtered
+            out[...] = filtered
+            return out
+        if self.channels == ("util",):
+            # (``out`` not one block of memory, a stream's columns of a group's rows: its reshape would be a copy)
+            contiguous = out is not None and out.flags.c_contiguous
+            res = out if out is not None and contiguous else np.empty((len(filtered), self.n_channels), filtered.dtype)
+            run_ops(self.util_ops(filtered, res.reshape(-1), np.empty(res.size, filtered.dtype)))
+            if out is not None and not contiguous:
+                out[...] = res
+                return out
+            return res
         f = filtered.reshape(len(filtered), len(self.pillars), 3)
         fz = np.maximum(f[:, :, 2], _UTIL_FLOOR_F32)
-        if self.channels == ("util",):
-            # The shipped model's layout, once per decision on the hot path: no stack of one part (same values).
-            out: np.ndarray = np.hypot(f[:, :, 0], f[:, :, 1])
-            np.divide(out, fz, out=out)
-            return out.reshape(len(filtered), self.n_channels)
+        res = self._derive_parts(f, fz)
+        if out is None:
+            return res
+        out[...] = res
+        return out
+
+    def util_ops(self, filtered: np.ndarray, out: np.ndarray, fz: np.ndarray) -> list[Op]:
+        """``derive``'s calls for the shipped model's layout (``channels`` util alone) on [T, n_base] filtered samples,
+        into ``out`` [T * n_channels] with ``fz`` [T * n_channels] for the floored normal forces (``out`` and, where
+        the calls are kept, ``filtered`` one block of memory each). The axes as one-dimensional views, one row per
+        pillar and sample: numpy's loop over a strided two-dimensional operand costs twice the arithmetic on a block's
+        rows. Elementwise, so the same values whatever the views."""
+        p = filtered.reshape(-1, 3)
+        return [(np.maximum, p[:, 2], _UTIL_FLOOR_F32, fz), (np.hypot, p[:, 0], p[:, 1], out),
+                (np.divide, out, fz, out)]
+
+    def _derive_parts(self, f: np.ndarray, fz: np.ndarray) -> np.ndarray:
+        """``derive`` of [T, P, 3] filtered forces and their floored normal forces, channel by channel."""
         parts = []
         util = np.hypot(f[:, :, 0], f[:, :, 1]) / fz if {"util", "lutil"} & set(self.channels) else fz
         grasp = np.maximum(f[:, :, 2].sum(axis=1, keepdims=True), np.float32(UTIL_FLOOR_N))
@@ -188,7 +215,7 @@ class FeatureSpec:
                 parts.append(self._rspeed(f))
             else:
                 parts.append(f[:, :, CHANNEL_INDEX[c]])
-        return np.stack(parts, axis=-1).astype(np.float32, copy=False).reshape(len(filtered), self.n_channels)
+        return np.stack(parts, axis=-1).astype(np.float32, copy=False).reshape(len(f), self.n_channels)
 
     def _rspeed(self, f: np.ndarray) -> np.ndarray:
         """[T, P] ``rspeed`` of [T, P, 3] filtered forces, T a multiple of the window (each window on its own)."""
@@ -307,44 +334,67 @@ def prepare_samples(force: np.ndarray, spec: FeatureSpec, offset: np.ndarray | N
     return np.ascontiguousarray(tared[:, spec.columns]), n_bad
 
 
-def sliding_median(hist: np.ndarray, width: int) -> np.ndarray:
-    """Median of every run of ``width`` consecutive rows of ``hist`` [M, C] -> [M - width + 1, C] float32.
+Op = tuple[Callable[..., Any], Any, Any, Any]
+"""One numpy call ``f(a, b, out=out)`` of a stage, its operands views made once (``run_ops``)."""
+
+
+def run_ops(ops: Sequence[Op]) -> None:
+    """Make the calls of a stage, in order. (``out`` by keyword: a ufunc's positional ``out`` costs twice the call.)"""
+    for f, a, b, o in ops:
+        f(a, b, out=o)
+
+
+def sliding_median(hist: np.ndarray, width: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Median of every run of ``width`` consecutive rows of ``hist`` [M, C] -> [M - width + 1, C] float32, written
+    into ``out`` where given (otherwise a new array).
 
     An odd-width median is one of its inputs, so any exact method gives the same bits. Widths 3 and 5
-    (the shipped model's) use min/max selection networks over shifted views: about a hundred times faster
-    than ``np.median`` over a sliding view, which dominated the cost of a training epoch; other widths
+    (the shipped model's) use min/max selection networks over shifted views (``median_ops``): about a hundred times
+    faster than ``np.median`` over a sliding view, which dominated the cost of a training epoch; other widths
     use ``np.median``.
     """
     n = len(hist) - width + 1
-    if width == 3:
-        a, b, c = hist[0:n], hist[1 : n + 1], hist[2 : n + 2]
-        return _median3(a, b, c).astype(np.float32, copy=False)
-    if width == 5:
-        # median5 = median3(e, max(min(a, b), min(c, d)), min(max(a, b), max(c, d))) of the rows a..e of each run: the
-        # larger of the two pair minima and the smaller of the two pair maxima bracket the median of a..d's middle
-        # pair. A pair (a, b) is two consecutive rows, and so is (c, d), two rows further: one minimum and one maximum
-        # of every two consecutive rows serve both pairs. Arrays written in place (this runs once per decision on the
-        # daemon's hot path, where the number of numpy calls sets the cost).
-        m = n + 2
-        pair_min = np.minimum(hist[0:m], hist[1 : m + 1])
-        pair_max = np.maximum(hist[0:m], hist[1 : m + 1])
-        lo = np.maximum(pair_min[0:n], pair_min[2 : n + 2])
-        hi = np.minimum(pair_max[0:n], pair_max[2 : n + 2])
-        e = hist[4 : n + 4]
-        # median3(e, lo, hi) = max(min(e, lo), min(max(e, lo), hi)), as ``_median3``
-        t = np.maximum(e, lo, out=pair_max[0:n])
-        np.minimum(t, hi, out=t)
-        np.minimum(e, lo, out=lo)
-        np.maximum(lo, t, out=lo)
-        med: np.ndarray = lo.astype(np.float32, copy=False)
+    if width == 1:
+        if out is None:
+            return hist.astype(np.float32)
+        out[...] = hist
+        return out
+    if width in (3, 5):
+        res = np.empty((n, *hist.shape[1:]), hist.dtype) if out is None else out
+        run_ops(median_ops(hist, width, res, np.empty((4, n + 2, *hist.shape[1:]), hist.dtype)))
+        return res.astype(np.float32, copy=False)
+    med: np.ndarray = np.median(sliding_window_view(hist, width, axis=0), axis=-1).astype(np.float32)
+    if out is None:
         return med
-    out: np.ndarray = np.median(sliding_window_view(hist, width, axis=0), axis=-1).astype(np.float32)
+    out[...] = med
     return out
 
 
-def _median3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    out: np.ndarray = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
-    return out
+def median_ops(hist: np.ndarray, width: int, out: np.ndarray, scratch: np.ndarray) -> list[Op]:
+    """``sliding_median``'s calls for width 3 or 5, into ``out`` [len(hist) - width + 1, C], with ``scratch`` [4, at
+    least len(hist) - width + 3, C] for the intermediate values: the one implementation of the median networks, which
+    the batch path runs once and the feature streams keep for the rows a block filters (this runs once per block on the
+    daemon's hot path, where the number of numpy calls and views sets the cost, not the rows)."""
+    n = len(hist) - width + 1
+    if width == 3:
+        # median3(a, b, c) = max(min(a, b), min(max(a, b), c))
+        a, b, c = hist[0:n], hist[1 : n + 1], hist[2 : n + 2]
+        t1, t2 = scratch[0, :n], scratch[1, :n]
+        return [(np.minimum, a, b, t1), (np.maximum, a, b, t2), (np.minimum, t2, c, t2), (np.maximum, t1, t2, out)]
+    if width != 5:
+        raise ValueError(f"median networks are of width 3 or 5, not {width}")
+    # median5 = median3(e, max(min(a, b), min(c, d)), min(max(a, b), max(c, d))) of the rows a..e of each run: the
+    # larger of the two pair minima and the smaller of the two pair maxima bracket the median of a..d's middle pair. A
+    # pair (a, b) is two consecutive rows, and so is (c, d), two rows further: one minimum and one maximum of every two
+    # consecutive rows serve both pairs.
+    m = n + 2
+    pair_min, pair_max, lo, hi = scratch[0, :m], scratch[1, :m], scratch[2, :n], scratch[3, :n]
+    h0, h1, e = hist[0:m], hist[1 : m + 1], hist[4 : n + 4]
+    t = pair_max[0:n]  # (written once ``hi`` has read it)
+    return [(np.minimum, h0, h1, pair_min), (np.maximum, h0, h1, pair_max),
+            (np.maximum, pair_min[0:n], pair_min[2 : n + 2], lo), (np.minimum, pair_max[0:n], pair_max[2 : n + 2], hi),
+            # median3(e, lo, hi) = max(min(e, lo), min(max(e, lo), hi)), as width 3 computes it
+            (np.maximum, e, lo, t), (np.minimum, t, hi, t), (np.minimum, e, lo, lo), (np.maximum, lo, t, out)]
 
 
 def causal_median(x: np.ndarray, width: int) -> np.ndarray:
@@ -396,23 +446,32 @@ def window_labels(label: np.ndarray, ends: np.ndarray) -> np.ndarray:
 class FeatureStream:
     """Streaming form of ``batch_windows``: push one raw sample at a time, get a window when one completes.
 
-    Memory is constant: a history of ``median - 1 + window`` prepared samples. The median of a whole
-    window is computed once, when the window completes, with the same vectorised call as the batch
-    path, so both give bit-identical windows and the per-sample cost is a copy into a ring.
+    Memory is constant: a history of prepared samples (stages 1-4), their filtered rows (stage 5) and their derived
+    rows (stage 5b), each in a linear buffer twice a window's history long. When a window completes, the median and
+    the derived channels are computed for the rows it holds that no earlier window computed (a decision every
+    ``stride`` samples filters and derives ``stride`` rows, not the whole window), with the same functions as the
+    batch path (``sliding_median``, ``FeatureSpec.derive``): elementwise per sample, so the windows are bit-identical
+    to ``batch_windows``'. A ``windowed`` spec derives each window whole, from its filtered rows.
     """
 
-    def __init__(self, spec: FeatureSpec, offset: np.ndarray | None = None, derive: bool = True) -> None:
+    def __init__(self, spec: FeatureSpec, offset: np.ndarray | None = None) -> None:
         self.spec = spec
-        self._derive = spec.derive if derive else _identity
-        """``derive=False``: windows of the filtered base columns (stage 5, [window * n_base]), left for the caller
-        to derive; the detector then reads one filtered window for both its model and the contact state."""
         self._cols = np.array(spec.columns, dtype=np.intp)
         self._all_cols = spec.columns == tuple(range(N_PILLARS * 3))  # every column, in order: no selection
         self._clip = np.tile(CLIP_N, N_PILLARS)
         self._hist_len = spec.median - 1 + spec.window
-        # Linear buffer twice the history: writes append, and a shift happens once per history
+        # Linear buffers twice the history: writes append, and a shift happens once per history
         # length, so the window is always a contiguous slice (no per-sample allocation).
-        self._buf = np.zeros((2 * self._hist_len, spec.n_base), np.float32)
+        rows = 2 * self._hist_len
+        self._buf = np.zeros((rows, spec.n_base), np.float32)
+        # Row r of ``_filt`` is the median of the prepared rows r - median + 1 .. r (rows before ``_done`` computed
+        # where a window needs them); ``_der`` the derived channels of ``_filt``'s row r (``_filt`` itself without
+        # derived channels, None where they are derived window by window).
+        self._filt = self._buf if spec.median == 1 else np.zeros_like(self._buf)
+        self._der: np.ndarray | None = self._filt
+        if spec.derived:
+            self._der = None if spec.windowed else np.zeros((rows, spec.n_channels), np.float32)
+        self._plans = RowPlans(spec, self._buf, self._filt, self._der)
         self._last_good = np.zeros(N_PILLARS * 3, np.float32)
         self._scratch = np.zeros(N_PILLARS * 3, np.float32)
         self._abs = np.zeros(N_PILLARS * 3, np.float32)
@@ -442,6 +501,7 @@ class FeatureStream:
         """Forget the history (after a reconnect or a gap): the next sample restarts the stream."""
         self._n = 0  # samples since reset
         self._end = 0  # one past the newest row in _buf
+        self._done = 0  # one past the newest row of _filt and _der computed
         self._last_good[:] = 0.0
 
     @property
@@ -452,7 +512,7 @@ class FeatureStream:
     def push(self, force: np.ndarray) -> np.ndarray | None:
         """Add one raw sample ([9, 3] or [27]); return the flattened window if one ends here, else None.
 
-        The returned array is a fresh copy owned by the caller.
+        The returned array is a fresh copy owned by the caller (``filtered`` holds the window's filtered rows).
         """
         s = self._scratch
         s[:] = np.asarray(force, dtype=np.float32).reshape(-1)
@@ -473,30 +533,53 @@ class FeatureStream:
             self._buf[: spec.median - 1] = row
             self._end = spec.median - 1
         if self._end == len(self._buf):
-            keep = self._hist_len - 1
-            self._buf[:keep] = self._buf[self._end - keep : self._end]
-            self._end = keep
+            self._shift()
         self._buf[self._end] = row
         self._end += 1
         self._n += 1
         n = self._n
         if n < spec.window or (n - spec.window) % spec.step:
             return None
-        return self._window(self._buf[self._end - self._hist_len : self._end])
+        return self._window(self._end - spec.window, self._end)[0].copy()
 
-    def _window(self, hist: np.ndarray) -> np.ndarray:
-        """The flattened window that ends a history slice, a fresh array the caller owns: the median's output is one
-        (width 1 reads the history itself: copied)."""
-        out: np.ndarray = self._derive(causal_median_tail(hist, self.spec.median)).reshape(-1)
-        return out.copy() if self.spec.median == 1 else out
+    def filtered(self) -> np.ndarray:
+        """The filtered rows [window, n_base] of the latest window ``push`` returned (a view, valid until the next
+        push)."""
+        return self._filt[self._end - self.spec.window : self._end]
+
+    def _window(self, lo: int, e: int) -> tuple[np.ndarray, np.ndarray]:
+        """The window that ends before row ``e``, its rows from ``lo`` on computed (stages 5, 5b): the flattened model
+        window [input_size] and the filtered rows [window, n_base], views of the buffers (a ``windowed`` spec's model
+        window a new array)."""
+        self._filter(lo, e)
+        model, filt, _ = self._plans.window(e)
+        return model, filt
+
+    def _filter(self, lo: int, e: int) -> None:
+        """Stages 5 and 5b on the rows ``lo .. e - 1`` that are not computed yet."""
+        lo = max(lo, self._done)
+        if lo < e:
+            run_ops(self._plans.ops(lo, e))
+            self._done = e
 
     def push_many(self, samples: np.ndarray) -> list[tuple[int, np.ndarray]]:
         """Add a block of raw samples ([k, 9, 3] or [k, 27]) at once; ``push`` for each, in one pass.
 
         Returns ``(i, window)`` for each sample ``samples[i]`` that ends a window, in order: the same
-        windows, bit for bit, and the same counters as k calls of ``push`` (sanitise, tare and clip run
-        as one vectorised call per block; the median runs once per window, as in ``push``). Each window
-        is a fresh copy owned by the caller.
+        windows, bit for bit, and the same counters as k calls of ``push``. Each window is a fresh copy owned by the
+        caller.
+        """
+        return [(i, w.copy()) for i, w, _, _ in self.push_views(samples)]
+
+    def push_views(self, samples: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]]:
+        """``push_many`` with each window's filtered rows: ``(i, window, filtered, prepared)``, the flattened model
+        window [input_size], the filtered rows [window, n_base] (the contact state's) and, in the common block (every
+        value finite and within the clip, so stages 1-4 changed nothing but the tare), the prepared row of the window's
+        last sample [n_base] (its tared values: the contact gate's), else None. Views of the stream's buffers, valid
+        until the next push (copies where the block is too long for that).
+
+        Sanitise, tare and clip run as one vectorised call per block; the median and the derived channels once per
+        block too, on the rows the block's windows need.
         """
         x = np.asarray(samples, dtype=np.float32).reshape(-1, N_PILLARS * 3)
         k = len(x)
@@ -506,7 +589,7 @@ class FeatureStream:
             self._shift()  # (the block's rows then fit after the history, which the common block needs)
         if self._n and self._end + k <= len(self._buf):
             # The common block (a stream under way, room in the history): its prepared rows go straight into the
-            # history, every window's median reads them there. The same values as below, fewer copies.
+            # history, every window reads them there. The same values as below, fewer copies.
             rows = self._buf[self._end : self._end + k]
             small = k <= len(self._ok)
             if small:
@@ -527,7 +610,8 @@ class FeatureStream:
             if 0 not in within.tobytes():
                 if not self._all_cols:
                     np.take(y, self._cols, axis=1, out=rows)
-                return self._windows_in_place(x, k)
+                self._last_good[:] = x[-1]
+                return self._advance(k)
         y = x - self._offset
         if not (np.abs(y) <= self._clip).all():
             # Something to sanitise or clip (NaN fails the comparison too): the full sequence of push's
@@ -550,13 +634,14 @@ class FeatureStream:
             self._end = spec.median - 1
         n0 = self._n
         first = first_window_end(n0, spec)
-        out = []
+        out: list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]] = []
         done = 0
         for i in range(first, k, spec.step):
             self._append(rows[done : i + 1])
             done = i + 1
-            hist = self._buf[self._end - self._hist_len : self._end]
-            out.append((i, self._window(hist)))
+            # (copies: a later window's rows may shift the buffers)
+            w, f = self._window(self._end - spec.window, self._end)
+            out.append((i, w.copy(), f.copy(), None))
         self._append(rows[done:])
         self._n = n0 + k
         return out
@@ -565,19 +650,20 @@ class FeatureStream:
         """The first ``k`` rows of the block buffers (``block_views``)."""
         return block_views(self._block_rows, k, self._offset_rows, self._absk, self._clip_rows, self._ok)
 
-    def _windows_in_place(self, x: np.ndarray, k: int) -> list[tuple[int, np.ndarray]]:
-        """``push_many`` once the block's ``k`` prepared rows are in the history after its end: the windows they end."""
+    def _advance(self, k: int) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]]:
+        """``push_views`` once the block's ``k`` prepared rows are in the history after its end: the windows they end,
+        their rows filtered and derived in one pass."""
         spec = self.spec
-        self._last_good[:] = x[-1]
         n0, end = self._n, self._end
         first = first_window_end(n0, spec)
-        out = []
-        for i in range(first, k, spec.step):
-            hist = self._buf[end + i + 1 - self._hist_len : end + i + 1]
-            out.append((i, self._window(hist)))
         self._end = end + k
         self._n = n0 + k
-        return out
+        if first >= k:
+            return []
+        ends = range(end + first + 1, end + k + 1, spec.step)
+        self._filter(ends[0] - spec.window, ends[-1])
+        window = self._plans.window
+        return [(e - end - 1, *window(e)) for e in ends]
 
     def _append(self, rows: np.ndarray) -> None:
         """Append prepared rows to the history; fewer than ``window + 1`` at a time (one window's worth)."""
@@ -588,63 +674,164 @@ class FeatureStream:
         self._end += m
 
     def _shift(self) -> None:
-        """Move the history to the buffer's start, keeping what the next window's median needs (the same rows push
-        keeps when it shifts)."""
-        keep = self._hist_len - 1
-        self._buf[:keep] = self._buf[self._end - keep : self._end]
-        self._end = keep
+        """Move the history to the buffers' start, keeping what the next window needs (the same rows push keeps when
+        it shifts)."""
+        self._end, self._done = shift_rows(self._buffers(), self._end, self._done, self._hist_len - 1)
+
+    def _buffers(self) -> list[np.ndarray]:
+        """The history's buffers (one row per sample): prepared, filtered, derived, each once."""
+        out = [self._buf]
+        if self._filt is not self._buf:
+            out.append(self._filt)
+        if self._der is not None and self._der is not self._filt:
+            out.append(self._der)
+        return out
+
+
+def shift_rows(buffers: Sequence[np.ndarray], end: int, done: int, keep: int) -> tuple[int, int]:
+    """Move the last ``keep`` rows before ``end`` of each buffer to its start; the new end and computed-rows mark."""
+    a = end - keep
+    for b in buffers:
+        b[:keep] = b[a:end]
+    return keep, max(done - a, 0)
+
+
+class RowPlans:
+    """Stages 5 and 5b on a range of rows of a history's buffers (prepared ``buf``, filtered ``filt``, derived ``der``,
+    one row per sample; ``FeatureStream``), and the windows they end, as numpy calls and views made once per range and
+    kept: a block at a decision's stride lands on one of a few positions of the buffers, so each block runs a list of
+    prepared calls (``median_ops``, ``FeatureSpec.util_ops``) instead of making a few dozen views and numpy calls anew.
+    Bounded: at most ``MAX_KEPT`` ranges are kept (then the lists start anew)."""
+
+    MAX_KEPT = 256
+
+    def __init__(self, spec: FeatureSpec, buf: np.ndarray, filt: np.ndarray, der: np.ndarray | None) -> None:
+        self.spec = spec
+        self.buf, self.filt, self.der = buf, filt, der
+        self._scratch = np.zeros((4, len(buf), buf.shape[1]), np.float32)  # (the median's intermediate values)
+        self._fz = np.zeros(len(buf) * (0 if der is None else der.shape[1]), np.float32)  # (util's floored Fz)
+        self._ops: dict[tuple[int, int], list[Op]] = {}
+        self._windows: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def ops(self, lo: int, e: int) -> list[Op]:
+        """The calls that filter and derive rows ``lo .. e - 1`` (the median reads the prepared rows from
+        ``lo - median + 1`` on)."""
+        ops = self._ops.get((lo, e))
+        if ops is not None:
+            return ops
+        if len(self._ops) >= self.MAX_KEPT:
+            self._ops.clear()
+        spec, buf, filt, der = self.spec, self.buf, self.filt, self.der
+        width = spec.median
+        ops = []
+        if filt is not buf:
+            hist = buf[lo + 1 - width : e]
+            if width in (3, 5):
+                ops += median_ops(hist, width, filt[lo:e], self._scratch)
+            else:
+                ops.append((sliding_median, hist, width, filt[lo:e]))
+        if der is not None and der is not filt:
+            f, d = filt[lo:e], der[lo:e]
+            if spec.channels == ("util",) and f.flags.c_contiguous and d.flags.c_contiguous:
+                ops += spec.util_ops(f, d.reshape(-1), self._fz[: d.size])
+            else:
+                # (sample by sample: rows of several sensors side by side are rows of their own to ``derive``)
+                ops.append((_derive_into, spec, f, d))
+        self._ops[(lo, e)] = ops
+        return ops
+
+    def window(self, e: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The window that ends before row ``e``: the model's (flattened, [input_size]; a ``windowed`` spec's derived
+        anew), its filtered rows [window, n_base] and the prepared row of its last sample, views of the buffers."""
+        views = self._windows.get(e)
+        if views is None:
+            if len(self._windows) >= self.MAX_KEPT:
+                self._windows.clear()
+            start = e - self.spec.window
+            filt = self.filt[start:e]
+            if self.der is None:
+                return self.spec.derive(filt).reshape(-1), filt, self.buf[e - 1]
+            der = self.der[start:e]
+            if not der.flags.c_contiguous:  # (a stream's columns of a group's rows: flattened, a copy, not kept)
+                return der.reshape(-1), filt, self.buf[e - 1]
+            views = self._windows[e] = (der.reshape(-1), filt, self.buf[e - 1])
+        return views
+
+
+def _derive_into(spec: FeatureSpec, filtered: np.ndarray, *, out: np.ndarray) -> None:
+    """``spec.derive(filtered, out)`` on rows of one or several sensors side by side (each ``n_base`` columns)."""
+    spec.derive(filtered.reshape(-1, spec.n_base), out=out.reshape(-1, spec.n_channels) if out.flags.c_contiguous
+                else out)
 
 
 class StreamGroup:
     """The feature streams of several sensors that see the same samples (the fingers of one gripper: both arrays
-    arrive in the same frames), their histories side by side in one buffer, so the common block runs stages 2-5 once
-    for all of them (``push_many``).
+    arrive in the same frames), their histories side by side in one buffer, so the common block runs stages 2-5b once
+    for all of them (``push_views``).
 
-    Each stream stays a ``FeatureStream`` of its own: its history, offset and last finite values are views into the
+    Each stream stays a ``FeatureStream`` of its own: its histories, offset and last finite values are views into the
     group's arrays, and everything that concerns one sensor (the start-up tare, a block to sanitise or clip, a restart)
-    runs on that stream as before. Every stage is elementwise per column, so the group's windows are the streams' own,
-    bit for bit. The streams must select every column in order (``FeatureSpec.columns`` all 27: the shipped model's
-    derived layout), so that a history column is a raw column."""
+    runs on that stream as before. Every stage is elementwise per column (per sample for the derived channels), so the
+    group's windows are the streams' own, bit for bit. The streams must select every column in order
+    (``FeatureSpec.columns`` all 27: the shipped model's derived layout), so that a history column is a raw column,
+    and derive sample by sample (not ``windowed``)."""
 
     def __init__(self, streams: Sequence[FeatureStream]) -> None:
         self.streams = list(streams)
         first = self.streams[0]
-        if any(st.spec != first.spec or not st._all_cols for st in self.streams):
-            raise ValueError("a stream group needs streams of one spec that select every column")
+        if any(st.spec != first.spec or not st._all_cols for st in self.streams) or first.spec.windowed:
+            raise ValueError("a stream group needs streams of one spec that select every column and derive per sample")
         ns, nb = len(self.streams), first.spec.n_base
-        self._buf = np.zeros((len(first._buf), ns * nb), np.float32)
+        same_filt, same_der = first._filt is first._buf, first._der is first._filt  # (no median; no derived channels)
+        self._buf = self._side_by_side("_buf")
+        self._filt = self._buf if same_filt else self._side_by_side("_filt")
+        self._der = self._filt if same_der else self._side_by_side("_der")
+        for st in self.streams:
+            if same_filt:
+                st._filt = st._buf
+            if same_der:
+                st._der = st._filt
+            st._plans = RowPlans(st.spec, st._buf, st._filt, st._der)  # (on its views of the group's buffers)
+        self._plans = RowPlans(first.spec, self._buf, self._filt, self._der)
         self._offset = np.zeros((ns, nb), np.float32)
         self._last_good = np.zeros((ns, nb), np.float32)
         for s, st in enumerate(self.streams):
-            cols = slice(s * nb, (s + 1) * nb)
-            self._buf[:, cols] = st._buf
-            st._buf = self._buf[:, cols]
             self._offset[s] = st._offset
             st._offset = self._offset[s]
             self._last_good[s] = st._last_good
             st._last_good = self._last_good[s]
         # Each stream's offset repeated for a block's rows (``FeatureStream._offset_rows``), side by side: a stream's
         # ``set_offset`` writes its columns here.
-        self._offset_rows = np.zeros((first.spec.window + 1, ns * nb), np.float32)
-        for s, st in enumerate(self.streams):
-            self._offset_rows[:, s * nb : (s + 1) * nb] = st._offset_rows
-            st._offset_rows = self._offset_rows[:, s * nb : (s + 1) * nb]
+        self._offset_rows = self._side_by_side("_offset_rows")
+        for st in self.streams:
             st._block_rows.clear()  # (views of the buffer replaced here)
         self._clip_rows = np.tile(first._clip, (first.spec.window + 1, ns))
         self._absk = np.zeros((first.spec.window + 1, ns * nb), np.float32)
         self._ok = np.zeros((first.spec.window + 1, ns * nb), bool)
         self._block_rows: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
 
+    def _side_by_side(self, name: str) -> np.ndarray:
+        """One array of the streams' buffers ``name`` side by side (stream ``s`` in the ``s``-th block of columns),
+        each stream's buffer replaced by its view of it."""
+        parts = [getattr(st, name) for st in self.streams]
+        both = np.concatenate(parts, axis=1)
+        c = parts[0].shape[1]
+        for s, st in enumerate(self.streams):
+            setattr(st, name, both[:, s * c : (s + 1) * c])
+        return both
+
     def _rows_of(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The first ``k`` rows of the group's side-by-side block buffers (``block_views``)."""
         return block_views(self._block_rows, k, self._offset_rows, self._absk, self._clip_rows, self._ok)
 
-    def push_many(self, samples: np.ndarray) -> list[tuple[int, np.ndarray]] | None:
-        """A block of raw samples [k, S, 9, 3] into every stream at once: ``(i, windows)`` for each sample
-        ``samples[i]`` that ends a window, ``windows`` the streams' filtered windows side by side ([window, S * n_base],
-        stream ``s`` in columns ``s * n_base ..``; each stream's ``push_many`` returns the same values), and each stream
-        advanced as its own ``push_many`` would. None, with nothing pushed, unless the block is the common one (the
-        streams under way in lockstep, every value finite and within the clip): push it stream by stream then."""
+    def push_views(self, samples: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] | None:
+        """A block of raw samples [k, S, 9, 3] into every stream at once: ``(i, windows, filtered, prepared)`` for each
+        sample ``samples[i]`` that ends a window, ``windows`` the streams' model windows side by side (flattened
+        [window, S * n_channels], stream ``s`` in columns ``s * n_channels ..``), ``filtered`` their filtered rows
+        ([window, S * n_base]) and ``prepared`` the prepared rows of the window's last sample ([S * n_base]: the tared
+        values), views valid until the next push (each stream's ``push_views`` gives the same values), and each
+        stream advanced as its own ``push_views`` would. None, with nothing pushed, unless the block is the common one
+        (the streams under way in lockstep, every value finite and within the clip): push it stream by stream then."""
         streams = self.streams
         first = streams[0]
         k = len(samples)
@@ -652,13 +839,19 @@ class StreamGroup:
         if not n0 or k > len(self._ok):
             return None
         end = first._end
+        done = first._done
         for st in streams:
             if st._n != n0 or st._end != end:
                 return None
+            if st._done < done:
+                done = st._done
         if end + k > len(self._buf):
-            for st in streams:  # (the same rows of every column: one shift would do, but each stream keeps its end)
-                st._shift()
-            end = first._end
+            bufs = [self._buf] if self._filt is self._buf else [self._buf, self._filt]
+            if self._der is not self._filt:
+                bufs.append(self._der)
+            end, done = shift_rows(bufs, end, done, first._hist_len - 1)
+            for st in streams:
+                st._end, st._done = end, done
         x = samples.reshape(k, -1)
         rows = self._buf[end : end + k]
         offset, absk, clip, ok = self._rows_of(k)
@@ -668,16 +861,21 @@ class StreamGroup:
             return None  # (the rows written after the histories' end are written again by each stream's push)
         self._last_good[:] = x[-1].reshape(self._last_good.shape)
         spec = first.spec
-        hist_len, width = first._hist_len, spec.median
         start = first_window_end(n0, spec)
-        out = []
-        for i in range(start, k, spec.step):
-            hist = self._buf[end + i + 1 - hist_len : end + i + 1]
-            out.append((i, causal_median_tail(hist, width).copy() if width == 1 else sliding_median(hist, width)))
         for st in streams:
             st._end = end + k
             st._n = n0 + k
-        return out
+        if start >= k:
+            return []
+        ends = range(end + start + 1, end + k + 1, spec.step)
+        lo = max(ends[0] - spec.window, done)
+        e = ends[-1]
+        if lo < e:
+            run_ops(self._plans.ops(lo, e))
+            for st in streams:
+                st._done = e
+        window = self._plans.window
+        return [(e - end - 1, *window(e)) for e in ends]
 
 
 def block_views(cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], k: int,
@@ -699,23 +897,12 @@ def first_window_end(n0: int, spec: FeatureSpec) -> int:
     return first + (-(n0 + first + 1 - spec.window) % spec.step)
 
 
-def _identity(filtered: np.ndarray) -> np.ndarray:
-    return filtered
-
-
 def _hold_from(x: np.ndarray, bad: np.ndarray, last: np.ndarray) -> None:
     """In place: replace non-finite ``x`` entries by the last finite value of their column, ``last`` before row 0."""
     k, c = x.shape
     src = np.where(bad, 0, np.arange(1, k + 1)[:, None])  # row in [last; x] that holds the value to use
     np.maximum.accumulate(src, axis=0, out=src)
     x[:] = np.concatenate([last[None, :], x])[src, np.arange(c)[None, :]]
-
-
-def causal_median_tail(hist: np.ndarray, width: int) -> np.ndarray:
-    """Median filter outputs for the last ``len(hist) - width + 1`` samples of ``hist`` (no padding)."""
-    if width == 1:
-        return hist
-    return sliding_median(hist, width)
 
 
 def stream_windows(force: np.ndarray, spec: FeatureSpec, offset: np.ndarray | None = None) -> list[np.ndarray]:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from typing import cast
 
 import numpy as np
 
@@ -42,16 +41,15 @@ class MultiDetector:
         # model's layout): their feature streams run the common block as one (``StreamGroup``).
         self._group = StreamGroup([d.features for d in self.detectors]) if self.sensors > 1 and all(
             d._shared and d.features._all_cols for d in self.detectors) else None
-        self._shared = all(d._shared for d in self.detectors)
         # The contact gates' free-air baselines side by side (each gate writes its row in place), and buffers for a
         # window end's tared normal forces of every sensor: ``_gates`` checks all sensors in one pass.
         self._baselines = np.zeros((self.sensors, 9), np.float64)
         for s, d in enumerate(self.detectors):
             self._baselines[s] = d.gate._baseline
             d.gate._baseline = self._baselines[s]
-        self._fz = np.zeros((self.sensors, 9), np.float32)
         self._fz_pressed = np.zeros((self.sensors, 9), np.float32)
-        self._zeros = np.zeros((self.sensors, 9), np.float32)
+        self._fz_pressed_flat = self._fz_pressed.reshape(-1)
+        self._zeros_flat = np.zeros(self.sensors * 9, np.float32)
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
         """Model call time behind each returned detection: on the first stepped sensor of a call, None on
@@ -59,7 +57,7 @@ class MultiDetector:
 
     def _rows_of(self, windows: list[np.ndarray]) -> np.ndarray:
         """The sensors' windows side by side [S, len]: ``np.stack`` into one buffer kept for the next call (the model
-        call copies it into its own input; ``derive_rows`` makes a new array of it)."""
+        call copies it into its own input)."""
         rows = self._rows
         if rows is None or rows.shape[1] != len(windows[0]):
             rows = self._rows = np.empty((self.sensors, len(windows[0])), np.float32)
@@ -135,41 +133,35 @@ class MultiDetector:
             return out
         base = subs[0].index + 1 - i  # sample index of x[0]
         n0 = subs[0].features.samples_seen
-        # Detectors that share their filtered windows with the contact state (the shipped model's layout) derive the
-        # model windows of all sensors in one pass, straight into the model call's batch.
-        shared = self._shared
+        nb = subs[0].spec.n_base
         for d in subs:
             d.index += k - i
-        # The common block through every sensor's feature stream at once: each window end's filtered windows of all
-        # sensors side by side; otherwise sensor by sensor. Same samples into every stream: the windows end on the same
-        # samples.
-        group = self._group.push_many(x[i:]) if self._group is not None else None
+        # The common block through every sensor's feature stream at once: each window end's model windows and filtered
+        # rows of all sensors side by side; otherwise sensor by sensor. Same samples into every stream: the windows end
+        # on the same samples.
+        group = self._group.push_views(x[i:]) if self._group is not None else None
         if group is None:
-            wins = [d.feature_windows(x[i:, s], derive=not shared) for s, d in enumerate(subs)]
+            wins = [d.feature_windows(x[i:, s]) for s, d in enumerate(subs)]
             ends = [j for j, _, _, _ in wins[0]]
         else:
-            ends = [j for j, _ in group]
+            ends = [j for j, _, _, _ in group]
         for m, j in enumerate(ends):
             kk = i + j
             t, idx = int(t_us[kk]), base + kk
-            gated = self._gates(x[kk], t, idx) if group is not None else [
+            gated = self._gates(group[m][3], t, idx) if group is not None else [
                 d._gate(x[kk, s], t, idx) for s, d in enumerate(subs)]
             # Every sensor in contact (a grasp, decision after decision): one array made once, no new one per call.
             stepped = gated.count(None)
             active = self._all_rows if stepped == len(gated) else np.array([g is None for g in gated])
             p = ok = None
             step_s: float | None = None
-            if group is not None:
-                # The sensors' filtered windows in rows, one per sensor (row s is sensor s's window, as its own stream
-                # returns it; read by its contact state below, before the next window overwrites the buffer).
-                filtered = self._stacked_rows(group[m][1])
             if stepped:
                 if group is not None:
-                    batch = subs[0].derive_rows(filtered)
+                    # The sensors' model windows in rows, one per sensor (row s is sensor s's window, as its own stream
+                    # returns it).
+                    batch = self._stacked_rows(group[m][1])
                 else:
-                    batch = self._rows_of([cast(np.ndarray, w[m][2 if shared else 1]) for w in wins])
-                    if shared:
-                        batch = subs[0].derive_rows(batch)
+                    batch = self._rows_of([w[m][1] for w in wins])
                 t0 = time.perf_counter()  # the model call alone (the inference metric)
                 p, _, ok = self.ensemble.step_rows(batch, subs[0].phase(n0 + j + 1), active)
                 step_s = time.perf_counter() - t0
@@ -179,8 +171,9 @@ class MultiDetector:
             pillar_rows = self.ensemble.pillar_rows
             for s, d in enumerate(subs):
                 det = gated[s]
+                f_s: np.ndarray | None
                 if group is not None:
-                    f_s, state = filtered[s], None
+                    f_s, state = group[m][2][:, s * nb : (s + 1) * nb], None
                 else:
                     f_s, state = wins[s][m][2], wins[s][m][3]
                 if det is None:
@@ -204,12 +197,15 @@ class MultiDetector:
                 return False
         return True
 
-    def _gates(self, frame: np.ndarray, t_us: int, index: int) -> list[Detection | None]:
-        """Every sensor's ``Detector._gate`` on one window end's frame [S, 9, 3], the arithmetic of all sensors in one
-        pass (the same operations on the same values, row by row; the tare offsets are the stream group's)."""
-        assert self._group is not None
-        fz = np.subtract(frame[:, :, 2], self._group._offset[:, 2::3], out=self._fz)
-        loads = np.add.reduce(np.maximum(fz, self._zeros, out=self._fz_pressed), axis=1).tolist()
+    def _gates(self, tared: np.ndarray, t_us: int, index: int) -> list[Detection | None]:
+        """Every sensor's ``Detector._gate`` on one window end's frame, tared by the stream group (``tared`` [S * 27],
+        the sensors side by side, the prepared row of a common block: finite, within the clip, so the same values as
+        the frame less its offsets), the arithmetic of all sensors in one pass (the same operations on the same values,
+        row by row)."""
+        flat = tared[2::3]  # (every sensor's nine normal forces in a row: 27 columns a sensor, three a pillar)
+        np.maximum(flat, self._zeros_flat, out=self._fz_pressed_flat)
+        loads = np.add.reduce(self._fz_pressed, axis=1).tolist()
+        fz = flat.reshape(self.sensors, 9)
         tops = [top_rise(z, b) for z, b in zip(fz.tolist(), self._baselines.tolist(), strict=True)]
         out: list[Detection | None] = []
         thr = CONTACT_THRESHOLD_N
@@ -228,13 +224,13 @@ class MultiDetector:
         return out
 
     def _stacked_rows(self, windows: np.ndarray) -> np.ndarray:
-        """A ``StreamGroup`` window ([window, S * n_base], the sensors side by side per sample) as the sensors' windows
-        in rows [S, window * n_base], into the buffer ``_rows_of`` keeps."""
-        t, c = windows.shape
-        width = t * c // self.sensors
+        """A ``StreamGroup`` window (flattened [window, S * n_channels], the sensors side by side per sample) as the
+        sensors' model windows in rows [S, window * n_channels], into the buffer ``_rows_of`` keeps."""
+        width = len(windows) // self.sensors
         rows = self._rows
         if rows is None or rows.shape[1] != width:
             rows = self._rows = np.empty((self.sensors, width), np.float32)
+        t = self.detectors[0].spec.window
         # (slice assignment: np.copyto's copy without its Python-level dispatcher)
         rows.reshape(self.sensors, t, -1)[...] = windows.reshape(t, self.sensors, -1).transpose(1, 0, 2)
         return rows

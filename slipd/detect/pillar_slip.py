@@ -77,13 +77,19 @@ class PillarSlipParams:
     -> 0.565; `python tools/evaluate.py --contact --sets transfer,robust [--split train]`)."""
 
 
-def utilisation(last: list[list[float]]) -> tuple[list[float], list[float], list[bool]]:
+def triples(flat: list[float]) -> list[tuple[float, float, float]]:
+    """A sample's ``[fx, fy, fz, fx, ...]`` as one ``(fx, fy, fz)`` per pillar."""
+    it = iter(flat)
+    return list(zip(it, it, it))
+
+
+def utilisation(last: list[float]) -> tuple[list[float], list[float], list[bool]]:
     """Normal forces, utilisations |Ft| / Fz and contact flags of the nine pillars from one sample's
-    ``[[fx, fy, fz], ...]`` (plain floats and one loop: nine-element numpy calls cost more than the arithmetic,
+    ``[fx, fy, fz, fx, ...]`` (plain floats and one loop: nine-element numpy calls cost more than the arithmetic,
     and this runs on the hot path once per decision)."""
     thr = CONTACT_THRESHOLD_N
     fz, util, contact = [], [], []
-    for fx, fy, z in last:
+    for fx, fy, z in triples(last):
         fz.append(z)
         util.append(math.hypot(fx, fy) / (z if z > thr else thr))
         contact.append(z > thr)
@@ -105,14 +111,15 @@ class PillarSlip:
 
     def update(self, window: np.ndarray) -> np.ndarray:
         """One window of filtered forces [W, 9, 3] (tared, finite); returns P(slip) per pillar [9]."""
-        w = np.asarray(window).reshape(-1, N_PILLARS, 3)
+        w = np.asarray(window).reshape(-1, N_PILLARS * 3)
         return np.array(self.step(w[0].tolist(), w[-1].tolist()))
 
-    def step(self, first: list[list[float]], last: list[list[float]],
+    def step(self, first: list[float], last: list[float],
              ends: tuple[list[float], list[float], list[bool] | None] | None = None,
              peaks: tuple[float, float] | None = None) -> tuple[float, ...]:
-        """``update`` on a window's first and last samples (``[[fx, fy, fz], ...]``: only those two matter); P(slip)
-        per pillar. Plain loops over the nine pillars: this runs on the hot path once per decision and sensor.
+        """``update`` on a window's first and last samples (``[fx, fy, fz, fx, ...]``, nine pillars: only those two
+        matter); P(slip) per pillar. Plain loops over the nine pillars: this runs on the hot path once per decision and
+        sensor.
         ``ends``: ``utilisation(last)`` (its contact flags may be None: made here when needed), and ``peaks`` the
         largest rate and utilisation of the pillars in contact (-1 for none), where the caller has them already."""
         p = self.p
@@ -121,7 +128,7 @@ class PillarSlip:
             if contact is None:
                 contact = [z > CONTACT_THRESHOLD_N for z in fz]
             ref = top = -1.0
-            for (ax, ay, _), (bx, by, _), c, u in zip(first, last, contact, util):
+            for (ax, ay, _), (bx, by, _), c, u in zip(triples(first), triples(last), contact, util):
                 if c:  # the largest rate and utilisation in contact (``max`` keeps the first of equals, as here)
                     r = math.hypot(bx - ax, by - ay)
                     if r > ref:
@@ -139,11 +146,12 @@ class PillarSlip:
             return self.probabilities()
         if contact is None:  # (made only now: a steady grasp returned above without them)
             contact = [z > CONTACT_THRESHOLD_N for z in fz]
+        pillars = triples(first)  # (the first sample's (fx, fy, fz) per pillar, likewise only now)
         near = [u / top for u in util] if top > 0 else [0.0] * N_PILLARS
         if ref > p.rate_floor_n:
             # Equal utilisation across pillars of different normal force: a sticking contact shares its
             # load by deflection (equal Ft, so unequal Ft / Fz); only the friction limit equalises Ft / Fz.
-            rate = [math.hypot(bx - ax, by - ay) for (ax, ay, _), (bx, by, _) in zip(first, last)]
+            rate = [math.hypot(bx - ax, by - ay) for (ax, ay, _), (bx, by, _) in zip(pillars, triples(last))]
             step = [0.0] * N_PILLARS
             even = [contact[i] and near[i] > p.even for i in range(N_PILLARS)]
             fz_even = [fz[i] for i in range(N_PILLARS) if even[i]]
@@ -167,7 +175,7 @@ class PillarSlip:
             step = [stick if q < p.far else 0.0 if held and t else decay for q, t in zip(near, top_set)]
         lim, logit, thr = p.limit, self._logit, CONTACT_THRESHOLD_N
         keep, floor, stick = 1.0 - p.fall, p.rate_floor_n, -p.step
-        for i, ((x0, y0, z0), c, u, z, s) in enumerate(zip(first, contact, util, fz, step)):
+        for i, ((x0, y0, z0), c, u, z, s) in enumerate(zip(pillars, contact, util, fz, step)):
             if not c:
                 s = stick  # off the surface
             elif z > z0 + floor and u < keep * (math.hypot(x0, y0) / (z0 if z0 > thr else thr)):
