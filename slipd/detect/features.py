@@ -676,16 +676,19 @@ class FeatureStream:
     def _shift(self) -> None:
         """Move the history to the buffers' start, keeping what the next window needs (the same rows push keeps when
         it shifts)."""
-        self._end, self._done = shift_rows(self._buffers(), self._end, self._done, self._hist_len - 1)
+        self._end, self._done = shift_rows(history_buffers(self._buf, self._filt, self._der), self._end, self._done,
+                                           self._hist_len - 1)
 
-    def _buffers(self) -> list[np.ndarray]:
-        """The history's buffers (one row per sample): prepared, filtered, derived, each once."""
-        out = [self._buf]
-        if self._filt is not self._buf:
-            out.append(self._filt)
-        if self._der is not None and self._der is not self._filt:
-            out.append(self._der)
-        return out
+
+def history_buffers(buf: np.ndarray, filt: np.ndarray, der: np.ndarray | None) -> list[np.ndarray]:
+    """A history's buffers (one row per sample): prepared, filtered, derived, each once (without a median the
+    filtered rows are the prepared ones; without derived channels the derived rows are the filtered ones)."""
+    out = [buf]
+    if filt is not buf:
+        out.append(filt)
+    if der is not None and der is not filt:
+        out.append(der)
+    return out
 
 
 def shift_rows(buffers: Sequence[np.ndarray], end: int, done: int, keep: int) -> tuple[int, int]:
@@ -846,10 +849,7 @@ class StreamGroup:
             if st._done < done:
                 done = st._done
         if end + k > len(self._buf):
-            bufs = [self._buf] if self._filt is self._buf else [self._buf, self._filt]
-            if self._der is not self._filt:
-                bufs.append(self._der)
-            end, done = shift_rows(bufs, end, done, first._hist_len - 1)
+            end, done = shift_rows(history_buffers(self._buf, self._filt, self._der), end, done, first._hist_len - 1)
             for st in streams:
                 st._end, st._done = end, done
         x = samples.reshape(k, -1)
