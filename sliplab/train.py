@@ -403,20 +403,51 @@ def early_weights(y: torch.Tensor, keep: torch.Tensor, windows: int, weight: flo
     return out
 
 
+def catch_runs(y: torch.Tensor, keep: torch.Tensor, chunk: int) -> torch.Tensor:
+    """Run ids [B, T] for ``--catch``: each run of positive windows within one sequence and one truncated-BPTT
+    chunk gets its own id (numbered through the lanes), -1 elsewhere. A run that crosses a chunk boundary is two
+    runs, because one optimiser step sees one chunk."""
+    pos = (y == 1).numpy()
+    t = np.arange(pos.shape[1])
+    prev = np.concatenate([np.zeros((pos.shape[0], 1), bool), pos[:, :-1]], 1)
+    start = pos & (~prev | (keep == 0).numpy() | (t % chunk == 0)[None, :])
+    ids = np.cumsum(start.reshape(-1)).reshape(pos.shape) - 1
+    return torch.from_numpy(np.where(pos, ids, -1))
+
+
+def catch_loss(logits: torch.Tensor, runs: torch.Tensor) -> torch.Tensor:
+    """Summed loss of the positive runs in ``runs`` (ids per window of ``logits``, -1 for negative windows):
+    minus the log of the chance that at least one window of a run alarms, 1 - prod(1 - p), weighted by the run's
+    length. The offline criterion asks for one alarm between a slip's onset and gross slip, not a high P(slip)
+    in every window of it; per-window cross-entropy also punishes the windows of a run where the sensor shows
+    little yet, which teaches members to stay low through a slip."""
+    pos = runs >= 0
+    if not pos.any():
+        return logits.new_zeros(())
+    ids, inverse, counts = torch.unique(runs[pos], return_inverse=True, return_counts=True)
+    log_no = torch.log_softmax(logits[pos], 1)[:, 0]  # log(1 - p) per positive window
+    total = log_no.new_zeros(len(ids)).index_add(0, inverse, log_no)
+    # -log(1 - exp(total)); the clamp keeps the gradient finite where a run's windows all say "no slip" at p ~ 0
+    return -(torch.log(-torch.expm1(total.clamp(max=-1e-6))) * counts).sum()
+
+
 def train_epoch(net: SlipNet, opt: torch.optim.Optimizer, lanes: Lanes, chunk: int, clip_grad: float = 0.0,
                 device: str = "cpu", pos_weight: float = 1.0, aux_weight: float = 0.0,
-                early: tuple[int, float] = (0, 1.0)) -> dict[str, float]:
+                early: tuple[int, float] = (0, 1.0), catch: bool = False) -> dict[str, float]:
     """One pass over packed lanes with truncated BPTT; returns mean loss and window metrics.
 
     ``pos_weight`` weighs the slip class in the loss: gripper trials hold incipient slip for only
     20-90 ms (one or two windows in a hundred), and an unweighted loss learns to never alarm.
     ``aux_weight`` adds the auxiliary head's per-pillar binary cross-entropy (windows with slip truth only).
     ``early`` (windows, weight): ``early_weights`` on the slip loss.
+    ``catch``: the positive windows' loss is ``catch_loss`` per run (times ``pos_weight``) instead of
+    per-window cross-entropy.
     """
     net.train()
     weight = None if pos_weight == 1.0 else torch.tensor([1.0, pos_weight], device=device)
     loss_fn = nn.CrossEntropyLoss(weight=weight, reduction="none")
     w_early = early_weights(lanes.y, lanes.keep, *early)
+    runs = catch_runs(lanes.y, lanes.keep, chunk) if catch else None
     b, t_max, _ = lanes.x.shape
     h = torch.zeros(b, net.hidden, device=device)
     loss_sum, n_seen, counts = 0.0, 0, np.zeros(4, np.int64)
@@ -430,7 +461,11 @@ def train_epoch(net: SlipNet, opt: torch.optim.Optimizer, lanes: Lanes, chunk: i
         w_y = w_early[:, sl].to(device).reshape(-1)[valid.reshape(-1)]
         use_aux = aux_weight > 0 and net.aux_head is not None and lanes.slip is not None
         logits, h, hs = _chunk_logits(net, lanes.x[:, sl].to(device), lanes.keep[:, sl].to(device), valid, h)
-        loss = (loss_fn(logits, y) * w_y).sum()
+        if runs is None:
+            loss = (loss_fn(logits, y) * w_y).sum()
+        else:
+            loss = (loss_fn(logits, y) * w_y)[y == 0].sum() + pos_weight * catch_loss(
+                logits, runs[:, sl].to(device).reshape(-1)[valid.reshape(-1)])
         if use_aux:
             truth = lanes.slip[:, sl].to(device).reshape(-1, lanes.slip.shape[-1])[valid.reshape(-1)]
             known = ~torch.isnan(truth)
@@ -584,6 +619,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="loss weight of the first --early-windows windows of every positive run (default 1: none)")
     p.add_argument("--early-windows", type=int, default=0,
                    help="how many windows from the start of each positive run --early-weight applies to")
+    p.add_argument("--catch", action="store_true",
+                   help="score each run of slip windows by the chance that at least one of them alarms "
+                        "(sliplab.train.catch_loss), not window by window")
     p.add_argument("--label-span", choices=("incipient", "slip", "sliding"), default="incipient",
                    help="positive windows: incipient slip only (the method), from its onset until the object "
                         "has moved 2 mm / 2 deg (slip), or for as long as any pillar keeps sliding (sliding)")
@@ -688,7 +726,8 @@ def train_member(k: int, pool: list[Seq], eval_items: list[Item], spec: FeatureS
         t_feat = time.perf_counter() - t0
         stats = train_epoch(net, opt, lanes, args.chunk, args.clip_grad, args.device, args.pos_weight,
                             getattr(args, "aux_weight", 0.0),
-                            (getattr(args, "early_windows", 0), getattr(args, "early_weight", 1.0)))
+                            (getattr(args, "early_windows", 0), getattr(args, "early_weight", 1.0)),
+                            getattr(args, "catch", False))
         entry = {"member": k, "epoch": epoch, **stats, "sequences": len(items),
                  "feature_s": round(t_feat, 3), "epoch_s": round(time.perf_counter() - t0, 3)}
         history.append(entry)

@@ -429,6 +429,36 @@ def test_early_weights_mark_the_first_windows_of_each_positive_run() -> None:
     assert torch.equal(T.early_weights(y, keep, 0, 5.0), torch.ones(2, 10))
 
 
+def test_catch_runs_split_at_sequences_and_chunks() -> None:
+    y = torch.tensor([[0, 1, 1, 1, 0, 1, 1, 0], [1, 1, 1, 1, 0, 0, 0, 0]])
+    keep = torch.ones(2, 8)
+    keep[1, 2] = 0.0  # a new sequence inside a positive run starts a new run
+    runs = T.catch_runs(y, keep, chunk=6)  # and so does a chunk boundary (window 6)
+    assert runs[0].tolist() == [-1, 0, 0, 0, -1, 1, 2, -1]
+    assert runs[1].tolist() == [3, 3, 4, 4, -1, -1, -1, -1]
+
+
+def test_the_catch_loss_asks_one_alarm_per_run_not_every_window() -> None:
+    def logits(p: list[float]) -> torch.Tensor:
+        z = torch.logit(torch.tensor(p))
+        return torch.stack([torch.zeros_like(z), z], 1)
+
+    runs = torch.tensor([0, 0, 0, 0])
+    one_alarm = T.catch_loss(logits([0.01, 0.99, 0.01, 0.01]), runs)
+    all_high = T.catch_loss(logits([0.99, 0.99, 0.99, 0.99]), runs)
+    none = T.catch_loss(logits([0.01, 0.01, 0.01, 0.01]), runs)
+    # one confident window in the run is nearly as good as all of them; a silent run costs much more
+    assert float(one_alarm) < 0.05 and float(all_high) < float(one_alarm)
+    assert float(none) > 10 * float(one_alarm)
+    # two runs: each needs its own alarm, weighted by its length
+    two = T.catch_loss(logits([0.01, 0.99, 0.01, 0.01]), torch.tensor([0, 0, 1, 1]))
+    assert float(two) == pytest.approx(2 * -np.log(1 - 0.99 * 0.01) + 2 * -np.log(1 - 0.99 ** 2), rel=1e-4)
+    assert float(T.catch_loss(logits([0.5, 0.5]), torch.tensor([-1, -1]))) == 0.0
+    z = logits([1e-9, 1e-9]).requires_grad_()
+    T.catch_loss(z, torch.tensor([0, 0])).backward()
+    assert z.grad is not None and torch.isfinite(z.grad).all()
+
+
 def test_a_partial_slip_is_a_recording_without_a_label_whose_loaded_pillars_slide() -> None:
     n = 200
     force = np.zeros((n, 9, 3), np.float32)
