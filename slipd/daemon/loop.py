@@ -258,13 +258,16 @@ class Daemon:
         rec = self.recorder
         det_ = self.detector
         k = len(t_us)
-        self._check_samples(force, disp)
         one = self.sensors == 1
         stamps = t_us.astype(np.int64)
         self._last_t_us = int(stamps[-1])
         # The heuristics read the tip displacements too (as tuned); the ensemble reads forces only.
         moved = (disp[:, 0] if one else disp) if self._reads_disp else None
         dets = det_.push_many(force[:, 0] if one else force, stamps, moved)
+        # After the detector (nothing there reads the freshness): a block its feature pipeline found all finite on the
+        # way is not searched for a non-finite value again.
+        clean = det_.clean_block
+        self._check_samples(force, disp, clean)
         self.stats.frames += k
         valid = [False] * self.sensors
         recorded = 0
@@ -330,7 +333,7 @@ class Daemon:
             now = time.monotonic()
             self._decided_t = now
             self._expect_decision(now)
-        if self._feature_streams:
+        if self._feature_streams and not clean:  # (a clean block counted nothing)
             bad = 0
             for f in self._feature_streams:
                 bad += f.nonfinite_count + f.clipped_count
@@ -388,10 +391,11 @@ class Daemon:
         c = self._latest_contact[sensor]
         return 0.0 if c is None else float(c.pillar_slip[pillar])
 
-    def _check_samples(self, force: np.ndarray, disp: np.ndarray) -> None:
+    def _check_samples(self, force: np.ndarray, disp: np.ndarray, finite: bool = False) -> None:
         """Freshness of a block, per sensor (once per block): finite, and not bit-identical to the sample before, in
         what the detector reads (forces; displacements too for the heuristics). Updates each sensor's fresh time and
-        its run of non-finite samples up to the block's end."""
+        its run of non-finite samples up to the block's end. ``finite``: the detector found every value finite already
+        (``clean_block``), so the block is not searched again."""
         n = len(force)
         ns = self.sensors
         vals = force.reshape(n, ns, -1)
@@ -401,7 +405,7 @@ class Daemon:
         last = [vals[-1, s].tobytes() for s in range(ns)]
         self._prev_bits = last
         # Every value finite: no zero byte among the flags (a byte search; ndarray.all and a finite sum cost more).
-        if 0 in np.isfinite(vals).tobytes():
+        if not finite and 0 in np.isfinite(vals).tobytes():
             self._check_nonfinite(vals, prev)
             return
         # The common block, all finite: a sensor is fresh unless every sample is bit-identical to the one before (the

@@ -218,8 +218,6 @@ class ContactStream:
         load = hypot(fx, fy)
         # Only sliding pillars near the contact's top utilisation are samples of mu, and only they put the grip at
         # risk (``RISK_TOP_SHARE``, ``FRICTION_TOP_SHARE``).
-        cut = RISK_TOP_SHARE * top
-        p_top = [q if u >= cut else 0.0 for q, u in zip(p, util, strict=True)]
         for q in p:
             if q >= 0.5:
                 # Some pillar slides: a friction sample unless the window is a press. (Only then: a sample needs a
@@ -240,7 +238,8 @@ class ContactStream:
         mu = None if est is None else est.mu
         # (positional, in the fields' order: keywords cost a named tuple three times as much)
         state = ContactState(tuple(p), mu, None if est is None else est.sd,
-                             contact_risk(fz, util, p_top, mu, self.risk_margin), grip, load, source, shear, pressed,
+                             contact_risk(fz, util, p, mu, self.risk_margin, RISK_TOP_SHARE * top), grip, load, source,
+                             shear, pressed,
                              top_pressed)
         self.latest = state
         return state
