@@ -176,15 +176,14 @@ class ContactStream:
         # a pillar moves).
         thr = CONTACT_THRESHOLD_N
         hypot = math.hypot
-        fz: list[float] = []
+        fz = last[2::3]  # (the pillars' normal forces: one slice, not an append per pillar)
         util: list[float] = []
-        add_fz, add_util = fz.append, util.append
+        add_util = util.append
         grip = fx = fy = shear = pressed = top_pressed = 0.0
         top = ref = -1.0
         it, it0 = iter(last), iter(first)
         for x, y, z, x0, y0, _ in zip(it, it, it, it0, it0, it0):  # (a pillar's fx, fy, fz of each sample)
             ft = hypot(x, y)
-            add_fz(z)
             if z > thr:  # in contact (pressed too: the threshold is above zero)
                 u = ft / z
                 add_util(u)

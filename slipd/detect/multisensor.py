@@ -143,10 +143,11 @@ class MultiDetector:
         # The common block through every sensor's feature stream at once: each window end's model windows and filtered
         # rows of all sensors side by side; otherwise sensor by sensor. Same samples into every stream: the windows end
         # on the same samples.
-        group = self._group.push_views(x[i:]) if self._group is not None else None
+        block = x[i:] if i else x
+        group = self._group.push_views(block) if self._group is not None else None
         self.clean_block = group is not None and i == 0
         if group is None:
-            wins = [d.feature_windows(x[i:, s]) for s, d in enumerate(subs)]
+            wins = [d.feature_windows(block[:, s]) for s, d in enumerate(subs)]
             ends = [j for j, _, _, _ in wins[0]]
         else:
             ends = [j for j, _, _, _ in group]
