@@ -180,7 +180,7 @@ class Daemon:
         self._nonfinite_burst = False  # a run beyond the bridge since the supervisor last looked
         self._nonfinite_sensor = 0  # the sensor of the latest such run (the log line names it)
         self._nonfinite_open = False  # some sensor's run of non-finite samples is under way
-        self._prev_bits: list[bytes] | None = None  # per sensor, the latest frame's values read (27 or 54 float32)
+        self._prev_bits: bytes | None = None  # the latest frame's values read, sensor by sensor (27 or 54 float32)
         self._reads_disp = cfg.model.detector != "onnx"  # the ensemble reads forces only
         now = time.monotonic()
         self._fresh_ts = np.full(ns, now)  # per sensor: when its latest fresh sample was handled
@@ -258,13 +258,16 @@ class Daemon:
         rec = self.recorder
         det_ = self.detector
         k = len(t_us)
-        self._check_samples(force, disp)
         one = self.sensors == 1
         stamps = t_us.astype(np.int64)
         self._last_t_us = int(stamps[-1])
         # The heuristics read the tip displacements too (as tuned); the ensemble reads forces only.
         moved = (disp[:, 0] if one else disp) if self._reads_disp else None
         dets = det_.push_many(force[:, 0] if one else force, stamps, moved)
+        # After the detector (nothing there reads the freshness): a block its feature pipeline found all finite on the
+        # way is not searched for a non-finite value again.
+        clean = det_.clean_block
+        self._check_samples(force, disp, clean)
         self.stats.frames += k
         valid = [False] * self.sensors
         recorded = 0
@@ -330,7 +333,7 @@ class Daemon:
             now = time.monotonic()
             self._decided_t = now
             self._expect_decision(now)
-        if self._feature_streams:
+        if self._feature_streams and not clean:  # (a clean block counted nothing)
             bad = 0
             for f in self._feature_streams:
                 bad += f.nonfinite_count + f.clipped_count
@@ -388,20 +391,21 @@ class Daemon:
         c = self._latest_contact[sensor]
         return 0.0 if c is None else float(c.pillar_slip[pillar])
 
-    def _check_samples(self, force: np.ndarray, disp: np.ndarray) -> None:
+    def _check_samples(self, force: np.ndarray, disp: np.ndarray, finite: bool = False) -> None:
         """Freshness of a block, per sensor (once per block): finite, and not bit-identical to the sample before, in
         what the detector reads (forces; displacements too for the heuristics). Updates each sensor's fresh time and
-        its run of non-finite samples up to the block's end."""
+        its run of non-finite samples up to the block's end. ``finite``: the detector found every value finite already
+        (``clean_block``), so the block is not searched again."""
         n = len(force)
         ns = self.sensors
         vals = force.reshape(n, ns, -1)
         if self._reads_disp:
             vals = np.concatenate([vals, disp.reshape(n, ns, -1)], axis=2)
         prev = self._prev_bits
-        last = [vals[-1, s].tobytes() for s in range(ns)]
-        self._prev_bits = last
+        tail = vals[-1].tobytes()  # every sensor's latest values, one after the other (one call, sliced per sensor)
+        self._prev_bits = tail
         # Every value finite: no zero byte among the flags (a byte search; ndarray.all and a finite sum cost more).
-        if 0 in np.isfinite(vals).tobytes():
+        if not finite and 0 in np.isfinite(vals).tobytes():
             self._check_nonfinite(vals, prev)
             return
         # The common block, all finite: a sensor is fresh unless every sample is bit-identical to the one before (the
@@ -410,10 +414,17 @@ class Daemon:
         if self._nonfinite_open:
             self._nonfinite_run[:] = 0
             self._nonfinite_open = False
-        arrived = None
+        if prev is None or (ns == 1 and tail != prev):  # (one sensor, its latest sample changed: the common block)
+            now = self._arrived()
+            self._fresh_ts.fill(now)
+            self._fresh_t = now
+            return
+        arrived: float | None = None
         stale = False
+        width = len(tail) // ns
         for s in range(ns):
-            if prev is not None and last[s] == prev[s] and vals[:, s].tobytes() == last[s] * n:
+            last = tail[s * width : (s + 1) * width]
+            if last == prev[s * width : (s + 1) * width] and vals[:, s].tobytes() == last * n:
                 stale = True
                 continue
             if arrived is None:
@@ -428,7 +439,7 @@ class Daemon:
         arrived = self.sensor.last_frame_time if self.sensor is not None else None
         return time.monotonic() if arrived is None else float(arrived)
 
-    def _check_nonfinite(self, vals: np.ndarray, prev: list[bytes] | None) -> None:
+    def _check_nonfinite(self, vals: np.ndarray, prev: bytes | None) -> None:
         """``_check_samples`` on a block with a non-finite value (a fault: sample by sample). Follows each sensor's run
         of non-finite samples across blocks; a run longer than the bridge is remembered until the supervisor has seen
         it, even when it ended inside this block."""
@@ -439,7 +450,7 @@ class Daemon:
         if prev is None:
             changed[0] = True
         else:
-            changed[0] = (bits[0] != np.frombuffer(b"".join(prev), np.uint32).reshape(ns, -1)).any(axis=1)
+            changed[0] = (bits[0] != np.frombuffer(prev, np.uint32).reshape(ns, -1)).any(axis=1)
         changed[1:] = (bits[1:] != bits[:-1]).any(axis=2)
         fresh = (finite & changed).any(axis=0)
         if fresh.any():

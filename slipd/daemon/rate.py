@@ -103,8 +103,14 @@ class RateMonitor:
                     break
                 before = v
             else:
+                end = t[-1]
+                anchor = self._anchor
+                if prev is not None and anchor is not None and end - anchor[1] < _WINDOW_US:
+                    # The window goes on, no measurement ends (``_advance``'s common case, without its call).
+                    self._last = (int(counter[-1]), end)
+                    return
                 first = prev if prev is not None else (int(counter[0]), t[0])
-                self._advance(first, (int(counter[-1]), t[-1]))
+                self._advance(first, (int(counter[-1]), end))
                 return
         self._push_checked(counter, t_us, discontinuity, broken)
 

@@ -176,15 +176,14 @@ class ContactStream:
         # a pillar moves).
         thr = CONTACT_THRESHOLD_N
         hypot = math.hypot
-        fz: list[float] = []
+        fz = last[2::3]  # (the pillars' normal forces: one slice, not an append per pillar)
         util: list[float] = []
-        add_fz, add_util = fz.append, util.append
+        add_util = util.append
         grip = fx = fy = shear = pressed = top_pressed = 0.0
         top = ref = -1.0
         it, it0 = iter(last), iter(first)
         for x, y, z, x0, y0, _ in zip(it, it, it, it0, it0, it0):  # (a pillar's fx, fy, fz of each sample)
             ft = hypot(x, y)
-            add_fz(z)
             if z > thr:  # in contact (pressed too: the threshold is above zero)
                 u = ft / z
                 add_util(u)
@@ -218,8 +217,6 @@ class ContactStream:
         load = hypot(fx, fy)
         # Only sliding pillars near the contact's top utilisation are samples of mu, and only they put the grip at
         # risk (``RISK_TOP_SHARE``, ``FRICTION_TOP_SHARE``).
-        cut = RISK_TOP_SHARE * top
-        p_top = [q if u >= cut else 0.0 for q, u in zip(p, util, strict=True)]
         for q in p:
             if q >= 0.5:
                 # Some pillar slides: a friction sample unless the window is a press. (Only then: a sample needs a
@@ -240,7 +237,8 @@ class ContactStream:
         mu = None if est is None else est.mu
         # (positional, in the fields' order: keywords cost a named tuple three times as much)
         state = ContactState(tuple(p), mu, None if est is None else est.sd,
-                             contact_risk(fz, util, p_top, mu, self.risk_margin), grip, load, source, shear, pressed,
+                             contact_risk(fz, util, p, mu, self.risk_margin, RISK_TOP_SHARE * top), grip, load, source,
+                             shear, pressed,
                              top_pressed)
         self.latest = state
         return state

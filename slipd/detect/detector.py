@@ -60,6 +60,9 @@ class SlipDetector(Protocol):
 
     last_step_s: float | None
     step_seconds: list[float | None]
+    clean_block: bool
+    """The latest ``push_many``'s samples were all finite, checked on their way through the feature pipeline (False
+    where the detector does not know: the loop then checks them itself)."""
 
     @property
     def windows(self) -> int:
@@ -138,6 +141,9 @@ class ContactGate:
             # held the gate open for good, the model running in free air.
             thr = CONTACT_THRESHOLD_N
             self._baseline[ok] += self._alpha * np.clip(rel[ok], -thr, thr)
+        elif touching is None or touching == self.open:  # ``update``'s common case (a held grasp), without its call
+            self._since = None
+            return self.open, False
         return self.update(touching, index)
 
     def update(self, touching: bool | None, index: int) -> tuple[bool, bool]:
@@ -253,6 +259,9 @@ class Detector:
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
         """Model step time behind each detection the latest ``push_many`` returned (same order)."""
+        self.clean_block = False
+        """Every sample of the latest ``push_many`` went through the feature stream's common block (finite, within the
+        clip: ``FeatureStream.clean``), none through the start-up tare."""
         self._tared = self.tare_samples == 0
         self._n_tare = 0
 
@@ -334,6 +343,7 @@ class Detector:
         force = np.asarray(force, dtype=np.float32)
         out: list[tuple[int, Detection]] = []
         self.step_seconds = []
+        self.clean_block = False
         i = 0
         while i < len(force) and not self._tared:
             # The start-up tare holds samples back and replays them: rare, sample by sample.
@@ -347,7 +357,9 @@ class Detector:
         base = self.index + 1 - i  # sample index of force[0]
         self.index += len(force) - i
         if self._shared:  # (the shipped model's layout: the windows straight from the stream)
-            for j, window, filtered, tared in self.features.push_views(force[i:]):
+            views = self.features.push_views(force[i:])
+            self.clean_block = self.features.clean and i == 0
+            for j, window, filtered, tared in views:
                 k = i + j
                 out.append((k, self._decide(window, force[k], int(t_us[k]), base + k, filtered, None, tared)))
                 self.step_seconds.append(self.last_step_s)
@@ -399,7 +411,7 @@ class Detector:
             try:
                 p, pillars = self.ensemble.step_one(window, self.windows % self.n_streams)
                 valid = p == p  # (NaN: no decision)
-                if valid:
+                if valid and pillars is not None:
                     self.set_pillars(pillars)
             except StepError:
                 p, valid = float("nan"), False
@@ -413,7 +425,9 @@ class Detector:
             if valid and rows is not None:
                 self.set_pillars(rows[self.row])
         self.last_step_s = time.perf_counter() - t0
-        return self._finish(float(p), valid, t_us, index, self.contact_state(filtered, state))
+        # (``contact_state``, without its call)
+        return self._finish(float(p), valid, t_us, index,
+                            state if filtered is None else self.contact.state(filtered, self.pillar_p))
 
     def set_pillars(self, p_pillars: np.ndarray | None) -> None:
         """The model's per-pillar P(slip) on the window just stepped, for the contact state; None where the graph
@@ -513,6 +527,7 @@ class HeuristicDetector:
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
         self.features = None
+        self.clean_block = False  # (no feature pipeline checks a heuristic's samples: the loop does)
 
     def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
         """Feed one raw sample (forces and tip displacements); a Detection when the heuristic decides."""

@@ -236,7 +236,7 @@ class Ensemble:
             w = w[None, :]
         if w.ndim != 2 or w.shape[1] != self._d:
             raise ValueError(f"window must be [{self._d}] or [B, {self._d}], got {np.shape(window)}")
-        st = self._run(w, stream)
+        st = self._run(w, stream, w.shape[0])
         if isinstance(st, str):
             return self._invalid(w.shape[0], single, st)
         pp = st.p_pillars
@@ -252,23 +252,24 @@ class Ensemble:
         w = np.asarray(window)
         if w.shape != (self._d,):
             raise ValueError(f"window must be [{self._d}], got {w.shape}")
-        st = self._run(w[None, :], stream)
+        st = self._run(w, stream, 1)  # (the window as it is: the copy into the stream's [1, T*C] input broadcasts it)
         if isinstance(st, str):
             return math.nan, None
         pp = st.p_pillars
-        return float(st.p_slip[0]), None if pp is None else pp[0].copy()
+        return st.p_slip.item(0), None if pp is None else pp[0].copy()
 
-    def _run(self, w: np.ndarray, stream: int) -> _Stream | str:
-        """One model call on ``w`` [B, T*C] in ``stream``: the stream, its outputs in its buffers and its state
-        advanced, or the status of a step that made no decision (see the module docstring)."""
+    def _run(self, w: np.ndarray, stream: int, batch: int) -> _Stream | str:
+        """One model call on ``w`` ([batch, T*C], or [T*C] for a batch of one) in ``stream``: the stream, its outputs
+        in its buffers and its state advanced, or the status of a step that made no decision (see the module
+        docstring)."""
         st = self._streams.get(stream)
         if st is None:
             if not _all_finite(w):  # (a stream is made for a finite window only)
                 self.refused_inputs += 1
                 return STATUS_NONFINITE_INPUT
-            st = self._streams[stream] = _Stream(self._session, w.shape[0], self._z, self._d, self._h, self._p)
-        elif st.batch != w.shape[0]:
-            raise ValueError(f"stream {stream} holds {st.batch} sequences, window has {w.shape[0]}; reset it first")
+            st = self._streams[stream] = _Stream(self._session, batch, self._z, self._d, self._h, self._p)
+        elif st.batch != batch:
+            raise ValueError(f"stream {stream} holds {st.batch} sequences, window has {batch}; reset it first")
         st.x[...] = w  # (np.copyto's copy, without its Python-level dispatcher)
         self._session.run_with_iobinding(st.bindings[st.cur])
         if not _all_finite(st.checked):  # the window, p_slip, p_members, h_next (and p_pillars) in one pass

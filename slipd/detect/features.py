@@ -488,6 +488,11 @@ class FeatureStream:
         self.nonfinite_count = 0
         self.clipped_count = 0
         """Tared values beyond twice the sensor range (impossible readings, e.g. a 1e6 N glitch), clipped."""
+        self.clean = False
+        """The latest ``push_views`` (or ``push_many``) took the common block: every value finite and within the clip,
+        so nothing was sanitised, clipped or counted. The loop reads it instead of checking the block's values for
+        finiteness a second time (``slipd.daemon.loop``). False after a ``push`` and after a block with something to
+        sanitise or clip."""
         self.reset()
 
     def set_offset(self, offset: np.ndarray | None) -> None:
@@ -514,6 +519,7 @@ class FeatureStream:
 
         The returned array is a fresh copy owned by the caller (``filtered`` holds the window's filtered rows).
         """
+        self.clean = False
         s = self._scratch
         s[:] = np.asarray(force, dtype=np.float32).reshape(-1)
         bad = ~np.isfinite(s)
@@ -583,6 +589,7 @@ class FeatureStream:
         """
         x = np.asarray(samples, dtype=np.float32).reshape(-1, N_PILLARS * 3)
         k = len(x)
+        self.clean = False
         if k == 0:
             return []
         if self._n and k <= len(self._ok) and self._end + k > len(self._buf):
@@ -611,6 +618,7 @@ class FeatureStream:
                 if not self._all_cols:
                     np.take(y, self._cols, axis=1, out=rows)
                 self._last_good[:] = x[-1]
+                self.clean = True
                 return self._advance(k)
         y = x - self._offset
         if not (np.abs(y) <= self._clip).all():
@@ -865,6 +873,7 @@ class StreamGroup:
         for st in streams:
             st._end = end + k
             st._n = n0 + k
+            st.clean = True
         if start >= k:
             return []
         ends = range(end + start + 1, end + k + 1, spec.step)

@@ -52,6 +52,9 @@ class MultiDetector:
         self._zeros_flat = np.zeros(self.sensors * 9, np.float32)
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
+        self.clean_block = False
+        """The latest ``push_many``'s block went through the sensors' streams together, whole (``StreamGroup``: every
+        value finite and within the clip), none of it through the start-up tare."""
         """Model call time behind each returned detection: on the first stepped sensor of a call, None on
         the others (one call, one observation)."""
 
@@ -119,6 +122,7 @@ class MultiDetector:
         k = len(x)
         out: list[tuple[int, Detection]] = []
         self.step_seconds = []
+        self.clean_block = False
         i = 0
         while i < k and not self._tared():
             # The start-up tare holds samples back and replays them: rare, sample by sample (each sensor's
@@ -139,9 +143,11 @@ class MultiDetector:
         # The common block through every sensor's feature stream at once: each window end's model windows and filtered
         # rows of all sensors side by side; otherwise sensor by sensor. Same samples into every stream: the windows end
         # on the same samples.
-        group = self._group.push_views(x[i:]) if self._group is not None else None
+        block = x[i:] if i else x
+        group = self._group.push_views(block) if self._group is not None else None
+        self.clean_block = group is not None and i == 0
         if group is None:
-            wins = [d.feature_windows(x[i:, s]) for s, d in enumerate(subs)]
+            wins = [d.feature_windows(block[:, s]) for s, d in enumerate(subs)]
             ends = [j for j, _, _, _ in wins[0]]
         else:
             ends = [j for j, _, _, _ in group]
@@ -178,8 +184,13 @@ class MultiDetector:
                     f_s, state = wins[s][m][2], wins[s][m][3]
                 if det is None:
                     valid = bool(oks[s])
-                    d.set_pillars(pillar_rows[s] if valid and pillar_rows is not None else None)
-                    det = d._finish(float(ps[s]), valid, t, idx, d.contact_state(f_s, state))
+                    if valid and pillar_rows is not None:
+                        d.set_pillars(pillar_rows[s])
+                    else:
+                        d.pillar_p = None
+                    # (``Detector.contact_state``, without its call)
+                    det = d._finish(float(ps[s]), valid, t, idx,
+                                    state if f_s is None else d.contact.state(f_s, d.pillar_p))
                     d.last_step_s = step_s
                     self.step_seconds.append(step_s)
                     step_s = None

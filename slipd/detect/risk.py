@@ -21,23 +21,32 @@ from slipd.geometry import CONTACT_THRESHOLD_N
 
 
 def contact_risk(fz: Sequence[float], util: Sequence[float], p_slip: Sequence[float], mu: float | None,
-                 margin: float) -> float:
-    """The load-weighted share of the contact that slips or is within ``margin`` of its limit (0..1).
+                 margin: float, slip_cut: float | None = None) -> float:
+    """The load-weighted share of the contact that slips or is within ``margin`` of its limit (0..1). ``slip_cut``: a
+    pillar's slip probability counts only where its utilisation is at least this (below it reads 0; the contact
+    stream's ``RISK_TOP_SHARE`` rule), None: every pillar's.
 
-    A loop over the nine pillars (once per decision on the hot path: cheaper than numpy on nine values)."""
+    A loop over the nine pillars (once per decision on the hot path: cheaper than numpy on nine values; the cut is
+    applied in the same pass rather than in a list of its own)."""
     thr = CONTACT_THRESHOLD_N
     limit = mu if mu is not None and mu > 0.0 and margin > 0.0 else None  # None: only the slip counts
     num = den = 0.0
     if limit is None:
-        for z, q in zip(fz, p_slip, strict=True):
-            if z > thr:
-                num += z * float(q)
-                den += z
+        if slip_cut is None:
+            for z, q in zip(fz, p_slip, strict=True):
+                if z > thr:
+                    num += z * float(q)
+                    den += z
+        else:
+            for z, u, q in zip(fz, util, p_slip, strict=True):
+                if z > thr:
+                    num += z * (float(q) if u >= slip_cut else 0.0)
+                    den += z
     else:
         below = 1.0 - margin
         for z, u, q in zip(fz, util, p_slip, strict=True):
             if z > thr:
-                share = float(q)
+                share = float(q) if slip_cut is None or u >= slip_cut else 0.0
                 # max(share, min(1.0, max(0.0, near))) with comparisons in place of the calls (the same choices, NaN
                 # included: each keeps its first operand unless the second compares strictly past it)
                 near = (u / limit - below) / margin
