@@ -421,7 +421,8 @@ STAGES: tuple[tuple[str, tuple[tuple[str, str, str], ...]], ...] = (
     ("decision", (("slipd.detect.detector", "Detector", "push_many"), ("slipd.detect.multisensor", "MultiDetector",
                   "push_many"), ("slipd.detect.detector", "Detector", "_decide"),
                   ("slipd.detect.detector", "Detector", "_gate"), ("slipd.detect.detector", "Detector", "_finish"))),
-    ("contact state", (("slipd.detect.detector", "Detector", "contact_state"),)),
+    ("contact state", (("slipd.detect.detector", "Detector", "contact_state"),
+                       ("slipd.detect.contact", "ContactStream", "state"))),
     ("reaction check", (("slipd.daemon.loop", "Daemon", "_on_frames"), ("slipd.daemon.loop", "Daemon", "_on_block"),
                         ("slipd.daemon.loop", "Daemon", "_coalesce"))),
     ("recorder", tuple(("slipd.daemon.recorder", "Recorder", f) for f in
