@@ -386,6 +386,18 @@ def _summary(loss_sum: float, n: int, c: np.ndarray) -> dict[str, float]:
             "precision": c[1] / max(c[2], 1), "pos_frac": c[3] / max(n, 1), "windows": int(n)}
 
 
+def run_ids(y: torch.Tensor, keep: torch.Tensor, chunk: int = 0) -> np.ndarray:
+    """Ids [B, T] of the runs of positive windows, numbered through the lanes, -1 for negative windows. A run ends
+    where a sequence starts (keep 0) and, with ``chunk``, at every truncated-BPTT chunk boundary."""
+    pos = (y == 1).numpy()
+    prev = np.concatenate([np.zeros((pos.shape[0], 1), bool), pos[:, :-1]], 1)
+    start = pos & (~prev | (keep == 0).numpy())
+    if chunk > 0:
+        start |= pos & (np.arange(pos.shape[1]) % chunk == 0)[None, :]
+    ids = np.cumsum(start.reshape(-1)).reshape(pos.shape) - 1
+    return np.where(pos, ids, -1)
+
+
 def early_weights(y: torch.Tensor, keep: torch.Tensor, windows: int, weight: float) -> torch.Tensor:
     """Per-window loss weights [B, T]: ``weight`` on the first ``windows`` windows of every run of positive
     windows, 1 elsewhere. Incipient slip lasts only a few windows before the object turns or falls; the plain
@@ -393,26 +405,18 @@ def early_weights(y: torch.Tensor, keep: torch.Tensor, windows: int, weight: flo
     out = torch.ones(y.shape, dtype=torch.float32)
     if windows <= 0 or weight == 1.0:
         return out
-    pos = (y == 1).numpy()
-    first = (keep == 0).numpy()  # a sequence starts: a run there is a new run
-    run = np.zeros(pos.shape[0], np.int64)  # windows into the current positive run, per lane
-    w = out.numpy()
-    for t in range(pos.shape[1]):
-        run = np.where(pos[:, t], np.where(first[:, t], 1, run + 1), 0)
-        w[:, t] = np.where((run > 0) & (run <= windows), weight, 1.0)
+    ids = run_ids(y, keep).reshape(-1)
+    pos = np.flatnonzero(ids >= 0)
+    _, first = np.unique(ids[pos], return_index=True)  # each run's first window (ids 0, 1, ...; contiguous runs)
+    into = pos - pos[first][ids[pos]]  # windows into the run
+    out.view(-1)[torch.from_numpy(pos[into < windows])] = weight
     return out
 
 
 def catch_runs(y: torch.Tensor, keep: torch.Tensor, chunk: int) -> torch.Tensor:
-    """Run ids [B, T] for ``--catch``: each run of positive windows within one sequence and one truncated-BPTT
-    chunk gets its own id (numbered through the lanes), -1 elsewhere. A run that crosses a chunk boundary is two
-    runs, because one optimiser step sees one chunk."""
-    pos = (y == 1).numpy()
-    t = np.arange(pos.shape[1])
-    prev = np.concatenate([np.zeros((pos.shape[0], 1), bool), pos[:, :-1]], 1)
-    start = pos & (~prev | (keep == 0).numpy() | (t % chunk == 0)[None, :])
-    ids = np.cumsum(start.reshape(-1)).reshape(pos.shape) - 1
-    return torch.from_numpy(np.where(pos, ids, -1))
+    """Run ids [B, T] for ``--catch`` (``run_ids``): a run that crosses a chunk boundary is two runs, because one
+    optimiser step sees one chunk."""
+    return torch.from_numpy(run_ids(y, keep, chunk))
 
 
 def catch_loss(logits: torch.Tensor, runs: torch.Tensor) -> torch.Tensor:
