@@ -52,11 +52,11 @@ class MultiDetector:
         self._zeros_flat = np.zeros(self.sensors * 9, np.float32)
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
+        """Model call time behind each returned detection: on the first stepped sensor of a call, None on
+        the others (one call, one observation)."""
         self.clean_block = False
         """The latest ``push_many``'s block went through the sensors' streams together, whole (``StreamGroup``: every
         value finite and within the clip), none of it through the start-up tare."""
-        """Model call time behind each returned detection: on the first stepped sensor of a call, None on
-        the others (one call, one observation)."""
 
     def _rows_of(self, windows: list[np.ndarray]) -> np.ndarray:
         """The sensors' windows side by side [S, len]: ``np.stack`` into one buffer kept for the next call (the model
