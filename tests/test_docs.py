@@ -150,7 +150,7 @@ def test_overview_names_real_code():
     assert unresolved == [], "docs/overview.md names code that does not exist:\n" + "\n".join(unresolved)
     # The frame's path, in the order the page follows it.
     path = ["slipd.io.sensor", "slipd.io.pts", "Daemon._on_frames", "Detector.push_many", "FeatureStream.push_views",
-            "Ensemble.step", "Decision.update", "Reaction.on_alarm", "DeviceWorker.submit", "URArm.stop",
+            "Ensemble.step", "Decision.advance", "Reaction.on_alarm", "DeviceWorker.submit", "URArm.stop",
             "DynamixelGripper.tighten"]
     positions = [text.index(p) for p in path]
     assert positions == sorted(positions)

@@ -256,6 +256,17 @@ class DecisionConfig(_Section):
         "this share within the last window (40 ms), since a press loads the pillars without slipping them; "
         "null: off",
     )
+    limit_guard: float | None = Field(
+        0.9, gt=0.0, le=1.0,
+        description="also raise the alarm when the contact risk (the load-weighted share of the contact sliding or "
+        "at its friction limit) stays at or above this for limit_guard_decisions decisions in a row, whatever "
+        "p_slip says: a slow slip under a growing load (a cup being filled), which the model does not call; "
+        "null: off",
+    )
+    limit_guard_decisions: int = Field(
+        5, ge=1, le=100, description="decisions in a row at or above limit_guard before it raises the alarm (5 at "
+        "stride 10: 50 ms)",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> DecisionConfig:
@@ -695,7 +706,8 @@ class SlipdConfig(_Section):
             # A heuristic decides on every sample with its own tuned rule: these keys would be read by nothing, and an
             # engineer who sets them expects an effect (unread options are refused, as unknown keys are).
             for section, keys in (("model", ("stride",)),
-                                  ("decision", ("threshold", "hysteresis", "min_consecutive", "press_rise"))):
+                                  ("decision", ("threshold", "hysteresis", "min_consecutive", "press_rise",
+                                                "limit_guard", "limit_guard_decisions"))):
                 unread = getattr(self, section).changed(keys)
                 if unread is not None:
                     key, value, default = unread

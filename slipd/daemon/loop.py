@@ -572,7 +572,8 @@ class Daemon:
 
     def set_decision_rule(self, rule: DecisionConfig) -> None:
         """A reload's decision section (``slipd.daemon.reload``), applied between two blocks: threshold, hysteresis,
-        decisions in a row and the press hold of every sensor's decision rule (the heuristics have none)."""
+        decisions in a row, the limit guard and the press hold of every sensor's decision rule (the heuristics have
+        none)."""
         threshold = rule.effective_threshold(self.ensemble.threshold)
         for det in getattr(self.detector, "detectors", [self.detector]):
             decision = getattr(det, "decision", None)
@@ -580,6 +581,7 @@ class Daemon:
                 continue
             decision.threshold, decision.hysteresis = float(threshold), float(rule.hysteresis)
             decision.min_consecutive = int(rule.min_consecutive)
+            decision.limit_guard, decision.limit_guard_decisions = rule.limit_guard, int(rule.limit_guard_decisions)
             det.press_rise = rule.press_rise
 
     def _fail_safe(self, reason: str, logged: bool = False) -> None:

@@ -92,6 +92,7 @@ def baseline_params_path(cfg: SlipdConfig) -> Path:
 
 def build_decision(rule: DecisionConfig, model_threshold: float) -> Decision:
     """A config's decision section as the ``Decision`` it asks for (the threshold: the section's, else the
-    model's); the press hold is the detector's (``rule.press_rise``)."""
+    model's; the limit guard); the press hold is the detector's (``rule.press_rise``)."""
     return Decision(threshold=rule.effective_threshold(model_threshold), hysteresis=rule.hysteresis,
-                    min_consecutive=rule.min_consecutive)
+                    min_consecutive=rule.min_consecutive, limit_guard=rule.limit_guard,
+                    limit_guard_decisions=rule.limit_guard_decisions)

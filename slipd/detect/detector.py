@@ -507,7 +507,7 @@ class Detector:
         # The members' agreement (``DecisionResult.members_alarming``) is evaluation's: a Detection does not carry it.
         p = float(p_slip)
         decision = self.decision
-        alarm, rising = decision.advance(p, not self.pressing)
+        alarm, rising = decision.advance(p, not self.pressing, None if contact is None else contact.risk)
         return Detection(index, t_us, p, decision.risk(p), alarm, rising, True, self.sensor, contact)  # (positional)
 
 

@@ -96,3 +96,29 @@ def test_a_held_update_does_not_raise_but_keeps_a_raised_alarm() -> None:
     assert r.alarm and r.rising_edge
     assert d.update(0.9, may_raise=False).alarm  # raised stays raised
     assert not d.update(0.1, may_raise=False).alarm  # and clears as usual
+
+
+def test_the_limit_guard_raises_on_a_run_of_contact_risk_whatever_p_slip_says() -> None:
+    d = Decision(threshold=0.5, limit_guard=0.9, limit_guard_decisions=3)
+    # A dip below the guard starts the run again; no contact state (None) does too.
+    risks = [0.95, 0.95, 0.8, 0.95, None, 0.95, 0.92, 0.99, 0.97, 0.5, 0.2]
+    got = [d.advance(0.1, True, r) for r in risks]
+    assert [a for a, _ in got] == [False] * 7 + [True, True, False, False]
+    assert [e for _, e in got].count(True) == 1
+    d.reset()
+    for _ in range(3):
+        d.advance(0.1, True, 1.0)
+    assert d.guarded and d.risk(0.1) == 1.0  # the full reaction while it holds
+    d.reset()
+    assert not d.guarded and d.risk(0.1) == pytest.approx(0.2)
+
+
+def test_the_limit_guard_keeps_the_press_hold_and_a_model_alarm() -> None:
+    d = Decision(threshold=0.5, limit_guard=0.9, limit_guard_decisions=2)
+    assert [d.advance(0.1, False, 1.0)[0] for _ in range(3)] == [False, False, False]  # a press raises nothing
+    assert d.advance(0.1, True, 1.0) == (True, True)
+    assert d.advance(0.7, True, 0.0)[0]  # the guard let go, the model's own alarm holds it
+    off = Decision(threshold=0.5)  # no guard: the contact risk is read by nothing
+    assert [off.advance(0.1, True, 1.0)[0] for _ in range(10)] == [False] * 10
+    with pytest.raises(ValueError, match="limit_guard"):
+        Decision(limit_guard=1.5)
