@@ -232,6 +232,10 @@ def test_without_a_config_the_detector_and_evaluation_take_the_default_configs_r
     assert (det.decision.min_consecutive, det.press_rise) == (rule.min_consecutive, rule.press_rise)
     runner = ModelRunner(str(tiny_model_json))
     assert (runner.decision.min_consecutive, runner.press_rise) == (rule.min_consecutive, rule.press_rise)
+    # The limit guard too: evaluation scores the decisions the daemon makes.
+    assert rule.limit_guard == 0.9
+    for d in (det.decision, runner.decision):
+        assert (d.limit_guard, d.limit_guard_decisions) == (rule.limit_guard, rule.limit_guard_decisions)
 
 
 # ------------------------------------------------------------------------------------- the contact gate, restarts
