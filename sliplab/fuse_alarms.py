@@ -17,7 +17,8 @@ both within W
 A detector's alarm state holds from one of its decisions to its next, so the fused stream has a decision at every
 moment either detector decides. Prints the hold-out table of ``tools/robustness.py`` (offline success, slips caught,
 online success on the lifts, no-slip recordings alarmed, partial slips, latency, light grasps, slow loads, the
-scenario categories) with each model, the rule and both fusions; ``--json`` writes the figures.
+scenario categories) with each model, the rule and both fusions, then per model the scored slips caught in time by
+both parts, by one only and by neither; ``--json`` writes the figures.
 """
 
 from __future__ import annotations
@@ -95,6 +96,18 @@ def fused_results(first: list[Result], second: list[Result], mode: str, within_s
     return out
 
 
+def caught_by(model: list[Result], rule: list[Result]) -> dict[str, int]:
+    """The scored slips each part catches in time (offline criterion): by both, the model only, the rule only,
+    neither. An "either" fusion catches at most the first three; fewer where one part's alarm comes too early."""
+    out = {"both": 0, "model only": 0, "rule only": 0, "neither": 0}
+    for (m, _, truth), (r, _, _) in zip(model, rule, strict=True):
+        if truth.kind != "slip" or m.offline_outcome is None:
+            continue
+        hit = (m.offline_outcome == "tp", r.offline_outcome == "tp")
+        out[{(True, True): "both", (True, False): "model only", (False, True): "rule only"}.get(hit, "neither")] += 1
+    return out
+
+
 def model_name(manifest: str) -> str:
     """A short row name: the manifest's folder and stem."""
     p = Path(manifest)
@@ -108,15 +121,18 @@ def run(data: Path, models: list[str], baselines: Path = DEFAULT_BASELINES, with
     params, frontend = load_params(baselines, RULE)
     rule = evaluate_paths(paths, "baseline", (RULE, params, frontend), progress=False)
     rows = {RULE: holdout_figures(rule, cats)}
+    caught = {}
     for m in models:
         res = evaluate_paths(paths, "model", (m, 0.0, None, None), progress=False)
         name = model_name(m)
         rows[name] = holdout_figures(res, cats)
+        caught[name] = caught_by(res, rule)
         rows[f"{name} or {RULE}"] = holdout_figures(fused_results(res, rule, "either"), cats)
         rows[f"{name} and {RULE} within {1000 * within_s:.0f} ms"] = holdout_figures(
             fused_results(res, rule, "both", within_s), cats)
     return {"data": str(data), "recordings": len(paths), "baselines": str(baselines), "within_s": within_s,
-            "models": models, "detectors": rows}
+            "models": models, "detectors": rows,
+            "slips_caught_by": caught}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -141,6 +157,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"Each model, the {RULE} rule and their fusions on {args.data} ({report['recordings']} recordings)")
     for r in [head, *rows]:
         print("  ".join(c.ljust(w) for c, w in zip(r, widths)))
+    for name, counts in report["slips_caught_by"].items():
+        print(f"slips caught in time by {name} and {RULE}: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
     if args.json:
         args.json.write_text(json.dumps(report, indent=1) + "\n")
     return 0

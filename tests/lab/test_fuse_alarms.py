@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from sliplab.fuse_alarms import fuse_traces, fused_results, main
+from sliplab.fuse_alarms import caught_by, fuse_traces, fused_results, main
 from sliplab.metrics import Trace
 
 MODEL = "slipd/models/slip_ensemble_int8.json"
@@ -71,6 +71,9 @@ def test_the_tool_scores_fusions_with_the_parts_first_alarms(tmp_path, capsys) -
     assert both.first_alarm_s == max(firsts)
     with pytest.raises(ValueError, match="different recordings"):
         fused_results(model, [(rule[0][0], rule[0][1], replace(rule[0][2], name="other"))], "either")
+    early = [(replace(model[0][0], offline_outcome="early"), *model[0][1:])]
+    assert caught_by(early, rule) == {"both": 0, "model only": 0, "rule only": 1, "neither": 0}
+    assert caught_by(early, early) == {"both": 0, "model only": 0, "rule only": 0, "neither": 1}
     js = tmp_path / "fused.json"
     assert main(["--data", str(data), "--model", MODEL, "--json", str(js)]) == 0
     report = json.loads(js.read_text())
@@ -78,6 +81,7 @@ def test_the_tool_scores_fusions_with_the_parts_first_alarms(tmp_path, capsys) -
     name = "models/slip_ensemble_int8"
     assert list(rows) == ["reference_pillar", name, f"{name} or reference_pillar",
                           f"{name} and reference_pillar within 100 ms"]
+    assert report["slips_caught_by"] == {name: {"both": 1, "model only": 0, "rule only": 0, "neither": 0}}
     whole = rows[f"{name} or reference_pillar"]["all"]
     assert whole["n"] == 1 and whole["stop"] == 0
     assert np.isclose(rows["reference_pillar"]["offline_success"] or 0.0, float(rule[0][0].offline_success))
