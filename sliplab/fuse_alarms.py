@@ -33,6 +33,7 @@ from slipd.detect.baselines import load_params
 from slipd.recording import list_recordings
 from sliplab.evaluate import evaluate_paths
 from sliplab.metrics import SceneResult, SceneTruth, Trace, evaluate_scene
+from sliplab.paths import ROOT
 from sliplab.robustness import DEFAULT_BASELINES, categories, holdout_figures, tables, tags
 
 RULE = "reference_pillar"
@@ -130,7 +131,9 @@ def run(data: Path, models: list[str], baselines: Path = DEFAULT_BASELINES, with
         rows[f"{name} or {RULE}"] = holdout_figures(fused_results(res, rule, "either"), cats)
         rows[f"{name} and {RULE} within {1000 * within_s:.0f} ms"] = holdout_figures(
             fused_results(res, rule, "both", within_s), cats)
-    return {"data": str(data), "recordings": len(paths), "baselines": str(baselines), "within_s": within_s,
+    src = Path(baselines).resolve()
+    return {"data": str(data), "recordings": len(paths),
+            "baselines": str(src.relative_to(ROOT) if src.is_relative_to(ROOT) else src), "within_s": within_s,
             "models": models, "detectors": rows,
             "slips_caught_by": caught}
 
