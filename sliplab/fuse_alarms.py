@@ -150,8 +150,15 @@ def main(argv: list[str] | None = None) -> int:
     names = [model_name(m) for m in args.model]
     if len(set(names)) < len(names):
         p.error(f"--model: two manifests share a row name (folder/stem): {', '.join(names)}")
+    missing = [m for m in args.model if not Path(m).is_file()]
+    if missing:
+        p.error(f"--model: no such manifest: {', '.join(missing)}")
     if not list_recordings(args.data):
         raise SystemExit(f"--data {args.data}: no recordings (make a test split with tools/make_dataset.py)")
+    try:
+        load_params(args.baselines, RULE)
+    except ValueError as exc:
+        raise SystemExit(f"--baselines {exc}") from None
     report = run(args.data, args.model, args.baselines, args.within_ms / 1000)
     # The hold-out table of tools/robustness.py, one row per detector and fusion.
     _, head, rows = tables({"families": {}, "holds": {}, "engine_holdout": {

@@ -87,3 +87,11 @@ def test_the_tool_scores_fusions_with_the_parts_first_alarms(tmp_path, capsys) -
     assert np.isclose(rows["reference_pillar"]["offline_success"] or 0.0, float(rule[0][0].offline_success))
     printed = capsys.readouterr().out
     assert f"{name} or reference_pillar" in printed and "their fusions on" in printed
+
+
+def test_the_tool_refuses_missing_inputs_with_one_line(tmp_path) -> None:
+    with pytest.raises(SystemExit, match="no recordings"):
+        main(["--data", str(tmp_path), "--model", MODEL])
+    with pytest.raises(SystemExit) as exc:
+        main(["--data", str(tmp_path), "--model", str(tmp_path / "none.json")])
+    assert exc.value.code == 2  # argparse's usage error
