@@ -215,6 +215,9 @@ class Trace:
     p_slip: list[float]
     alarm: list[bool]
     rising_edge: list[bool]
+    contact_risk: list[float] = field(default_factory=list)
+    """Each decision's contact risk (``slipd.detect.contact``: what the limit guard reads), NaN where the detection
+    carries no contact state; empty for a trace built without detections."""
 
     @classmethod
     def from_detections(cls, detections: Iterable, t_us: np.ndarray) -> Trace:
@@ -225,7 +228,7 @@ class Trace:
         """
         t_us = np.asarray(t_us, np.int64)
         t0 = int(t_us[0]) if len(t_us) else 0
-        ts, ps, al, re = [], [], [], []
+        ts, ps, al, re, cr = [], [], [], [], []
         for d in detections:
             if not getattr(d, "valid", True):
                 continue
@@ -233,7 +236,9 @@ class Trace:
             ps.append(float(d.p_slip))
             al.append(bool(d.alarm))
             re.append(bool(d.rising_edge))
-        return cls(ts, ps, al, re)
+            contact = getattr(d, "contact", None)
+            cr.append(float("nan") if contact is None else float(contact.risk))
+        return cls(ts, ps, al, re, cr)
 
     def first_alarm_s(self) -> float | None:
         """Time of the first decision with the alarm raised, or None."""
