@@ -98,11 +98,16 @@ def tare_stretch(rec: Recording, spec: FeatureSpec | None = None) -> tuple[int, 
 
 
 # --------------------------------------------------------------------------- detectors
+NO_LIMIT_GUARD_HELP = ("score a model on its own decision rule, without the limit guard (decision.limit_guard, on in "
+                       "the default config): what its members learned")
+"""The ``--no-limit-guard`` option's help, the same in every tool that scores models."""
+
+
 class ModelRunner:
     """Streams recordings through ``Detector`` with the ensemble of a manifest."""
 
     def __init__(self, manifest: str, hysteresis: float = 0.0, threshold: float | None = None,
-                 stride: int | None = None) -> None:
+                 stride: int | None = None, limit_guard: bool = True) -> None:
         from slipd.config.schema import DecisionConfig
         from slipd.detect.build import build_decision  # onnxruntime only when a model is evaluated
         from slipd.detect.ensemble import Ensemble
@@ -111,12 +116,15 @@ class ModelRunner:
         self.spec = self.ensemble.feature_spec
         if stride is not None:  # decisions every `stride` samples through window/stride phase-shifted streams
             self.spec = self.spec.with_(stride=0 if stride == self.spec.window else stride)
-        # The daemon's default decision rule (the config's defaults), the threshold and hysteresis as given.
+        # The daemon's default decision rule (the config's defaults), the threshold and hysteresis as given;
+        # ``limit_guard`` False: the model's own rule without the limit guard (what the members learned).
         rule = DecisionConfig(threshold=threshold, hysteresis=hysteresis)
+        if not limit_guard:
+            rule = rule.model_copy(update={"limit_guard": None})
         self.decision = build_decision(rule, self.ensemble.threshold)
         self.threshold = self.decision.threshold
         self.press_rise = rule.press_rise
-        self.label = f"model {manifest}"
+        self.label = f"model {manifest}" + ("" if limit_guard else " (without the limit guard)")
 
     def trace(self, rec: Recording) -> Trace:
         """Decisions of one recording."""
@@ -447,6 +455,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--online", action="store_true", help="report online metrics (default for --set transfer)")
     p.add_argument("--threshold", type=float, default=None, help="override the manifest's threshold")
     p.add_argument("--hysteresis", type=float, default=0.0)
+    p.add_argument("--no-limit-guard", action="store_true", help=NO_LIMIT_GUARD_HELP)
     p.add_argument("--stride", type=int, default=None,
                    help="override the manifest's decision stride (a divisor of the window)")
     p.add_argument("--workers", type=int, default=1, help="processes (2 at most on the shared machine)")
@@ -482,7 +491,7 @@ def main(argv: list[str] | None = None) -> int:
     if not paths:
         raise SystemExit(f"no recordings (.npz / .csv) in {folder}")
     if args.model:
-        kind, rargs = "model", (args.model, args.hysteresis, args.threshold, args.stride)
+        kind, rargs = "model", (args.model, args.hysteresis, args.threshold, args.stride, not args.no_limit_guard)
         label = f"model {args.model}"
         threshold = args.threshold
         if threshold is None:

@@ -31,7 +31,7 @@ import numpy as np
 
 from slipd.detect.baselines import load_params
 from slipd.recording import list_recordings
-from sliplab.evaluate import evaluate_paths
+from sliplab.evaluate import NO_LIMIT_GUARD_HELP, evaluate_paths
 from sliplab.metrics import SceneResult, SceneTruth, Trace, evaluate_scene
 from sliplab.paths import ROOT
 from sliplab.robustness import DEFAULT_BASELINES, categories, holdout_figures, tables, tags
@@ -115,8 +115,10 @@ def model_name(manifest: str) -> str:
     return f"{p.parent.name}/{p.stem}"
 
 
-def run(data: Path, models: list[str], baselines: Path = DEFAULT_BASELINES, within_s: float = WITHIN_S) -> dict:
-    """Every model, the rule and both fusions of each model with the rule, as ``holdout_figures`` on ``data``."""
+def run(data: Path, models: list[str], baselines: Path = DEFAULT_BASELINES, within_s: float = WITHIN_S,
+        limit_guard: bool = True) -> dict:
+    """Every model, the rule and both fusions of each model with the rule, as ``holdout_figures`` on ``data``
+    (``limit_guard`` False: each model on its own decision rule, ``--no-limit-guard``)."""
     paths = list_recordings(data)
     cats = categories(paths, tags(data))
     params, frontend = load_params(baselines, RULE)
@@ -124,7 +126,7 @@ def run(data: Path, models: list[str], baselines: Path = DEFAULT_BASELINES, with
     rows = {RULE: holdout_figures(rule, cats)}
     caught = {}
     for m in models:
-        res = evaluate_paths(paths, "model", (m, 0.0, None, None), progress=False)
+        res = evaluate_paths(paths, "model", (m, 0.0, None, None, limit_guard), progress=False)
         name = model_name(m)
         rows[name] = holdout_figures(res, cats)
         caught[name] = caught_by(res, rule)
@@ -145,6 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--baselines", type=Path, default=DEFAULT_BASELINES, help="the rule's shipped parameters JSON")
     p.add_argument("--within-ms", type=float, default=1000 * WITHIN_S,
                    help="the 'both' fusion's confirmation window (default %(default)g ms)")
+    p.add_argument("--no-limit-guard", action="store_true", help=NO_LIMIT_GUARD_HELP)
     p.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = p.parse_args(argv)
     names = [model_name(m) for m in args.model]
@@ -159,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         load_params(args.baselines, RULE)
     except ValueError as exc:
         raise SystemExit(f"--baselines {exc}") from None
-    report = run(args.data, args.model, args.baselines, args.within_ms / 1000)
+    report = run(args.data, args.model, args.baselines, args.within_ms / 1000, not args.no_limit_guard)
     # The hold-out table of tools/robustness.py, one row per detector and fusion.
     _, head, rows = tables({"families": {}, "holds": {}, "engine_holdout": {
         k: {"source": "", **v} for k, v in report["detectors"].items()}})[0]

@@ -43,7 +43,7 @@ import numpy as np
 
 from slipd.detect.baselines import BASELINES, load_params
 from slipd.recording import Recording, list_recordings
-from sliplab.evaluate import evaluate_paths
+from sliplab.evaluate import NO_LIMIT_GUARD_HELP, evaluate_paths
 from sliplab.metrics import confusion, summarize
 from sliplab.paths import ROOT
 
@@ -114,7 +114,7 @@ def detectors(args) -> list[dict]:
     """[{name, kind, args, threshold}] for evaluate_paths: the model, both heuristics, optionally the authors'."""
     out = []
     if args.model:
-        out.append(_model_entry("slipd", args.model))
+        out.append(_model_entry("slipd", args.model, not args.no_limit_guard))
     src = Path(args.baselines)
     for name in sorted(BASELINES):
         if args.heuristics and name not in args.heuristics:  # the bare flag, as the flag's absence: both
@@ -123,13 +123,13 @@ def detectors(args) -> list[dict]:
         out.append({"name": name, "kind": "baseline", "args": (name, params, frontend), "threshold": 0.5,
                     "source": f"{src.name if src.exists() else 'defaults'}"})
     if args.authors:
-        out.append(_model_entry("authors", args.authors))
+        out.append(_model_entry("authors", args.authors, not args.no_limit_guard))
     return out
 
 
-def _model_entry(name: str, manifest: str) -> dict:
+def _model_entry(name: str, manifest: str, limit_guard: bool = True) -> dict:
     threshold = float(json.loads(Path(manifest).read_text()).get("threshold", 0.5))
-    return {"name": name, "kind": "model", "args": (manifest, 0.0, None, None), "threshold": threshold,
+    return {"name": name, "kind": "model", "args": (manifest, 0.0, None, None, limit_guard), "threshold": threshold,
             "source": str(manifest)}
 
 
@@ -291,7 +291,7 @@ def run(args) -> dict:
             paths = [p for p in robust if rtag.get(p.stem, {}).get("physics_family") == fam]
             if not paths:
                 raise SystemExit(f"--lofo {spec}: no {fam!r} recordings in {robust_dir}")
-            det = _model_entry(f"lofo_{fam}", manifest)
+            det = _model_entry(f"lofo_{fam}", manifest, not args.no_limit_guard)
             fig = figures(evaluate_paths(paths, det["kind"], det["args"], workers=w, progress=False))
             heur = {b: report["families"].get(b, {}).get(fam, {}).get("balanced") for b in BASELINES}
             best = max((v for v in heur.values() if v is not None), default=None)
@@ -301,7 +301,7 @@ def run(args) -> dict:
     if args.seeds and robust:
         per_seed = []
         for manifest in args.seeds:
-            det = _model_entry("seed", manifest)
+            det = _model_entry("seed", manifest, not args.no_limit_guard)
             fig = figures(evaluate_paths(robust, det["kind"], det["args"], workers=w, progress=False))
             if holds:
                 hf = holds_figures(evaluate_paths(holds, det["kind"], det["args"], workers=w, progress=False),
@@ -326,7 +326,7 @@ def run(args) -> dict:
         ecats = categories(engine, etag)
         dets = [d for d in detectors(args) if d["kind"] == "baseline"]
         if args.engine_model or args.model:
-            dets.insert(0, _model_entry("slipd", args.engine_model or args.model))
+            dets.insert(0, _model_entry("slipd", args.engine_model or args.model, not args.no_limit_guard))
         report["engine_holdout"] = {}
         for det in dets:
             res = evaluate_paths(engine, det["kind"], det["args"], workers=w, progress=False)
@@ -337,7 +337,8 @@ def run(args) -> dict:
             raise SystemExit(f"--reverse needs our families' recordings (--robust {robust_dir})")
         rcats = categories(robust, rtag)
         report["reverse_holdout"] = {}
-        dets = [_model_entry("slipd", args.reverse)] + [d for d in detectors(args) if d["kind"] == "baseline"]
+        dets = [_model_entry("slipd", args.reverse, not args.no_limit_guard),
+                *[d for d in detectors(args) if d["kind"] == "baseline"]]
         for det in dets:
             res = family_results.get(det["name"]) if det["kind"] == "baseline" else None
             if res is None:
@@ -491,6 +492,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--engine-limit", type=int, default=0, help="evaluate N engine recordings, spread over scenarios")
     p.add_argument("--reverse", default=None, metavar="MANIFEST",
                    help="a manifest trained on the engine only, tested on --robust (the reverse hold-out)")
+    p.add_argument("--no-limit-guard", action="store_true", help=NO_LIMIT_GUARD_HELP)
     p.add_argument("--engine-only", action="store_true",
                    help="only the hold-outs: skip the per-family table and the holds")
     p.add_argument("--out", default=str(ROOT / "reports" / "robustness"),

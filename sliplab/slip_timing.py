@@ -23,7 +23,7 @@ from slipd.detect.baselines import load_params
 from slipd.detect.features import stretch_offset
 from slipd.geometry import CONTACT_THRESHOLD_N
 from slipd.recording import Recording, list_recordings
-from sliplab.evaluate import evaluate_paths
+from sliplab.evaluate import NO_LIMIT_GUARD_HELP, evaluate_paths
 from sliplab.metrics import EARLY_TOLERANCE_S, NO_SLIP_KINDS
 from sliplab.robustness import DEFAULT_BASELINES
 from sliplab.train import is_partial_slip, sliding_span_labels, slip_span_labels
@@ -63,14 +63,15 @@ def _ms(first: float | None, onset: float) -> int | None:
     return None if first is None else round(1000 * (first - onset))
 
 
-def run(data: Path, models: list[str]) -> dict:
-    """Every scored slip with each detector's timing, the group counts and the no-slip alarms."""
+def run(data: Path, models: list[str], limit_guard: bool = True) -> dict:
+    """Every scored slip with each detector's timing, the group counts and the no-slip alarms (``limit_guard``
+    False: each model on its own decision rule, ``--no-limit-guard``)."""
     paths = list_recordings(data)
     params, frontend = load_params(DEFAULT_BASELINES, "reference_pillar")
     runs = {"reference_pillar": evaluate_paths(paths, "baseline", ("reference_pillar", params, frontend),
                                                progress=False)}
     for m in models:
-        runs[m] = evaluate_paths(paths, "model", (m, 0.0, None, None), progress=False)
+        runs[m] = evaluate_paths(paths, "model", (m, 0.0, None, None, limit_guard), progress=False)
     slips, alarmed = [], Counter()
     for i, path in enumerate(paths):
         truth = runs["reference_pillar"][i][2]
@@ -162,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", type=Path, default=None, help="a test split (tools/make_dataset.py)")
     p.add_argument("--model", nargs="+", default=[], help="model manifests")
     p.add_argument("--json", type=Path, default=None, help="also write the report here")
+    p.add_argument("--no-limit-guard", action="store_true", help=NO_LIMIT_GUARD_HELP)
     p.add_argument("--labels", type=Path, default=None,
                    help="a training split: print how its labels treat sliding pillars (samples) instead")
     args = p.parse_args(argv)
@@ -170,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.data is None or not list_recordings(args.data):
         raise SystemExit(f"--data {args.data}: no recordings (a test split, or --labels TRAIN_SPLIT)")
-    report = run(args.data, args.model)
+    report = run(args.data, args.model, not args.no_limit_guard)
     print_report(report)
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))

@@ -236,6 +236,10 @@ def test_without_a_config_the_detector_and_evaluation_take_the_default_configs_r
     assert rule.limit_guard == 0.9
     for d in (det.decision, runner.decision):
         assert (d.limit_guard, d.limit_guard_decisions) == (rule.limit_guard, rule.limit_guard_decisions)
+    # --no-limit-guard: the model's own rule, everything else as the default config's.
+    own = ModelRunner(str(tiny_model_json), limit_guard=False)
+    assert own.decision.limit_guard is None and own.decision.min_consecutive == rule.min_consecutive
+    assert own.label.endswith("(without the limit guard)")
 
 
 # ------------------------------------------------------------------------------------- the contact gate, restarts
