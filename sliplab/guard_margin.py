@@ -67,7 +67,7 @@ def report(result: dict[str, Any]) -> str:
     for kind, k in sorted(result["kinds"].items()):
         line = (f"  {kind:8s} {k['recordings']:4d} recordings, the guard alarms on {k['guarded']}; highest risk held "
                 f"for {n} decisions {k['peak']:.3f} ({k['worst']})")
-        if kind in NO_SLIP:
+        if kind in NO_SLIP and k["peak"] < g:  # (where the guard alarms, the count says so)
             line += f", {g - k['peak']:.3f} below the guard"
         lines.append(line)
     return "\n".join(lines)
