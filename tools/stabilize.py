@@ -105,7 +105,7 @@ def report(runs: list[dict], args: argparse.Namespace) -> str:
     lines = [
         "# Grasp stabilisation on the simulated rig",
         "",
-        f"Regenerate: `python tools/stabilize.py --reps {args.reps} --detectors {args.detectors}` "
+        f"Regenerate: `python tools/stabilize.py --reps {args.reps} --detectors {args.detectors}{_out_arg(args)}` "
         f"(config `{Path(args.config).name}`).",
         "Object motion relative to the finger when the grasp became secure (object at rest after the",
         "reaction reached the devices), mean ± sd over both scenarios (under-gripped lift, off-centre lift)",
@@ -247,6 +247,15 @@ def grip_main(args: argparse.Namespace) -> int:
     md.write_text(grip_report(rows, args, out))
     print(f"wrote {out} and {md}")
     return 0
+
+
+def _out_arg(args: argparse.Namespace) -> str:
+    """``--out PATH`` where the report does not go to the default path (the command must write it there again)."""
+    default = ROOT / "reports" / "stabilize.md"
+    if Path(args.out).resolve() == default.resolve():
+        return ""
+    out = Path(args.out).resolve()
+    return f" --out {out.relative_to(ROOT) if out.is_relative_to(ROOT) else out}"
 
 
 def _mx(values: list[float]) -> str:

@@ -92,3 +92,12 @@ def test_a_run_reported_elsewhere_keeps_its_runs_beside_its_report(tmp_path, mon
     runs = json.loads((tmp_path / "subset.json").read_text())
     assert [r["policy"] for r in runs] == ["stop_and_secure", "grip_control"]
     assert (committed.read_bytes() if committed.exists() else None) == before
+
+
+def test_the_rig_report_names_the_out_path_its_command_must_write_again() -> None:
+    import argparse
+
+    mod = _stabilize()
+    assert mod._out_arg(argparse.Namespace(out=ROOT / "reports" / "stabilize.md")) == ""
+    named = argparse.Namespace(out=ROOT / "reports" / "stabilize_onnx.md")
+    assert mod._out_arg(named) == " --out reports/stabilize_onnx.md"
