@@ -264,8 +264,8 @@ class DecisionConfig(_Section):
         "null: off",
     )
     limit_guard_decisions: int = Field(
-        5, ge=1, le=100, description="decisions in a row at or above limit_guard before it raises the alarm (5 at "
-        "stride 10: 50 ms)",
+        3, ge=1, le=100, description="decisions in a row at or above limit_guard before it raises the alarm (3 at "
+        "stride 10: 30 ms; a sliding contact's risk dips below 0.9 for a decision now and then)",
     )
 
     @model_validator(mode="after")

@@ -50,7 +50,7 @@ class Decision:
     """Stateful thresholding of ensemble outputs. ``update`` once per model step; ``reset`` on a new contact."""
 
     def __init__(self, threshold: float = 0.5, hysteresis: float = 0.0, min_consecutive: int = 1,
-                 limit_guard: float | None = None, limit_guard_decisions: int = 5) -> None:
+                 limit_guard: float | None = None, limit_guard_decisions: int = 3) -> None:
         if not 0.0 < threshold < 1.0:
             raise ValueError(f"threshold must be in (0, 1), got {threshold}")
         if not 0.0 <= hysteresis < threshold:

@@ -27,7 +27,7 @@ def test_the_tool_reports_each_kind_and_the_margin_where_nothing_slips(tmp_path,
     hold.save(data / "hold.npz")
     assert main(["--model", str(tiny_model_json), "--data", str(data), "--json", str(tmp_path / "g.json")]) == 0
     out = capsys.readouterr().out
-    assert "limit guard 0.9 for 5 decisions in a row" in out
+    assert "limit guard 0.9 for 3 decisions in a row" in out
     (hold_line,) = [line for line in out.splitlines() if line.strip().startswith("hold")]
     assert "1 recordings, the guard alarms on 0" in hold_line and "below the guard" in hold_line
     (slip_line,) = [line for line in out.splitlines() if line.strip().startswith("slip")]
