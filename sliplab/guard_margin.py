@@ -22,8 +22,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-NO_SLIP = ("stop", "hold")
-"""Recording kinds in which nothing slips: an alarm there is a false one."""
+from sliplab.metrics import NO_SLIP_KINDS
 
 
 def held_peak(risk: Sequence[float], run: int) -> float:
@@ -67,7 +66,7 @@ def report(result: dict[str, Any]) -> str:
     for kind, k in sorted(result["kinds"].items()):
         line = (f"  {kind:8s} {k['recordings']:4d} recordings, the guard alarms on {k['guarded']}; highest risk held "
                 f"for {n} decisions {k['peak']:.3f} ({k['worst']})")
-        if kind in NO_SLIP and k["peak"] < g:  # (where the guard alarms, the count says so)
+        if kind in NO_SLIP_KINDS and k["peak"] < g:  # (where the guard alarms, the count says so)
             line += f", {g - k['peak']:.3f} below the guard"
         lines.append(line)
     return "\n".join(lines)

@@ -109,6 +109,8 @@ class Decision:
             # (NaN compares False: no run)
             self._at_limit = self._at_limit + 1 if contact_risk is not None and contact_risk >= guard else 0
             self.guarded = self._at_limit >= self.limit_guard_decisions
+        elif self.guarded:  # (a reload switched the guard off while it held: it lets go)
+            self._at_limit, self.guarded = 0, False
         if self.alarm:
             alarm = p >= self.threshold - self.hysteresis or self.guarded
         else:

@@ -122,3 +122,11 @@ def test_the_limit_guard_keeps_the_press_hold_and_a_model_alarm() -> None:
     assert [off.advance(0.1, True, 1.0)[0] for _ in range(10)] == [False] * 10
     with pytest.raises(ValueError, match="limit_guard"):
         Decision(limit_guard=1.5)
+
+
+def test_a_guard_switched_off_while_it_holds_lets_go() -> None:
+    d = Decision(threshold=0.5, limit_guard=0.9, limit_guard_decisions=1)
+    assert d.advance(0.1, True, 1.0) == (True, True) and d.guarded
+    d.limit_guard = None  # (a reload's decision section with limit_guard: null)
+    assert d.advance(0.1, True, 1.0) == (False, False)
+    assert not d.guarded and d.risk(0.1) == pytest.approx(0.2)
