@@ -44,11 +44,13 @@ MODES = ("either", "both")
 Result = tuple[SceneResult, Trace, SceneTruth]
 
 
-def _held(t: np.ndarray, alarm: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """A detector's alarm state at the moments ``at``: that of its last decision at or before each (off before its
-    first decision)."""
+def _held(t: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """A detector's value (alarm state, p_slip) at the moments ``at``: that of its last decision at or before each
+    (False or 0 before its first decision)."""
+    if not len(t):
+        return np.zeros(len(at), values.dtype)
     i = np.searchsorted(t, at, side="right") - 1
-    return np.where(i >= 0, alarm[np.clip(i, 0, None)], False) if len(t) else np.zeros(len(at), bool)
+    return np.where(i >= 0, values[np.clip(i, 0, None)], values.dtype.type(0))
 
 
 def _raised_within(t: np.ndarray, alarm: np.ndarray, at: np.ndarray, within_s: float) -> np.ndarray:
@@ -76,14 +78,9 @@ def fuse_traces(a: Trace, b: Trace, mode: str, within_s: float = WITHIN_S) -> Tr
         alarm = on_a | on_b
     else:
         alarm = (on_a & _raised_within(tb, ab, t, within_s)) | (on_b & _raised_within(ta, aa, t, within_s))
-    p = np.maximum(_held_value(ta, pa, t), _held_value(tb, pb, t))
+    p = np.maximum(_held(ta, pa, t), _held(tb, pb, t))
     rising = alarm & ~np.concatenate([[False], alarm[:-1]])
     return Trace([float(v) for v in t], [float(v) for v in p], [bool(v) for v in alarm], [bool(v) for v in rising])
-
-
-def _held_value(t: np.ndarray, value: np.ndarray, at: np.ndarray) -> np.ndarray:
-    i = np.searchsorted(t, at, side="right") - 1
-    return np.where(i >= 0, value[np.clip(i, 0, None)], 0.0) if len(t) else np.zeros(len(at))
 
 
 def fused_results(first: list[Result], second: list[Result], mode: str, within_s: float = WITHIN_S) -> list[Result]:

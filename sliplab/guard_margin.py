@@ -37,14 +37,13 @@ def held_peak(risk: Sequence[float], run: int) -> float:
 def scan(folder: Path, manifest: str) -> dict[str, Any]:
     """Every recording of ``folder`` through ``manifest``'s detector: per kind, the recordings, those the guard
     alarms on, and the highest level held for the guard's run."""
-    from slipd.config.schema import DecisionConfig
     from slipd.recording import Recording, list_recordings
     from sliplab.evaluate import ModelRunner
 
-    rule = DecisionConfig()
+    runner = ModelRunner(manifest)
+    rule = runner.decision  # (the default config's rule, as the evaluation scores it)
     if rule.limit_guard is None:
         raise SystemExit("decision.limit_guard is off in the default config: nothing to measure")
-    runner = ModelRunner(manifest)
     kinds: dict[str, dict[str, Any]] = {}
     for path in tqdm(list_recordings(folder), desc=folder.name, unit="rec"):
         rec = Recording.load(path)
