@@ -265,6 +265,35 @@ def test_commands_bias_rate_and_slip_detection(emulator_factory) -> None:
     assert np.diff([f.t_us for f in col.frames[-10:]]).tolist() == [2000] * 9  # 500 Hz device clock
 
 
+def test_bias_averages_the_noise_as_the_real_controller_does(emulator_factory) -> None:
+    """The emulated bias zeroes the mean of its samples, not one noisy sample: every channel's zero is off by a small
+    part of the sensor's noise (a one-sample zero is off by the noise itself, up to 0.1 N on some channel)."""
+    n = 6000
+    rng = np.random.default_rng(3)
+    force = np.full((n, 9, 3), 0.4, np.float32) + rng.normal(0, 0.03, (n, 9, 3)).astype(np.float32)
+    rec = Recording(t_us=np.arange(n, dtype=np.int64) * 1000, force=force, disp=force / np.float32(3.5), meta={})
+    emu = emulator_factory(rec, loop=True)
+    col = Collector()
+
+    async def main() -> int:
+        s = col.sensor(emu.port)
+        await s.start()
+        emu.start()
+        await until(lambda: len(col.frames) >= 20)
+        s.send_command(CMD_BIAS)
+        await until(lambda: np.abs(np.mean([f.force for f in col.frames[-50:]], axis=0)).max() < 0.1)
+        k = len(col.frames)
+        await until(lambda: len(col.frames) >= k + 1000)
+        await s.stop()
+        return k
+
+    k = asyncio.run(main())
+    zero = np.asarray(emu.bias[0])
+    assert np.abs(zero - 0.4).max() < 0.012  # 200 samples: about 0.002 N off per channel
+    after = np.mean([f.force for f in col.frames[k:]], axis=0)
+    assert np.abs(after).max() < 0.015
+
+
 def test_stall_then_resume_without_gap(emulator_factory) -> None:
     emu = emulator_factory(synthetic_recording(3000), loop=True)
     col = Collector()

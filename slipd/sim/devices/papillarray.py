@@ -13,7 +13,8 @@ two-sensor recording ([N, 2, 9, 3]) or a source returning [2, 9, 3] arrays with 
 frame then carries both (``slipd.io.pts``); ``i`` counts the frames produced since ``start``
 (the closed-loop rig supplies its physics that way).
 
-Commands read from the pty: ``z`` zeroes the current reading (later frames have it subtracted),
+Commands read from the pty: ``z`` zeroes the sensor: the mean of the next ``BIAS_S`` of raw samples is subtracted
+from every frame after them (the controller needs the finger unloaded meanwhile, as the real one does),
 ``f100|f250|f500|f1000`` change the rate, ``S``/``s`` turn the controller's slip detection state on
 and off (reported in the type 6 block; the per-pillar slip state is INELIGIBLE / CONTACT_AT_START by
 the 0.5 N contact threshold while it is on, 0 while off; the controller's own slip algorithm is not
@@ -57,6 +58,12 @@ from slipd.io.pts import (
     parse_command,
 )
 from slipd.recording import Recording, global_wrench
+
+BIAS_S = 0.2
+"""How long a bias averages the raw samples. The real controller needs the finger unloaded for a second and takes up to
+two to zero itself: it averages, so its zero is off by far less than one sample's noise. A zero taken from one sample
+left each pillar off by up to 0.05 N (the noise of one sample), enough to move a light grasp's pillars across the 0.5 N
+contact flag and change the detector's decisions from run to run on the rig; 200 samples leave about 0.002 N."""
 
 log = logging.getLogger(__name__)
 
@@ -121,7 +128,8 @@ class EmulatedPapillArray:
         self._clock_offset_s = 0.0  # added to the device clock from a ``jump_clock`` on
         self._bias_force = np.zeros((self.sensors, N_PILLARS, 3), np.float32)
         self._bias_disp = np.zeros((self.sensors, N_PILLARS, 3), np.float32)
-        self._last_raw: tuple[np.ndarray, np.ndarray] | None = None
+        self._bias_sum: tuple[np.ndarray, np.ndarray, int, int] | None = None
+        """A bias under way: the sums of the raw (force, disp) so far, their count and how many it averages."""
         self.slip_detection = False
         self.finished = threading.Event()
         """Set when the source has no more samples (never with loop=True) or failed (see ``error``)."""
@@ -182,6 +190,7 @@ class EmulatedPapillArray:
                 self._counter = 0
                 self._bias_force[:] = 0.0
                 self._bias_disp[:] = 0.0
+                self._bias_sum = None
             self._plug()
 
     # ------------------------------------------------------------ lifecycle
@@ -319,6 +328,21 @@ class EmulatedPapillArray:
         with self._lock:
             return self._bias_force[0].copy(), self._bias_disp[0].copy()
 
+    def _bias_step(self, raw_f: np.ndarray, raw_d: np.ndarray) -> None:
+        """One raw sample into the bias under way; the zero changes once it has all its samples."""
+        assert self._bias_sum is not None
+        sum_f, sum_d, n, count = self._bias_sum
+        sum_f += raw_f
+        sum_d += raw_d
+        n += 1
+        if n < count:
+            self._bias_sum = (sum_f, sum_d, n, count)
+            return
+        with self._lock:
+            self._bias_force = (sum_f / n).astype(np.float32)
+            self._bias_disp = (sum_d / n).astype(np.float32)
+            self._bias_sum = None
+
     def _make_frame(self, i: int, t_s: float) -> bytes | None:
         sample = self._sample(i, t_s)
         if sample is None:
@@ -330,7 +354,8 @@ class EmulatedPapillArray:
             want = "[9, 3]" if self.sensors == 1 else f"[{self.sensors}, 9, 3]"
             raise ValueError(f"source sample {i}: force/disp must be {want}; got {raw_f.shape}, {raw_d.shape}")
         raw_f, raw_d = raw_f.reshape(shape), raw_d.reshape(shape)
-        self._last_raw = (raw_f, raw_d)
+        if self._bias_sum is not None:
+            self._bias_step(raw_f, raw_d)
         forces = raw_f - self._bias_force
         disps = raw_d - self._bias_disp
         force, disp = forces[0], disps[0]
@@ -478,9 +503,9 @@ class EmulatedPapillArray:
                 continue
             self.commands.append((cmd.kind, cmd.value))
             if cmd.kind == "bias":
-                if self._last_raw is not None:
-                    self._bias_force = self._last_raw[0].copy()
-                    self._bias_disp = self._last_raw[1].copy()
+                shape = (self.sensors, N_PILLARS, 3)
+                count = max(1, round(BIAS_S * self.rate_hz))
+                self._bias_sum = (np.zeros(shape), np.zeros(shape), 0, count)
             elif cmd.kind == "rate":
                 self.rate_hz = self.fixed_rate_hz or int(cmd.value)  # type: ignore[arg-type]
             elif cmd.kind == "slip":
