@@ -126,14 +126,20 @@ class ModelRunner:
         self.press_rise = rule.press_rise
         self.label = f"model {manifest}" + ("" if limit_guard else " (without the limit guard)")
 
-    def trace(self, rec: Recording) -> Trace:
-        """Decisions of one recording."""
+    def trace(self, rec: Recording, zero_error: np.ndarray | None = None) -> Trace:
+        """Decisions of one recording; ``zero_error`` [9, 3]: every reading after the tare's stretch that much low, as
+        from a zero taken that much high (``sliplab.zero_error``; the stretch itself is left as it is, so the tare and
+        the decisions it holds back are the same as without it)."""
         from slipd.detect.detector import Detector, run_recording
 
         self.ensemble.reset()
         self.decision.reset()
+        force = rec.force
+        if zero_error is not None:
+            force = force.copy()
+            force[tare_stretch(rec, self.spec)[1]:] -= np.asarray(zero_error, np.float32)
         det = Detector(self.ensemble, self.decision, self.spec, press_rise=self.press_rise, **tare_args(rec, self.spec))
-        return Trace.from_detections(run_recording(det, rec.force, rec.t_us), rec.t_us)
+        return Trace.from_detections(run_recording(det, force, rec.t_us), rec.t_us)
 
 
 class BaselineRunner:
