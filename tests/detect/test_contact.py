@@ -70,6 +70,21 @@ def test_sensor_noise_alone_does_not_clear_a_slide_on_a_slippery_object() -> Non
     assert (late[:, [0, 1, 2, 3, 5, 6, 7, 8]] > 0.5).all()
 
 
+def test_a_sliding_pillar_read_just_under_the_contact_flag_keeps_its_state_and_one_off_the_surface_sticks() -> None:
+    """A corner on its limit is marked sliding; then it reads 0.45 N (under the 0.5 N flag, still on the surface) and
+    keeps its state, while another that reads 0.1 N has left the surface and sticks."""
+    ps = PillarSlip()
+    f = _loading(600, {0, 2, 6, 8}, mu=0.5)  # the corners (1 N each) on their limit
+    for k in range(40, 601, 10):
+        ps.update(f[k - 40:k])
+    assert ps.probability()[[0, 2]].min() > 0.9
+    w = f[560:600].copy()
+    w[:, 0, 2], w[:, 2, 2] = 0.45, 0.1
+    for _ in range(3):
+        p = ps.update(w)
+    assert p[0] > 0.9 and p[2] < 0.5
+
+
 def test_no_slip_while_the_contact_sticks() -> None:
     f = _loading(600, set())
     states = [s for _, s in ContactStream(FeatureSpec(window=40, stride=10)).push_many(f)]
