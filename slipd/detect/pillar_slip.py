@@ -71,9 +71,10 @@ class PillarSlipParams:
     """A pillar under the contact flag counts as off the surface (sticking evidence: its slip state resets) only below
     this normal force; between it and the flag its state is held. A light grasp loads the pillars beside the one that
     carries it with about the flag's 0.5 N, and their readings cross the flag from window to window with the noise and
-    a zero a few hundredths off. Each crossing wiped the sliding evidence of the windows before: with its outer pillars'
-    zero 0.025 N high, the filling cup's pillars sliding at their limit were never marked and the limit guard never
-    alarmed (``tests/detect/test_limit_guard.py``). A pillar that has left the surface reads the noise around zero."""
+    a zero a few hundredths off. Were each crossing taken for a pillar leaving the surface, it would wipe the sliding
+    evidence of the windows before: with its outer pillars' zero 0.025 N high, the filling cup's pillars sliding at
+    their limit would never be marked and the limit guard would not alarm (``tests/detect/test_limit_guard.py``). A
+    pillar that has left the surface reads the noise around zero."""
     fall: float = 0.1
     """A pillar whose utilisation fell by this share over the window while its normal force rose (by more than
     ``rate_floor_n``) sticks: a sliding tip carries mu * Fz, so a tighter grip raises its tangential force with it

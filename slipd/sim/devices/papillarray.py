@@ -61,9 +61,9 @@ from slipd.recording import Recording, global_wrench
 
 BIAS_S = 0.2
 """How long a bias averages the raw samples. The real controller needs the finger unloaded for a second and takes up to
-two to zero itself: it averages, so its zero is off by far less than one sample's noise. A zero taken from one sample
-left each pillar off by up to 0.05 N (the noise of one sample), enough to move a light grasp's pillars across the 0.5 N
-contact flag and change the detector's decisions from run to run on the rig; 200 samples leave about 0.002 N."""
+two to zero itself: it averages, so its zero is off by far less than one sample's noise. A zero from one sample would
+leave each pillar off by that sample's noise (up to 0.05 N), enough to move a light grasp's pillars across the 0.5 N
+contact flag and the detector's decisions with them from run to run on the rig; 200 samples leave about 0.002 N."""
 
 log = logging.getLogger(__name__)
 
