@@ -16,15 +16,12 @@ import argparse
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
 from sliplab.metrics import NO_SLIP_KINDS, SLIP_KINDS, SceneTruth, scored_outcome
-
-if TYPE_CHECKING:
-    from sliplab.evaluate import ModelRunner
 
 SENSOR_NOISE_N = (0.03, 0.015)
 """One sample's noise, normal and tangential (the upper bounds of the PapillArray's, ``papillarray.md``)."""
@@ -50,23 +47,15 @@ class KindTally:
     """(recording, share of its draws whose verdict differs from the tared one), for those where some draw differs."""
 
 
-_RUNNER: ModelRunner | None = None
-
-
-def _init_worker(manifest: str, limit_guard: bool) -> None:
-    global _RUNNER
-    from sliplab.evaluate import ModelRunner
-
-    _RUNNER = ModelRunner(manifest, limit_guard=limit_guard)
-
-
 def verdicts(path: str, errors: np.ndarray) -> tuple[str, bool, list[bool]] | None:
     """One recording (in a worker) as tared and under each zero error: (kind, verdict as tared, verdict per error).
     A verdict is "caught in time" for a slip (scored "tp") and "alarmed" where nothing slips; None for a recording the
     scoring leaves out (a partial slip, a slip without a labelled onset)."""
     from slipd.recording import Recording
+    from sliplab import evaluate
 
-    assert _RUNNER is not None
+    runner = evaluate._RUNNER  # (the evaluation's worker runner: ``evaluate._init_worker``)
+    assert isinstance(runner, evaluate.ModelRunner)
     rec = Recording.load(path)
     truth = SceneTruth.from_recording(rec, Path(path).stem)
     kind = str(rec.meta.get("kind", "unknown"))
@@ -77,10 +66,10 @@ def verdicts(path: str, errors: np.ndarray) -> tuple[str, bool, list[bool]] | No
             return None if out is None else out == "tp"
         return None if kind not in NO_SLIP_KINDS else first_alarm_s is not None
 
-    tared = verdict(_RUNNER.trace(rec).first_alarm_s())
+    tared = verdict(runner.trace(rec).first_alarm_s())
     if tared is None:
         return None
-    return kind, tared, [bool(verdict(_RUNNER.trace(rec, zero_error=e).first_alarm_s())) for e in errors]
+    return kind, tared, [bool(verdict(runner.trace(rec, zero_error=e).first_alarm_s())) for e in errors]
 
 
 def scan(folder: Path, manifest: str, limit_guard: bool, sigma: tuple[float, float], draws: int, seed: int,
@@ -89,12 +78,14 @@ def scan(folder: Path, manifest: str, limit_guard: bool, sigma: tuple[float, flo
     from concurrent.futures import ProcessPoolExecutor
 
     from slipd.recording import list_recordings
+    from sliplab.evaluate import _init_worker
 
     paths = list_recordings(folder)
     paths = paths[:limit] if limit else paths
     errors = [zero_errors(np.random.default_rng([seed, i]), sigma, draws) for i in range(len(paths))]
     tally: dict[str, KindTally] = {}
-    with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=(manifest, limit_guard)) as pool:
+    runner_args = (manifest, 0.0, None, None, limit_guard)  # (ModelRunner's: the default rule, the model's threshold)
+    with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=("model", runner_args)) as pool:
         done = pool.map(verdicts, [str(p) for p in paths], errors)
         for path, out in zip(paths, tqdm(done, total=len(paths), desc=folder.name, unit="rec")):
             if out is None:

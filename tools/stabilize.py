@@ -254,8 +254,13 @@ def _out_arg(args: argparse.Namespace) -> str:
     default = ROOT / "reports" / "stabilize.md"
     if Path(args.out).resolve() == default.resolve():
         return ""
-    out = Path(args.out).resolve()
-    return f" --out {out.relative_to(ROOT) if out.is_relative_to(ROOT) else out}"
+    return f" --out {_shown(Path(args.out))}"
+
+
+def _shown(path: Path) -> Path:
+    """A path as a command line in a report names it: from the checkout's root where it lies inside it."""
+    path = path.resolve()
+    return path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
 
 
 def _mx(values: list[float]) -> str:
@@ -278,8 +283,9 @@ def grip_report(rows: list[dict], args: argparse.Namespace, json_path: Path) -> 
     """The markdown report of the grip_control comparison: every figure is computed here from ``rows``."""
     settings = ", ".join(f"{k.split('.')[1]} {v}" for k, v in GRIP.items() if k != "reaction.policy")
     lines = ["# Grip-force control beside stop-and-secure on the simulated rig", "",
-             f"Regenerate: `python tools/stabilize.py --policy grip_control --reps {args.reps}{_subset(args)} --json "
-             f"reports/{json_path.name}` (config `{Path(args.config).name}`; grip_control with {settings}, the other "
+             f"Regenerate: `python tools/stabilize.py --policy grip_control --reps {args.reps}{_subset(args)}"
+             f"{_out_arg(args)} --json {_shown(json_path)}` (config `{Path(args.config).name}`; grip_control with "
+             f"{settings}, the other "
              "reaction.grip_* at their defaults; the extras' force limits below).", "",
              "Object motion relative to the finger at the end of the run (after the lift and the hold); peak and "
              "mean grip from the servo (the peak over the whole run, the mean from the lift start to the end); 'no "

@@ -92,6 +92,8 @@ def test_a_run_reported_elsewhere_keeps_its_runs_beside_its_report(tmp_path, mon
     runs = json.loads((tmp_path / "subset.json").read_text())
     assert [r["policy"] for r in runs] == ["stop_and_secure", "grip_control"]
     assert (committed.read_bytes() if committed.exists() else None) == before
+    # The report's own command writes it, and its runs, where they are.
+    assert f"--out {out.resolve()} --json {(tmp_path / 'subset.json').resolve()}`" in out.read_text()
 
 
 def test_the_rig_report_names_the_out_path_its_command_must_write_again() -> None:
