@@ -149,6 +149,16 @@ def still_hold(n: int = 5000) -> Recording:
     return Recording(t_us=np.arange(n) * 1000, force=force, disp=np.zeros((n, 9, 3)))
 
 
+def slip_and_hold_folder(folder: Path) -> Path:
+    """A folder of two recordings the lab's tools score by kind: one slip scene and one still hold (kind ``hold``)."""
+    folder.mkdir()
+    make_scene("slip", seed=1).save(folder / "slip.npz")
+    hold = still_hold(3000)
+    hold.meta = {"kind": "hold", "tare_samples": [0, 100]}
+    hold.save(folder / "hold.npz")
+    return folder
+
+
 def run_streamed(daemon: Any, dev: Any, seconds: float, settle_s: float) -> tuple[Any, list[Any]]:
     """Run ``daemon`` for ``seconds``, the emulated devices ``dev`` streaming from the moment it is ready; then give
     its device threads ``settle_s`` to finish what the run sent. Returns (the loop's stats, the servo's writes)."""

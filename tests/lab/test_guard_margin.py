@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 import pytest
-from conftest import make_scene, still_hold
+from conftest import slip_and_hold_folder
 
 from sliplab.guard_margin import held_peak, main
 
@@ -19,12 +19,7 @@ def test_the_held_peak_is_the_highest_level_kept_for_a_whole_run() -> None:
 
 
 def test_the_tool_reports_each_kind_and_the_margin_where_nothing_slips(tmp_path, tiny_model_json, capsys) -> None:
-    data = tmp_path / "recs"
-    data.mkdir()
-    make_scene("slip", seed=1).save(data / "slip.npz")
-    hold = still_hold(3000)
-    hold.meta = {"kind": "hold", "tare_samples": [0, 100]}
-    hold.save(data / "hold.npz")
+    data = slip_and_hold_folder(tmp_path / "recs")
     assert main(["--model", str(tiny_model_json), "--data", str(data), "--json", str(tmp_path / "g.json")]) == 0
     out = capsys.readouterr().out
     assert "limit guard 0.9 for 3 decisions in a row" in out

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from conftest import make_scene, still_hold
+from conftest import make_scene, slip_and_hold_folder
 
 from sliplab.evaluate import ModelRunner
 from sliplab.zero_error import main, zero_errors
@@ -27,12 +27,7 @@ def test_a_zero_error_moves_the_tare_and_none_leaves_the_decisions_bit_identical
 
 
 def test_the_tool_reports_each_kind_as_tared_and_over_the_draws(tmp_path, tiny_model_json, capsys) -> None:
-    data = tmp_path / "recs"
-    data.mkdir()
-    make_scene("slip", seed=1).save(data / "slip.npz")
-    hold = still_hold(3000)
-    hold.meta = {"kind": "hold", "tare_samples": [0, 100]}
-    hold.save(data / "hold.npz")
+    data = slip_and_hold_folder(tmp_path / "recs")
     args = ["--model", str(tiny_model_json), "--data", str(data), "--draws", "2"]
     assert main([*args, "--sigma", "0", "0", "--json", str(tmp_path / "z.json")]) == 0
     out = capsys.readouterr().out
