@@ -40,6 +40,10 @@ Augmentations (names used by ``tools/train.py --aug``):
                sliding pillar's |Ft| / Fz sits at its friction coefficient, and our families' slips sit near
                0.1 (the gripper trials) and 0.5-0.8 (the hexapod families); objects elsewhere slide anywhere
                from 0.2 to above 1, so the onset must be read from how the pillars' loads move, not from where.
+    zero       ``zero_offset``: with p = 0.5 every pillar's zero off by a constant, N(0, s x one sample's noise) per
+               axis with s in [0.5, 2]: a bias taken from few samples, or a pillar that drifted after it. A light
+               grasp's outer pillars carry a few tenths of a newton, so such an offset moves their friction
+               utilisation as much as their load does.
 """
 
 from __future__ import annotations
@@ -306,6 +310,33 @@ def friction_scale(seq: Seq, rng: np.random.Generator, p: float = 0.5,
     force = seq.force.copy()
     force[:, :, :2] *= g
     return Seq(force, seq.label, seq.slip, seq.loaded)
+
+
+SENSOR_NOISE_N = (0.03, 0.015)
+"""One sample's noise, normal and tangential (the upper bounds of the PapillArray's, ``papillarray.md``)."""
+
+
+def zero_errors(rng: np.random.Generator, sigma: tuple[float, float], draws: int) -> np.ndarray:
+    """[draws, 9, 3] float32: each pillar's zero error, N(0, sigma_t) on x and y, N(0, sigma_z) on z."""
+    scale = np.array([sigma[1], sigma[1], sigma[0]], np.float64)
+    return (rng.standard_normal((draws, 9, 3)) * scale).astype(np.float32)
+
+
+ZERO_SCALE = (0.5, 2.0)
+"""Range of the zero augmentation's error, in samples of the sensor's noise (``SENSOR_NOISE_N``), uniform."""
+
+
+def zero_offset(seq: Seq, rng: np.random.Generator, p: float = 0.5, scale: tuple[float, float] = ZERO_SCALE) -> Seq:
+    """With probability ``p``, every reading of the sequence offset by one zero error per pillar and axis (labels
+    unchanged): a zero taken that much off, as ``sliplab.zero_error`` measures the detector under it.
+
+    The sequence is tared already, so the whole of it moves: the error is the zero's, not a step within the grasp.
+    """
+    if rng.random() >= p:
+        return seq
+    s = float(rng.uniform(*scale))
+    e = zero_errors(rng, (s * SENSOR_NOISE_N[0], s * SENSOR_NOISE_N[1]), 1)[0]
+    return Seq(seq.force - e, seq.label, seq.slip, seq.loaded)
 
 
 STRETCH_NOISE_N = 0.008

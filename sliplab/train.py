@@ -72,10 +72,13 @@ from sliplab.augment import (
     shift_start,
     stretch,
     unload_pillars,
+    zero_offset,
 )
 from sliplab.model import SlipNet
 
-ALL_AUGS = ("rotation", "speed", "unloaded", "mixing", "grid90", "shift", "shapes", "sensor", "slow", "friction")
+ALL_AUGS = (
+    "rotation", "speed", "unloaded", "mixing", "grid90", "shift", "shapes", "sensor", "slow", "friction", "zero",
+)
 DEFAULT_AUGS = ("rotation", "speed", "unloaded", "mixing")
 ADVANCED_AUGS = ("unloaded", "mixing")
 
@@ -256,6 +259,8 @@ def augment_epoch(
             seq = sensor_model(seq, rng)
         if "friction" in augs:
             seq = friction_scale(seq, rng)
+        if "zero" in augs:
+            seq = zero_offset(seq, rng)
         if "slow" in augs:
             seq = stretch(seq, rng)
         if "speed" in augs:

@@ -21,16 +21,8 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from sliplab.augment import SENSOR_NOISE_N, zero_errors
 from sliplab.metrics import NO_SLIP_KINDS, SLIP_KINDS, SceneTruth, scored_outcome
-
-SENSOR_NOISE_N = (0.03, 0.015)
-"""One sample's noise, normal and tangential (the upper bounds of the PapillArray's, ``papillarray.md``)."""
-
-
-def zero_errors(rng: np.random.Generator, sigma: tuple[float, float], draws: int) -> np.ndarray:
-    """[draws, 9, 3] float32: each pillar's zero error, N(0, sigma_t) on x and y, N(0, sigma_z) on z."""
-    scale = np.array([sigma[1], sigma[1], sigma[0]], np.float64)
-    return (rng.standard_normal((draws, 9, 3)) * scale).astype(np.float32)
 
 
 @dataclass

@@ -201,6 +201,24 @@ def test_friction_scales_every_tangential_force_by_one_gain_and_keeps_the_rest()
     assert A.friction_scale(seq, np.random.default_rng(3), p=0.0) is seq
 
 
+def test_zero_offset_moves_each_pillar_and_axis_by_one_constant_at_the_noise_scale() -> None:
+    seq = _seq(np.random.default_rng(6), n=500)
+    errs = []
+    for k in range(200):
+        out = A.zero_offset(seq, np.random.default_rng(k), p=1.0)
+        d = seq.force - out.force
+        np.testing.assert_allclose(d, d[:1].repeat(len(d), 0), atol=1e-5)  # constant in time: a zero, not a drift
+        np.testing.assert_array_equal(out.label, seq.label)
+        errs.append(d[0])
+    e = np.abs(np.stack(errs))  # [200, 9, 3]
+    # Each axis at its own scale: the normal's error about twice the tangential's, both within a few noise samples.
+    ratio = e[:, :, 2].mean() / e[:, :, :2].mean()
+    assert 1.6 < ratio < 2.5, ratio
+    assert e[:, :, 2].max() < 6 * A.ZERO_SCALE[1] * A.SENSOR_NOISE_N[0]
+    assert 0.5 * A.SENSOR_NOISE_N[0] < e[:, :, 2].mean() / np.sqrt(2 / np.pi) < 2.0 * A.SENSOR_NOISE_N[0]
+    assert A.zero_offset(seq, np.random.default_rng(3), p=0.0) is seq
+
+
 def test_stretch_plays_a_sequence_slower_with_its_labels() -> None:
     seq = _seq(np.random.default_rng(6), n=1000)
     out = A.stretch(seq, np.random.default_rng(3), p=1.0)

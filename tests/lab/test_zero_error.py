@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 from conftest import make_scene, slip_and_hold_folder
 
+from sliplab.augment import zero_errors
 from sliplab.evaluate import ModelRunner
-from sliplab.zero_error import main, zero_errors
+from sliplab.zero_error import main
 
 
 def test_zero_errors_draw_each_axis_at_its_own_scale() -> None:
