@@ -325,7 +325,45 @@ def _daemon_config(base: Path, dev: EmulatedDevices, metrics_port: int, react: b
     return path
 
 
+START_ATTEMPTS = 3
+"""Runs started afresh when the daemon cannot reach the emulated devices at start-up (exit code 5 before it is
+ready): on a loaded machine the emulators' threads can miss the daemon's first status packets. A failure after the
+daemon is ready is never retried: it belongs to the run."""
+
+
+class DeviceStartupError(RuntimeError):
+    """The daemon exited with the device start-up code (5) before it was ready."""
+
+
 def run_rig(
+    scene_path: str | Path = DEFAULT_SCENE,
+    config_path: str | Path = DEFAULT_CONFIG,
+    *,
+    duration_s: float | None = None,
+    react: bool = True,
+    seed: int | None = None,
+    host: str = "127.0.0.2",
+    out_dir: str | Path | None = None,
+    detector: str | None = None,
+    log=print,
+    overrides: dict[str, Any] | None = None,
+    fill: tuple[float, float, float] | None = None,
+) -> tuple[RigResult, RigPhysics]:
+    """Run one closed-loop scene (``_run_rig_once``), started afresh up to ``START_ATTEMPTS`` times when the daemon's
+    device start-up fails."""
+    for attempt in range(1, START_ATTEMPTS + 1):
+        try:
+            return _run_rig_once(scene_path, config_path, duration_s=duration_s, react=react, seed=seed, host=host,
+                                 out_dir=out_dir, detector=detector, log=log, overrides=overrides, fill=fill)
+        except DeviceStartupError as exc:
+            if attempt == START_ATTEMPTS:
+                raise
+            log(f"rig: the daemon's device start-up failed (attempt {attempt} of {START_ATTEMPTS}); starting again: "
+                f"{str(exc).strip().splitlines()[-1]}")
+    raise AssertionError("unreachable")
+
+
+def _run_rig_once(
     scene_path: str | Path = DEFAULT_SCENE,
     config_path: str | Path = DEFAULT_CONFIG,
     *,
@@ -432,7 +470,8 @@ def _wait_ready(proc: subprocess.Popen, port: int, log_file: Path, timeout: floa
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise RuntimeError(f"daemon exited with {proc.returncode}:\n{log_file.read_text()[-3000:]}")
+            error = DeviceStartupError if proc.returncode == 5 else RuntimeError
+            raise error(f"daemon exited with {proc.returncode}:\n{log_file.read_text()[-3000:]}")
         with contextlib.suppress(OSError):
             if "slipd_ready 1.0" in _scrape(port):
                 return
