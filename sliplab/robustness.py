@@ -133,6 +133,13 @@ def _model_entry(name: str, manifest: str, limit_guard: bool = True) -> dict:
             "source": str(manifest)}
 
 
+def trained_sets(manifest: str) -> set[str]:
+    """The data sets (``index.json``'s ``set``: robust, transfer, engine, ...) a model's manifest says it was trained
+    on; empty for a manifest without provenance (the authors' checkpoints, a hand-made model)."""
+    prov = json.loads(Path(manifest).read_text()).get("provenance") or {}
+    return {str(i["set"]) for i in prov.get("index") or [] if isinstance(i, dict) and "set" in i}
+
+
 # --------------------------------------------------------------------------- engine categories
 LIGHT_GRIP_N = 3.0
 """A light grasp: the total grip when the arm starts to move is below this."""
@@ -327,6 +334,11 @@ def run(args) -> dict:
         dets = [d for d in detectors(args) if d["kind"] == "baseline"]
         if args.engine_model or args.model:
             dets.insert(0, _model_entry("slipd", args.engine_model or args.model, not args.no_limit_guard))
+        engine_set = json.loads((engine_dir / "index.json").read_text()).get("set") if (
+            engine_dir / "index.json").is_file() else None
+        model = args.engine_model or args.model
+        # A report on an engine the model trained on is no hold-out: the report says so in its title.
+        report["engine_in_training"] = bool(model and engine_set and engine_set in trained_sets(model))
         report["engine_holdout"] = {}
         for det in dets:
             res = evaluate_paths(engine, det["kind"], det["args"], workers=w, progress=False)
@@ -394,7 +406,9 @@ def tables(report: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                 for fam, f in report["lofo"].items()]
         out.append(("Leave-one-family-out: each fold's model on the family it was trained without", head, rows))
     tested_on = report.get("engine_data") or "the engine"
-    for key, title in (("engine_holdout", f"Engine held out: the model tested on {tested_on}"),
+    engine_title = (f"Engine in training (not held out): the model tested on {tested_on}"
+                    if report.get("engine_in_training") else f"Engine held out: the model tested on {tested_on}")
+    for key, title in (("engine_holdout", engine_title),
                        ("reverse_holdout", "Reverse: trained on the engine only, tested on our own families")):
         if not report.get(key):
             continue

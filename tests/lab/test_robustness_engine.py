@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -66,9 +67,44 @@ def test_engine_holdout_report_shape(tmp_path, capsys):
     rev = report["reverse_holdout"]["slipd"]
     assert rev["online_success"] is None and rev["light_grasp_success"] is None  # a hexapod slip: offline only
     printed = capsys.readouterr().out
+    # The shipped model has no engine data in its training (its manifest's provenance): a true hold-out.
+    assert report["engine_in_training"] is False
     for title in ("Engine held out", "Reverse: trained on the engine only"):
         assert title in printed and title in out.with_suffix(".md").read_text()
     # The floor beside the detectors: a detector that never alarms leaves every no-slip recording quiet.
     quiet = whole["stop"] / (whole["slip"] + whole["stop"]) if whole["slip"] + whole["stop"] else None
     if quiet is not None:
         assert "(never alarms)" in printed and f"{100 * quiet:.1f} %" in printed
+
+
+def test_trained_sets_reads_the_manifest_provenance(tmp_path):
+    from sliplab.robustness import trained_sets
+
+    manifest = json.loads(Path(MODEL).read_text())
+    assert {"robust", "transfer"} <= trained_sets(MODEL) and "engine" not in trained_sets(MODEL)
+    manifest["provenance"]["index"].append({"set": "engine", "split": "train", "count": 320})
+    with_engine = tmp_path / "with_engine.json"
+    with_engine.write_text(json.dumps(manifest))
+    assert "engine" in trained_sets(str(with_engine))
+    del manifest["provenance"]
+    with_engine.write_text(json.dumps(manifest))
+    assert trained_sets(str(with_engine)) == set()
+
+
+def test_a_report_on_an_engine_in_training_says_so(tmp_path, capsys):
+    """A model whose manifest lists the engine's set among its training data gets no "Engine held out" title."""
+    from sliplab.robustness import main
+
+    engine = tmp_path / "engine"
+    write_dataset("engine", "test", engine, count=1)
+    manifest = json.loads(Path(MODEL).read_text())
+    manifest["provenance"]["index"].append({"set": "engine", "split": "train", "count": 320})
+    manifest["onnx_file"] = str(Path(MODEL).resolve().with_name(manifest["onnx_file"]))
+    model = tmp_path / "m.json"
+    model.write_text(json.dumps(manifest))
+    out = tmp_path / "report"
+    assert main(["--model", str(model), "--engine", str(engine), "--engine-only", "--out", str(out)]) == 0
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert report["engine_in_training"] is True
+    text = out.with_suffix(".md").read_text()
+    assert "Engine in training (not held out)" in text and "Engine held out" not in text
