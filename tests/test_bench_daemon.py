@@ -4,6 +4,8 @@ JSON carries, the per-stage breakdown, and the daemon's code left as it was afte
 from __future__ import annotations
 
 import importlib.util
+import json
+import subprocess
 import sys
 from types import ModuleType
 
@@ -59,3 +61,21 @@ def test_the_instruction_counts_child_runs_each_kind_and_the_totals_parse() -> N
     assert mod.callgrind_total("events: Ir\ntotals: 678\n") == 678
     with pytest.raises(ValueError, match="no summary"):
         mod.callgrind_total("events: Ir\n")
+
+
+
+@pytest.mark.slow
+def test_the_full_run_measures_reaction_latency_and_cpu(tmp_path) -> None:
+    """The full run, as the docs give it, at a few seconds: its latency part patches the decision so that every
+    window alarms, and that patch must take the decision's whole call (the limit guard's contact risk included);
+    every alarm must reach the servo as a tighten, and the JSON must carry each figure."""
+    out = tmp_path / "bench.json"
+    r = subprocess.run([sys.executable, str(ROOT / "tools" / "bench_daemon.py"), "--seconds", "2", "--sensors", "1",
+                        "--strides", "10", "--cpu-runs", "1", "--json", str(out)],
+                       capture_output=True, text=True, timeout=240, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-3000:]
+    run = json.loads(out.read_text())["runs"][0]
+    assert run["alarms"] > 50  # a decision every 10 ms for about two seconds, each one an alarm
+    assert 0.0 < run["decision_p50_ms"] <= run["latency_p50_ms"] <= run["latency_max_ms"]
+    assert run["frames_lost"] == 0 and run["frames_sent"] >= 2000
+    assert run["cpu_percent"] > 0.0 and set(run["hot_path_us"]) >= {"back_to_back", "after_sleep"}

@@ -176,9 +176,9 @@ def reaction_latency(model: Path, seconds: float, sensors: int, stride: int, viz
         decision.min_consecutive = 1  # (the alarm is cleared after each decision: no run of two could form)
         advance = decision.advance
 
-        def always_rising(p: float, may_raise: bool = True) -> tuple[bool, bool]:
+        def always_rising(p: float, may_raise: bool = True, contact_risk: float | None = None) -> tuple[bool, bool]:
             decision.reset()  # ... and rises again
-            return advance(p, may_raise)
+            return advance(p, may_raise, contact_risk)
 
         decision.advance = always_rising  # type: ignore[method-assign]
         emu.call("servo", "clear_writes")
