@@ -26,6 +26,7 @@ grasp became secure (object at rest after the reaction), and whether it was drop
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import re
@@ -36,10 +37,11 @@ import tempfile
 import threading
 import time
 import urllib.request
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, ParamSpec, TypeVar, cast
 
 import numpy as np
 import yaml
@@ -331,39 +333,36 @@ ready): on a loaded machine the emulators' threads can miss the daemon's first s
 daemon is ready is never retried: it belongs to the run."""
 
 
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
 class DeviceStartupError(RuntimeError):
     """The daemon exited with the device start-up code (5) before it was ready."""
 
 
+def _afresh_on_device_startup_failure(run: Callable[P, R]) -> Callable[P, R]:
+    """``run`` started afresh up to ``START_ATTEMPTS`` times when the daemon's device start-up fails; each new
+    attempt is logged through the call's ``log``."""
+
+    @functools.wraps(run)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        log = cast(Callable[[str], object], kwargs.get("log", print))
+        for attempt in range(1, START_ATTEMPTS + 1):
+            try:
+                return run(*args, **kwargs)
+            except DeviceStartupError as exc:
+                if attempt == START_ATTEMPTS:
+                    raise
+                log(f"rig: the daemon's device start-up failed (attempt {attempt} of {START_ATTEMPTS}); "
+                    f"starting again: {str(exc).strip().splitlines()[-1]}")
+        raise AssertionError("unreachable")
+
+    return wrapper
+
+
+@_afresh_on_device_startup_failure
 def run_rig(
-    scene_path: str | Path = DEFAULT_SCENE,
-    config_path: str | Path = DEFAULT_CONFIG,
-    *,
-    duration_s: float | None = None,
-    react: bool = True,
-    seed: int | None = None,
-    host: str = "127.0.0.2",
-    out_dir: str | Path | None = None,
-    detector: str | None = None,
-    log=print,
-    overrides: dict[str, Any] | None = None,
-    fill: tuple[float, float, float] | None = None,
-) -> tuple[RigResult, RigPhysics]:
-    """Run one closed-loop scene (``_run_rig_once``), started afresh up to ``START_ATTEMPTS`` times when the daemon's
-    device start-up fails."""
-    for attempt in range(1, START_ATTEMPTS + 1):
-        try:
-            return _run_rig_once(scene_path, config_path, duration_s=duration_s, react=react, seed=seed, host=host,
-                                 out_dir=out_dir, detector=detector, log=log, overrides=overrides, fill=fill)
-        except DeviceStartupError as exc:
-            if attempt == START_ATTEMPTS:
-                raise
-            log(f"rig: the daemon's device start-up failed (attempt {attempt} of {START_ATTEMPTS}); starting again: "
-                f"{str(exc).strip().splitlines()[-1]}")
-    raise AssertionError("unreachable")
-
-
-def _run_rig_once(
     scene_path: str | Path = DEFAULT_SCENE,
     config_path: str | Path = DEFAULT_CONFIG,
     *,

@@ -33,40 +33,45 @@ def test_exit_code_5_before_ready_is_a_device_startup_error(tmp_path):
     assert not isinstance(err.value, rig.DeviceStartupError)
 
 
-def test_run_rig_starts_again_after_a_device_startup_failure(monkeypatch):
+def test_a_run_starts_again_after_a_device_startup_failure():
     calls: list[dict] = []
 
-    def once(*args, **kwargs):
-        calls.append(kwargs)
+    @rig._afresh_on_device_startup_failure
+    def once(scene: str, *, seed: int = 0, log=print) -> tuple[str, str]:
+        calls.append({"scene": scene, "seed": seed})
         if len(calls) < rig.START_ATTEMPTS:
-            raise rig.DeviceStartupError("daemon exited with 5")
+            raise rig.DeviceStartupError("daemon exited with 5:\nslipd: device start-up failed")
         return "result", "physics"
 
-    monkeypatch.setattr(rig, "_run_rig_once", once)
     logged: list[str] = []
-    assert rig.run_rig("scene.yaml", seed=7, log=logged.append) == ("result", "physics")
-    assert len(calls) == rig.START_ATTEMPTS and all(c["seed"] == 7 for c in calls)
+    assert once("scene.yaml", seed=7, log=logged.append) == ("result", "physics")
+    assert calls == [{"scene": "scene.yaml", "seed": 7}] * rig.START_ATTEMPTS
     assert len(logged) == rig.START_ATTEMPTS - 1 and "starting again" in logged[0]
+    assert "device start-up failed" in logged[0]
 
 
-def test_run_rig_gives_up_and_never_retries_other_failures(monkeypatch):
+def test_it_gives_up_and_never_retries_other_failures():
     calls = []
 
-    def always(*args, **kwargs):
+    @rig._afresh_on_device_startup_failure
+    def always(log=print) -> None:
         calls.append(1)
         raise rig.DeviceStartupError("daemon exited with 5")
 
-    monkeypatch.setattr(rig, "_run_rig_once", always)
     with pytest.raises(rig.DeviceStartupError):
-        rig.run_rig("scene.yaml", log=lambda *a: None)
+        always(log=lambda *a: None)
     assert len(calls) == rig.START_ATTEMPTS
 
-    def broken(*args, **kwargs):
+    @rig._afresh_on_device_startup_failure
+    def broken(log=print) -> None:
         calls.append(1)
         raise RuntimeError("daemon not ready after 60 s")
 
     calls.clear()
-    monkeypatch.setattr(rig, "_run_rig_once", broken)
     with pytest.raises(RuntimeError, match="not ready"):
-        rig.run_rig("scene.yaml", log=lambda *a: None)
+        broken(log=lambda *a: None)
     assert len(calls) == 1
+
+
+def test_run_rig_is_the_retried_run():
+    assert rig.run_rig.__wrapped__.__name__ == "run_rig"  # functools.wraps: the decorated function, its signature
