@@ -332,11 +332,11 @@ def run(args) -> dict:
         report["engine_recordings"] = len(engine)
         ecats = categories(engine, etag)
         dets = [d for d in detectors(args) if d["kind"] == "baseline"]
-        if args.engine_model or args.model:
-            dets.insert(0, _model_entry("slipd", args.engine_model or args.model, not args.no_limit_guard))
-        engine_set = json.loads((engine_dir / "index.json").read_text()).get("set") if (
-            engine_dir / "index.json").is_file() else None
         model = args.engine_model or args.model
+        if model:
+            dets.insert(0, _model_entry("slipd", model, not args.no_limit_guard))
+        index = engine_dir / "index.json"
+        engine_set = json.loads(index.read_text()).get("set") if index.is_file() else None
         # A report on an engine the model trained on is no hold-out: the report says so in its title.
         report["engine_in_training"] = bool(model and engine_set and engine_set in trained_sets(model))
         report["engine_holdout"] = {}
