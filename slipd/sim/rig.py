@@ -46,7 +46,6 @@ from typing import Any, ParamSpec, TypeVar, cast
 import numpy as np
 import yaml
 
-from slipd.cli import EXIT_DEVICE
 from slipd.detect.manifest import read_manifest
 from slipd.sim import effects as fx
 from slipd.sim.devices.mx28 import JawParams
@@ -339,7 +338,7 @@ R = TypeVar("R")
 
 
 class DeviceStartupError(RuntimeError):
-    """The daemon exited with the device start-up code (``slipd.cli.EXIT_DEVICE``) before it was ready."""
+    """The daemon exited with the device start-up code (5) before it was ready."""
 
 
 def _afresh_on_device_startup_failure(run: Callable[P, R]) -> Callable[P, R]:
@@ -470,7 +469,7 @@ def _wait_ready(proc: subprocess.Popen, port: int, log_file: Path, timeout: floa
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            error = DeviceStartupError if proc.returncode == EXIT_DEVICE else RuntimeError
+            error = DeviceStartupError if proc.returncode == 5 else RuntimeError
             raise error(f"daemon exited with {proc.returncode}:\n{log_file.read_text()[-3000:]}")
         with contextlib.suppress(OSError):
             if "slipd_ready 1.0" in _scrape(port):
