@@ -115,6 +115,29 @@ def test_the_twists_set_is_off_centre_slip_trials_beyond_any_secure_grip():
         gripper_scene("coffee_jar", "lift_offcentre", "high", None, offcentre_mm=15.0)
 
 
+def test_the_lights_set_grips_at_a_few_newtons_and_its_stop_trials_hold():
+    from slipd.sim.datasets import LIGHT_HOLD_N
+    from slipd.sim.scene import GROSS_DEG, GROSS_MM, generate_batch, parse_scene
+
+    scenes = [d for d, _ in dataset_scenes("lights", "train", 40, 0)]
+    assert all(d["family"] == "gripper" and d["_tags"]["scenario"] == "light" for d in scenes)
+    slips = [d for d in scenes if d["trial"] == "slip"]
+    stops = [d for d in scenes if d["trial"] == "stop"]
+    assert slips and stops
+    # Every slip trial grips below what holds its object, and at most at the top of LIGHT_HOLD_N.
+    assert all(0.3 < d["grip"]["force_n"] < LIGHT_HOLD_N[1] for d in slips)
+    assert not any(d["motion"]["kind"] == "lift" and d["object"]["com_offset_mm"][0] for d in stops)
+    # A stop trial is labelled no-slip throughout, so its secure grip must hold the light object at the fastest lift.
+    held = [d for d in stops if d["motion"]["kind"] == "lift"][:3]
+    fast = [{**d, "motion": {**d["motion"], "level": "high"}, "settle_s": 0.2} for d in held]
+    fast = [{k: v for k, v in d.items() if k not in ("_tags", "duration_s")} for d in fast]
+    recs = generate_batch([parse_scene(d) for d in fast], [0] * len(fast))
+    for d, r in zip(fast, recs, strict=True):
+        mot = r.object_motion - r.object_motion[0]
+        assert np.hypot(mot[:, 0], mot[:, 1]).max() < GROSS_MM and np.abs(mot[:, 2]).max() < GROSS_DEG, d["name"]
+        assert not r.label.any(), d["name"]
+
+
 def test_the_coulomb_set_has_one_friction_coefficient_and_slips_without_a_force_drop():
     from slipd.sim import generate, parse_scene
 
