@@ -107,12 +107,21 @@ def slip_span_labels(label: np.ndarray, events: dict, t_s: np.ndarray) -> np.nda
     The method labels incipient slip only, so its network learns to stay silent once every pillar slides;
     yet an alarm then, before the object has moved far, is still in time for the robot (the online
     criterion). Without a ``gross_motion`` event (hexapod scenes) the span ends at ``gross_slip``, else at
-    the last incipient sample. A stop trial (no incipient sample) stays all 0.
+    the last incipient sample. A stop trial (no incipient sample, no ``onset`` event) stays all 0. A slip with no
+    incipient stage (every pillar in contact slides at once, as a light grasp's do: onset and gross slip on one
+    sample, no labelled sample) runs from ``events["onset"]``; left at 0, it would teach that such a slide is no
+    slip, while the online criterion counts it as one.
     """
     label = np.asarray(label)
     on = np.flatnonzero(label)
     if not len(on):
-        return label
+        onset, end_t = events.get("onset"), events.get("gross_motion") or events.get("gross_slip")
+        if onset is None or end_t is None:
+            return label
+        out = label.copy()
+        first = int(np.searchsorted(t_s, onset))
+        out[first:max(int(np.searchsorted(t_s, end_t)), first + 1)] = 1
+        return out
     out = label.copy()
     # Only the first labelled run (the event the ``events`` describe) is extended: a recording with several
     # moves (press, slip, hold, release, regrasp, slip) keeps its holds between them negative.

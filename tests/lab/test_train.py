@@ -395,6 +395,11 @@ def test_slip_span_labels_run_from_onset_to_gross_motion() -> None:
     # No events: the incipient span itself; a stop trial stays silent.
     assert np.array_equal(T.slip_span_labels(label, {}, t), label)
     assert not T.slip_span_labels(np.zeros(2000, np.uint8), {"gross_motion": 1.0}, t).any()
+    # A slip without an incipient stage (no labelled sample) still counts from its onset to gross motion.
+    whole = T.slip_span_labels(np.zeros(2000, np.uint8), {"onset": 0.9, "gross_slip": 0.9, "gross_motion": 1.2}, t)
+    assert np.array_equal(np.flatnonzero(whole), np.flatnonzero((t >= 0.9) & (t < 1.2)))
+    # ... and for at least one sample when it moves 2 mm on the onset's sample.
+    assert T.slip_span_labels(np.zeros(2000, np.uint8), {"onset": 0.9, "gross_motion": 0.9}, t).sum() == 1
 
 
 def test_sliding_span_labels_last_while_a_pillar_slides() -> None:
