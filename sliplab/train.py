@@ -143,20 +143,17 @@ def sliding_span_labels(label: np.ndarray, slip: np.ndarray | None, events: dict
     """1 from the onset of the first slip for as long as any pillar keeps sliding (pauses up to ``gap`` samples).
 
     An object that slides off the finger keeps sliding after the 2 mm of ``slip_span_labels``; under that span
-    those windows teach that sliding is not slip. A slip with no incipient stage (one pillar carried the grasp:
-    onset and gross slip on one sample, no labelled sample) starts at ``events["onset"]``. Never shorter than
-    ``slip_span_labels``; without per-pillar truth (``slip`` None) it is that span.
+    those windows teach that sliding is not slip. A slip with no incipient stage starts at ``events["onset"]``, as
+    in ``slip_span_labels``. Never shorter than ``slip_span_labels``; without per-pillar truth (``slip`` None) it
+    is that span.
     """
     out = slip_span_labels(label, events, t_s).astype(np.uint8)
     if slip is None:
         return out
     pos = np.flatnonzero(out)
-    if len(pos):
-        start = int(pos[0])
-    elif events.get("onset") is not None and events.get("gross_slip") is not None:
-        start = int(np.searchsorted(t_s, events["onset"]))
-    else:
+    if not len(pos):
         return out
+    start = int(pos[0])
     sliding = np.nan_to_num(np.asarray(slip, np.float64)).max(axis=1) > 0
     later_runs = np.flatnonzero(np.diff((out[start:] > 0).astype(np.int8)) > 0)
     stop_at = start + int(later_runs[0]) + 1 if len(later_runs) else len(out)  # a later labelled event stays its own

@@ -442,7 +442,7 @@ LIGHT_HOLD_N = (0.8, 4.0)
 def light_scene(rng: np.random.Generator, index: int) -> dict[str, Any]:
     """One recording of the ``lights`` set: a ``grips``-style trial on a light object (``LIGHT_OBJECTS``, friction
     within 0.7-1.5 x its kind's) whose holding grip is 0.8-4 N (``LIGHT_HOLD_N``), so that slip trials grip at
-    0.5-3.6 N, where the pillars carry a fraction of a newton each. Every other gripper set grips at 3.7 N or more,
+    0.5-3.6 N, where most pillars carry a fraction of a newton. Every other gripper set grips at 3.7 N or more,
     and a light grasp's slip (all pillars sliding together at a low load) looks like none of theirs."""
     kind = str(rng.choice(list(LIGHT_OBJECTS)))
     k = LIGHT_OBJECTS[kind]
