@@ -41,7 +41,8 @@ def test_label_stats_count_sliding_that_the_slip_span_leaves_negative(tmp_path) 
     rec.save(tmp_path / "a.npz")
     stats = label_stats(tmp_path)
     assert (stats["slips"], stats["slips_unlabelled"]) == (1, 1)
-    assert stats["slip span, slip recordings"] == {"sliding labelled slip": 0, "sliding labelled no slip": 200}
+    # The slip span runs from the onset event to gross slip, here the same sample: the rest of the slide stays 0.
+    assert stats["slip span, slip recordings"] == {"sliding labelled slip": 1, "sliding labelled no slip": 199}
     assert stats["sliding span, slip recordings"] == {"sliding labelled slip": 200, "sliding labelled no slip": 0}
     assert stats["sliding_utilisation_p10_p50_p90"] == [0.4, 0.4, 0.4]
     assert stats["partial_slips"] == 1  # no labelled sample, yet the loaded pillar slid for 200 ms
