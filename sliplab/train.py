@@ -114,23 +114,21 @@ def slip_span_labels(label: np.ndarray, events: dict, t_s: np.ndarray) -> np.nda
     """
     label = np.asarray(label)
     on = np.flatnonzero(label)
-    if not len(on):
-        onset, end_t = events.get("onset"), events.get("gross_motion") or events.get("gross_slip")
-        if onset is None or end_t is None:
-            return label
-        out = label.copy()
-        first = int(np.searchsorted(t_s, onset))
-        out[first:max(int(np.searchsorted(t_s, end_t)), first + 1)] = 1
-        return out
-    out = label.copy()
-    # Only the first labelled run (the event the ``events`` describe) is extended: a recording with several
-    # moves (press, slip, hold, release, regrasp, slip) keeps its holds between them negative.
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], (label > 0).astype(np.int8), [0]])))
-    first_end = int(edges[1])
     end_t = events.get("gross_motion") or events.get("gross_slip")
+    if len(on):
+        # Only the first labelled run (the event the ``events`` describe) is extended: a recording with several
+        # moves (press, slip, hold, release, regrasp, slip) keeps its holds between them negative.
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], (label > 0).astype(np.int8), [0]])))
+        start, first_end = int(on[0]), int(edges[1])
+        later = int(edges[2]) if len(edges) > 2 else len(label)
+    elif events.get("onset") is not None and end_t is not None:
+        start = int(np.searchsorted(t_s, events["onset"]))
+        first_end, later = start + 1, len(label)
+    else:
+        return label
     end = int(np.searchsorted(t_s, end_t)) if end_t is not None else first_end
-    later = int(edges[2]) if len(edges) > 2 else len(label)
-    out[on[0] : min(max(end, first_end), later)] = 1
+    out = label.copy()
+    out[start : min(max(end, first_end), later)] = 1
     return out
 
 
