@@ -40,7 +40,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from slipd.geometry import CONTACT_THRESHOLD_N, FT_RANGE_N, FZ_RANGE_N, N_PILLARS, OUTER
 
 CHANNEL_INDEX = {"fx": 0, "fy": 1, "fz": 2}
-DERIVED = ("util", "lutil", "ux", "uy", "gft", "gfz", "rspeed")
+DERIVED = ("util", "lutil", "ux", "uy", "gft", "gfz", "gutil", "rspeed")
 """Derived channels, computed from a pillar's filtered forces after the median (stage 5b):
 
 util  friction utilisation |Ft| / max(Fz, 0.5 N): the share of the friction cone a pillar uses, up to the
@@ -58,6 +58,11 @@ gft   |Ft| / max(sum of Fz, 0.5 N): a pillar's tangential force over the whole g
       pillars), so a 2 N grasp reads like a 20 N one; unlike util it stays defined on pillars that barely touch.
 gfz   Fz / max(sum of Fz, 0.5 N): each pillar's share of the grasp's normal load (how the contact is spread:
       a flat face over nine pillars, a curved one over two or three), whatever the grip.
+gutil |Ft| / max(Fz, floor), the floor the contact threshold or the grasp's mean pillar load (its summed Fz over the
+      spec's pillars), whichever is lower, and at least ``GUTIL_MIN_N``: util on a firm grasp, while on a light
+      one (pillars of 0.1-0.4 N) a sliding pillar reads its friction coefficient instead of |Ft| / 0.5 N. With
+      util, a light grasp sliding on 0.2 N pillars at a friction of 0.8 reads 0.3, as a firm grasp at a third of
+      its limit does.
 rspeed a pillar's tangential deflection speed over that of the fastest pillar: |Ft(t) - Ft(t - 10 ms)| (the
       force vector's change, which is k_t times the tip's deflection) over the largest such change among the
       spec's pillars, at least ``RSPEED_FLOOR_N``. What the reference-pillar heuristic reads: while a tip sticks
@@ -77,6 +82,8 @@ ALL_CHANNELS = (*CHANNEL_INDEX, *DERIVED)
 UTIL_FLOOR_N = CONTACT_THRESHOLD_N
 _UTIL_FLOOR_F32 = np.float32(UTIL_FLOOR_N)
 LUTIL_FLOOR = np.float32(0.01)
+GUTIL_MIN_N = np.float32(0.05)
+"""Lowest floor of ``gutil`` (about two samples of a pillar's normal-force noise): free air reads near 0."""
 CLIP_N = np.array([2 * FT_RANGE_N, 2 * FT_RANGE_N, 2 * FZ_RANGE_N], dtype=np.float32)
 """Bound on tared forces per axis (twice the sensor's range)."""
 
@@ -93,6 +100,8 @@ def channel_bound(channel: str) -> float:
         return channel_bound("util")
     if channel == "gfz":
         return float(CLIP_N[2] / UTIL_FLOOR_N)
+    if channel == "gutil":
+        return float(np.hypot(CLIP_N[0], CLIP_N[1]) / GUTIL_MIN_N)
     if channel == "rspeed":
         return 1.0
     return float(CLIP_N[CHANNEL_INDEX[channel]])
@@ -211,6 +220,10 @@ class FeatureSpec:
                 parts.append(np.hypot(f[:, :, 0], f[:, :, 1]) / grasp)
             elif c == "gfz":
                 parts.append(f[:, :, 2] / grasp)
+            elif c == "gutil":
+                mean = f[:, :, 2].sum(axis=1, keepdims=True) / np.float32(len(self.pillars))
+                floor = np.clip(mean, GUTIL_MIN_N, _UTIL_FLOOR_F32)
+                parts.append(np.hypot(f[:, :, 0], f[:, :, 1]) / np.maximum(f[:, :, 2], floor))
             elif c == "rspeed":
                 parts.append(self._rspeed(f))
             else:

@@ -268,3 +268,24 @@ def test_util_alone_derives_the_same_values_as_beside_other_channels() -> None:
     assert np.array_equal(alone, beside)
     f = filtered.reshape(40, 9, 3)
     assert alone[5, 0] == np.float32(np.hypot(f[5, 0, 0], f[5, 0, 1]) / np.float32(UTIL_FLOOR_N))
+
+
+def test_gutil_is_util_on_a_firm_grasp_and_a_light_grasps_friction_on_light_pillars() -> None:
+    # Floor: min(0.5 N, mean Fz over the spec's pillars), at least 0.05 N.
+    spec = FeatureSpec(pillars=(4, 0), channels=("gutil", "util"), median=5, window=10)
+    force = np.zeros((30, 9, 3), np.float32)
+    force[:, 4] = [0.3, 0.4, 4.0]  # firm: mean 2.05 N, the contact threshold's floor
+    force[:, 0] = [0.06, 0.08, 0.1]
+    firm, _ = batch_windows(force, spec)
+    assert np.allclose(firm.reshape(-1, 2, 2)[..., 0], firm.reshape(-1, 2, 2)[..., 1])  # util
+    light = np.zeros_like(force)
+    light[:, 4] = [0.12, 0.16, 0.25]  # a light grasp sliding at 0.8 on both pillars: mean 0.225 N
+    light[:, 0] = [0.096, 0.128, 0.2]
+    win, _ = batch_windows(light, spec)
+    rows = win.reshape(-1, 2, 2)
+    # pillar 4 over its own 0.25 N: the friction, 0.8; pillar 0 (0.2 N, under the mean) over the mean: understated,
+    # never overstated
+    assert np.allclose(rows[..., 0], [0.8, 0.16 / 0.225], atol=1e-5)
+    assert np.allclose(rows[..., 1], [0.4, 0.32])  # util reads |Ft| / 0.5 N
+    light[:] = 0.0
+    assert np.all(np.isfinite(batch_windows(light, spec)[0]))
