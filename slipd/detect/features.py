@@ -206,7 +206,8 @@ class FeatureSpec:
         """``derive`` of [T, P, 3] filtered forces and their floored normal forces, channel by channel."""
         parts = []
         util = np.hypot(f[:, :, 0], f[:, :, 1]) / fz if {"util", "lutil"} & set(self.channels) else fz
-        grasp = np.maximum(f[:, :, 2].sum(axis=1, keepdims=True), np.float32(UTIL_FLOOR_N))
+        load = f[:, :, 2].sum(axis=1, keepdims=True)  # the grasp's normal load over the spec's pillars
+        grasp = np.maximum(load, np.float32(UTIL_FLOOR_N))
         for c in self.channels:
             if c == "ux":
                 parts.append(f[:, :, 0] / fz)
@@ -221,8 +222,7 @@ class FeatureSpec:
             elif c == "gfz":
                 parts.append(f[:, :, 2] / grasp)
             elif c == "gutil":
-                mean = f[:, :, 2].sum(axis=1, keepdims=True) / np.float32(len(self.pillars))
-                floor = np.clip(mean, GUTIL_MIN_N, _UTIL_FLOOR_F32)
+                floor = np.clip(load / np.float32(len(self.pillars)), GUTIL_MIN_N, _UTIL_FLOOR_F32)
                 parts.append(np.hypot(f[:, :, 0], f[:, :, 1]) / np.maximum(f[:, :, 2], floor))
             elif c == "rspeed":
                 parts.append(self._rspeed(f))
