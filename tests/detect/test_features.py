@@ -189,7 +189,7 @@ def test_spec_roundtrip_and_validation() -> None:
     median=st.sampled_from([1, 5, 11, 21]),
     seed=st.integers(0, 2**16),
     channels=st.sampled_from([("fx", "fy"), ("fx", "fy", "util"), ("util", "fz"), ("lutil",), ("ux", "uy", "util"),
-                              ("util", "rspeed"), ("rspeed",)]),
+                              ("util", "rspeed"), ("rspeed",), ("util", "gft", "gfz"), ("gutil",)]),
 )
 def test_stream_equals_batch_property(n: int, window: int, median: int, seed: int, channels: tuple) -> None:
     spec = FeatureSpec(window=window, median=median, channels=channels)
