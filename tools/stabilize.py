@@ -283,7 +283,7 @@ def grip_report(rows: list[dict], args: argparse.Namespace, json_path: Path) -> 
     """The markdown report of the grip_control comparison: every figure is computed here from ``rows``."""
     settings = ", ".join(f"{k.split('.')[1]} {v}" for k, v in GRIP.items() if k != "reaction.policy")
     lines = ["# Grip-force control beside stop-and-secure on the simulated rig", "",
-             f"Regenerate: `python tools/stabilize.py --policy grip_control --reps {args.reps}{_subset(args)}"
+             f"Regenerate: `python tools/stabilize.py --policy {args.policy} --reps {args.reps}{_subset(args)}"
              f"{_out_arg(args)} --json {_shown(json_path)}` (config `{Path(args.config).name}`; grip_control with "
              f"{settings}, the other "
              "reaction.grip_* at their defaults; the extras' force limits below).", "",

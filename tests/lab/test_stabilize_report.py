@@ -103,3 +103,18 @@ def test_the_rig_report_names_the_out_path_its_command_must_write_again() -> Non
     assert mod._out_arg(argparse.Namespace(out=ROOT / "reports" / "stabilize.md")) == ""
     named = argparse.Namespace(out=ROOT / "reports" / "stabilize_onnx.md")
     assert mod._out_arg(named) == " --out reports/stabilize_onnx.md"
+
+
+def test_a_stop_and_secure_run_is_repeated_by_its_own_policy(tmp_path) -> None:
+    """The report's command line names the policy that ran: a stop-and-secure run of the cups is not repeated as a
+    grip_control comparison."""
+    mod = _stabilize()
+    rows = [_row("stop_and_secure", 0, False, True, 40.0)]
+    runs = tmp_path / "cup.json"
+    runs.write_text(json.dumps(rows))
+    out = tmp_path / "cup.md"
+    assert mod.main(["--policy", "stop_and_secure", "--objects", "", "--extras", "cup_filling", "--reps", "1",
+                     "--from-json", str(runs), "--out", str(out)]) == 0
+    md = out.read_text()
+    assert "`python tools/stabilize.py --policy stop_and_secure --reps 1 --objects '' --extras 'cup_filling'" in md
+    assert "--policy grip_control" not in md
