@@ -29,16 +29,20 @@ def _row(policy: str, rep: int, dropped: bool, stopped: bool, peak: float) -> di
             "force_limit_n": 30.0 if policy == "grip_control" else None, "sensor_stalls": 0}
 
 
+def _report(tmp_path, rows: list[dict], args: list[str]) -> str:
+    """The report ``tools/stabilize.py ARGS --from-json`` writes from ``rows`` (no rig runs)."""
+    runs = tmp_path / "runs.json"
+    runs.write_text(json.dumps(rows))
+    out = tmp_path / "report.md"
+    assert _stabilize().main([*args, "--from-json", str(runs), "--out", str(out)]) == 0
+    return out.read_text()
+
+
 def test_the_filling_cup_alone_is_reported_with_the_command_that_repeats_it(tmp_path) -> None:
-    mod = _stabilize()
     rows = [_row("stop_and_secure", 0, True, False, 3.3), _row("grip_control", 0, False, False, 9.5),
             _row("stop_and_secure", 1, False, True, 40.0), _row("grip_control", 1, False, True, 12.0)]
-    runs = tmp_path / "cup.json"
-    runs.write_text(json.dumps(rows))
-    out = tmp_path / "cup.md"
-    assert mod.main(["--policy", "grip_control", "--objects", "", "--extras", "cup_filling", "--seed", "2000",
-                     "--reps", "2", "--from-json", str(runs), "--out", str(out)]) == 0
-    md = out.read_text()
+    md = _report(tmp_path, rows, ["--policy", "grip_control", "--objects", "", "--extras", "cup_filling", "--seed",
+                                  "2000", "--reps", "2"])
     assert "--objects '' --extras 'cup_filling' --seed 2000" in md
     # One line per policy for the cup: the drop and the arm stops as they were.
     assert "| cup_filling | extra | stop_and_secure | 18.15 | 0.00 | 1/2 |" in md
@@ -55,17 +59,11 @@ def test_an_unknown_extra_is_refused_before_the_rig_runs() -> None:
 def test_extras_left_out_of_the_run_are_not_judged_as_missed(tmp_path) -> None:
     """``--extras ''`` (the six objects alone, e.g. other seeds): the done-when table says the cups were not run,
     rather than that they failed."""
-    mod = _stabilize()
     rows = [{**_row(policy, 0, False, policy == "stop_and_secure", 40.0 if policy == "stop_and_secure" else 25.0),
              "object": "wooden_box", "scenario": scenario,
              "force_limit_n": 40.0 if policy == "grip_control" else None}
             for policy in ("stop_and_secure", "grip_control") for scenario in ("undergrip", "offcentre")]
-    runs = tmp_path / "lifts.json"
-    runs.write_text(json.dumps(rows))
-    out = tmp_path / "lifts.md"
-    assert mod.main(["--policy", "grip_control", "--objects", "wooden_box", "--extras", "", "--reps", "1",
-                     "--from-json", str(runs), "--out", str(out)]) == 0
-    md = out.read_text()
+    md = _report(tmp_path, rows, ["--policy", "grip_control", "--objects", "wooden_box", "--extras", "", "--reps", "1"])
     assert "| the filling cup held | not run | - |" in md
     assert "| the fragile object never above its limit | not run | - |" in md
     assert "| mean translation <= 0.5 mm | 0.30 mm | yes |" in md
@@ -108,13 +106,7 @@ def test_the_rig_report_names_the_out_path_its_command_must_write_again() -> Non
 def test_a_stop_and_secure_run_is_repeated_by_its_own_policy(tmp_path) -> None:
     """The report's command line names the policy that ran: a stop-and-secure run of the cups is not repeated as a
     grip_control comparison."""
-    mod = _stabilize()
-    rows = [_row("stop_and_secure", 0, False, True, 40.0)]
-    runs = tmp_path / "cup.json"
-    runs.write_text(json.dumps(rows))
-    out = tmp_path / "cup.md"
-    assert mod.main(["--policy", "stop_and_secure", "--objects", "", "--extras", "cup_filling", "--reps", "1",
-                     "--from-json", str(runs), "--out", str(out)]) == 0
-    md = out.read_text()
+    md = _report(tmp_path, [_row("stop_and_secure", 0, False, True, 40.0)],
+                 ["--policy", "stop_and_secure", "--objects", "", "--extras", "cup_filling", "--reps", "1"])
     assert "`python tools/stabilize.py --policy stop_and_secure --reps 1 --objects '' --extras 'cup_filling'" in md
     assert "--policy grip_control" not in md
