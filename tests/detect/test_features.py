@@ -270,6 +270,37 @@ def test_util_alone_derives_the_same_values_as_beside_other_channels() -> None:
     assert alone[5, 0] == np.float32(np.hypot(f[5, 0, 0], f[5, 0, 1]) / np.float32(UTIL_FLOOR_N))
 
 
+def _not_the_short_path(*_: object) -> None:
+    raise AssertionError("the general per-channel path ran where the one-channel path should")
+
+
+@pytest.mark.parametrize("rows", [1, 7, 40, 333])
+def test_gutil_alone_derives_the_same_values_as_beside_other_channels(rows: int, monkeypatch) -> None:
+    """``gutil`` alone takes the shorter path ``util`` alone takes: the same float32 values, bit for bit, as ``gutil``
+    computed beside another channel, on grasps from under the floor's minimum to firm ones."""
+    rng = np.random.default_rng(rows)
+    filtered = rng.normal(0, 0.2, (rows, 27)).astype(np.float32)
+    filtered[:, 2::3] = np.abs(filtered[:, 2::3]) * rng.uniform(0.01, 20, (rows, 1)).astype(np.float32)
+    nine = tuple(range(9))
+    beside = FeatureSpec(window=40, stride=10, pillars=nine, channels=("gutil", "fz")).derive(filtered)
+    monkeypatch.setattr(FeatureSpec, "_derive_parts", _not_the_short_path)
+    alone = FeatureSpec(window=40, stride=10, pillars=nine, channels=("gutil",)).derive(filtered)
+    assert alone.dtype == np.float32 and alone.shape == (rows, 9)
+    assert np.array_equal(alone, beside.reshape(rows, 9, 2)[:, :, 0])
+
+
+def test_gutil_alone_streams_the_windows_of_gutil_beside_other_channels(monkeypatch) -> None:
+    """The feature stream's prepared calls for ``gutil`` alone (one block position after another) give the windows
+    of the general path, bit for bit."""
+    force = _signal(900, seed=4) * np.geomspace(0.02, 8, 900, dtype=np.float32)[:, None, None]
+    nine = tuple(range(9))
+    beside = np.array(stream_windows(force, FeatureSpec(stride=10, pillars=nine, channels=("gutil", "fz"))))
+    monkeypatch.setattr(FeatureSpec, "_derive_parts", _not_the_short_path)
+    alone = np.array(stream_windows(force, FeatureSpec(stride=10, pillars=nine, channels=("gutil",))))
+    assert len(alone) > 50
+    assert np.array_equal(alone, beside.reshape(len(beside), -1, 9, 2)[..., 0].reshape(len(beside), -1))
+
+
 def test_gutil_is_util_on_a_firm_grasp_and_a_light_grasps_friction_on_light_pillars() -> None:
     # Floor: min(0.5 N, mean Fz over the spec's pillars), at least 0.05 N.
     spec = FeatureSpec(pillars=(4, 0), channels=("gutil", "util"), median=5, window=10)
