@@ -86,6 +86,8 @@ GUTIL_MIN_N = np.float32(0.05)
 """Lowest floor of ``gutil`` (about two samples of a pillar's normal-force noise): free air reads near 0."""
 CLIP_N = np.array([2 * FT_RANGE_N, 2 * FT_RANGE_N, 2 * FZ_RANGE_N], dtype=np.float32)
 """Bound on tared forces per axis (twice the sensor's range)."""
+ONE_RATIO = (("util",), ("gutil",))
+"""Channel lists of one utilisation alone: ``derive`` runs them as a few kept numpy calls (``FeatureSpec.util_ops``)."""
 
 
 def channel_bound(channel: str) -> float:
@@ -175,7 +177,7 @@ class FeatureSpec:
                 return filtered
             out[...] = filtered
             return out
-        if self.channels in (("util",), ("gutil",)):
+        if self.channels in ONE_RATIO:
             # (``out`` not one block of memory, a stream's columns of a group's rows: its reshape would be a copy)
             contiguous = out is not None and out.flags.c_contiguous
             res = out if out is not None and contiguous else np.empty((len(filtered), self.n_channels), filtered.dtype)
@@ -767,7 +769,7 @@ class RowPlans:
                 ops.append((sliding_median, hist, width, filt[lo:e]))
         if der is not None and der is not filt:
             f, d = filt[lo:e], der[lo:e]
-            if spec.channels in (("util",), ("gutil",)) and f.flags.c_contiguous and d.flags.c_contiguous:
+            if spec.channels in ONE_RATIO and f.flags.c_contiguous and d.flags.c_contiguous:
                 ops += spec.util_ops(f, d.reshape(-1), self._fz[: d.size], self._grasp[:, : len(f)])
             else:
                 # (sample by sample: rows of several sensors side by side are rows of their own to ``derive``)
