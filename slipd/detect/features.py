@@ -182,7 +182,7 @@ class FeatureSpec:
             contiguous = out is not None and out.flags.c_contiguous
             res = out if out is not None and contiguous else np.empty((len(filtered), self.n_channels), filtered.dtype)
             run_ops(self.util_ops(filtered, res.reshape(-1), np.empty(res.size, filtered.dtype),
-                                  np.empty((2, len(filtered)), filtered.dtype)))
+                                  np.empty((2, filtered.size // self.n_base), filtered.dtype)))
             if out is not None and not contiguous:
                 out[...] = res
                 return out
@@ -197,22 +197,23 @@ class FeatureSpec:
 
     def util_ops(self, filtered: np.ndarray, out: np.ndarray, fz: np.ndarray, grasp: np.ndarray) -> list[Op]:
         """``derive``'s calls for a model on one utilisation channel (``channels`` util alone, the shipped model's
-        layout, or gutil alone) on [T, n_base] filtered samples, into ``out`` [T * n_channels] with ``fz`` [T *
-        n_channels] for the floored normal forces and, for gutil, ``grasp`` [2, T] for each sample's load and floor
-        (``out`` and, where the calls are kept, ``filtered`` one block of memory each). The axes as one-dimensional
-        views, one row per pillar and sample: numpy's loop over a strided two-dimensional operand costs twice the
-        arithmetic on a block's rows. The same calls on the same values as ``_derive_parts``, so the same values bit
-        for bit."""
+        layout, or gutil alone) on [T, n_base] filtered samples (or [T, S * n_base], the rows of S sensors side by
+        side, each a row of its own), into ``out`` [T * S * n_channels] with ``fz`` of the same size for the floored
+        normal forces and, for gutil, ``grasp`` [2, T * S] for each row's load and floor (``out`` and, where the calls
+        are kept, ``filtered`` one block of memory each). The axes as one-dimensional views, one row per pillar and
+        sample: numpy's loop over a strided two-dimensional operand costs twice the arithmetic on a block's rows. The
+        same calls on the same values as ``_derive_parts``, so the same values bit for bit."""
         p = filtered.reshape(-1, 3)
         ratio: list[Op] = [(np.hypot, p[:, 0], p[:, 1], out), (np.divide, out, fz, out)]
         if self.channels == ("util",):
             return [(np.maximum, p[:, 2], _UTIL_FLOOR_F32, fz), *ratio]
         # gutil: the floor is the grasp's mean pillar load within [GUTIL_MIN_N, the contact threshold]
-        pz = filtered.reshape(len(filtered), len(self.pillars), 3)[:, :, 2]
-        load, floor = grasp[0, : len(filtered)], grasp[1, : len(filtered)]
-        return [(np.add.reduce, pz, 1, load), (np.divide, load, np.float32(len(self.pillars)), floor),
+        pillars = len(self.pillars)
+        pz = filtered.reshape(-1, pillars, 3)[:, :, 2]
+        load, floor = grasp[0, : len(pz)], grasp[1, : len(pz)]
+        return [(np.add.reduce, pz, 1, load), (np.divide, load, np.float32(pillars), floor),
                 (np.maximum, floor, GUTIL_MIN_N, floor), (np.minimum, floor, _UTIL_FLOOR_F32, floor),
-                (np.maximum, pz, floor[:, None], fz.reshape(len(filtered), len(self.pillars))), *ratio]
+                (np.maximum, pz, floor[:, None], fz.reshape(-1, pillars)), *ratio]
 
     def _derive_parts(self, f: np.ndarray, fz: np.ndarray) -> np.ndarray:
         """``derive`` of [T, P, 3] filtered forces and their floored normal forces, channel by channel."""
@@ -746,7 +747,7 @@ class RowPlans:
         self.buf, self.filt, self.der = buf, filt, der
         self._scratch = np.zeros((4, len(buf), buf.shape[1]), np.float32)  # (the median's intermediate values)
         self._fz = np.zeros(len(buf) * (0 if der is None else der.shape[1]), np.float32)  # (util's floored Fz)
-        self._grasp = np.zeros((2, len(buf)), np.float32)  # (gutil's load and floor per sample)
+        self._grasp = np.zeros((2, buf.size // spec.n_base), np.float32)  # (gutil's load and floor per sample, sensor)
         self._ops: dict[tuple[int, int], list[Op]] = {}
         self._windows: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
@@ -770,7 +771,7 @@ class RowPlans:
         if der is not None and der is not filt:
             f, d = filt[lo:e], der[lo:e]
             if spec.channels in ONE_RATIO and f.flags.c_contiguous and d.flags.c_contiguous:
-                ops += spec.util_ops(f, d.reshape(-1), self._fz[: d.size], self._grasp[:, : len(f)])
+                ops += spec.util_ops(f, d.reshape(-1), self._fz[: d.size], self._grasp)
             else:
                 # (sample by sample: rows of several sensors side by side are rows of their own to ``derive``)
                 ops.append((_derive_into, spec, f, d))

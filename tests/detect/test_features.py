@@ -1,5 +1,7 @@
 """The feature pipeline: streaming equals batch bit for bit, median and tare arithmetic."""
 
+import itertools
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -299,6 +301,34 @@ def test_gutil_alone_streams_the_windows_of_gutil_beside_other_channels(monkeypa
     alone = np.array(stream_windows(force, FeatureSpec(stride=10, pillars=nine, channels=("gutil",))))
     assert len(alone) > 50
     assert np.array_equal(alone, beside.reshape(len(beside), -1, 9, 2)[..., 0].reshape(len(beside), -1))
+
+
+def test_gutil_alone_for_two_fingers_at_once_gives_each_fingers_windows() -> None:
+    """A gripper's two fingers through one ``StreamGroup`` (the rows of both side by side, one pass): on ``gutil``
+    alone each finger's floor comes from its own grasp, so the group's windows are each finger's own, bit for bit."""
+    from slipd.detect.features import StreamGroup
+
+    spec = FeatureSpec(stride=10, median=5, pillars=tuple(range(9)), channels=("gutil",))
+    light = _signal(700, seed=1) * np.float32(0.05)  # a light grasp on one finger, a firm one on the other
+    force = np.stack([light, _signal(700, seed=2) * np.float32(4.0)], axis=1)
+    alone = [FeatureStream(spec, np.zeros((9, 3), np.float32)) for _ in range(2)]
+    together = [FeatureStream(spec, np.zeros((9, 3), np.float32)) for _ in range(2)]
+    group = StreamGroup(together)
+    cuts = [0, 60, *range(70, 700, 13), 700]
+    grouped_windows = 0
+    for a, b in itertools.pairwise(cuts):
+        want = [[w.copy() for _, w, _, _ in st.push_views(force[a:b, s])] for s, st in enumerate(alone)]
+        got = group.push_views(force[a:b])
+        if got is None:  # (not the common block: each stream on its own, as the detectors do)
+            got_each = [[w.copy() for _, w, _, _ in st.push_views(force[a:b, s])] for s, st in enumerate(together)]
+            assert all(np.array_equal(x, y) for g, w in zip(got_each, want) for x, y in zip(g, w, strict=True))
+            continue
+        for m, (_, windows, _, _) in enumerate(got):
+            rows = windows.reshape(spec.window, 2, -1)
+            for s in range(2):
+                assert np.array_equal(rows[:, s].reshape(-1), want[s][m])
+            grouped_windows += 1
+    assert grouped_windows > 40
 
 
 def test_gutil_is_util_on_a_firm_grasp_and_a_light_grasps_friction_on_light_pillars() -> None:
