@@ -28,6 +28,19 @@ def _ours(folder):
     rec.save(folder / "00000_robust_stick_slip_slip.npz")
 
 
+def _manifest(tmp_path, name, *, engine):
+    """The shipped manifest with the engine's set in its provenance or taken out of it, beside the shipped graph."""
+    manifest = json.loads(Path(MODEL).read_text())
+    index = [e for e in manifest["provenance"]["index"] if e.get("set") != "engine"]
+    if engine:
+        index.append({"set": "engine", "split": "train", "count": 320})
+    manifest["provenance"]["index"] = index
+    manifest["onnx_file"] = str(Path(MODEL).resolve().with_name(manifest["onnx_file"]))
+    path = tmp_path / name
+    path.write_text(json.dumps(manifest))
+    return str(path)
+
+
 def test_engine_holdout_report_shape(tmp_path, capsys):
     from sliplab.robustness import CATEGORIES, HOLDOUT_KEYS, main
 
@@ -37,8 +50,10 @@ def test_engine_holdout_report_shape(tmp_path, capsys):
     assert [e["scenario"] for e in index["recordings"]] == ["lift_slip", "secure_lift", "light_grasp", "curved"]
     _ours(tmp_path / "robust")
     out, js = tmp_path / "report", tmp_path / "report_copy.json"
-    # The shipped model stands in for both members here: the test is about the report, not the figures.
-    rc = main(["--model", MODEL, "--engine", str(engine), "--reverse", MODEL, "--robust", str(tmp_path / "robust"),
+    # The shipped graph stands in for both members here: the test is about the report, not the figures. Its
+    # manifest says no engine data was in training, so the report calls it a hold-out.
+    held_out = _manifest(tmp_path, "held_out.json", engine=False)
+    rc = main(["--model", held_out, "--engine", str(engine), "--reverse", MODEL, "--robust", str(tmp_path / "robust"),
                "--holds", str(tmp_path / "none"), "--engine-only", "--out", str(out), "--json", str(js)])
     assert rc == 0
     report = json.loads(js.read_text())
@@ -67,7 +82,7 @@ def test_engine_holdout_report_shape(tmp_path, capsys):
     rev = report["reverse_holdout"]["slipd"]
     assert rev["online_success"] is None and rev["light_grasp_success"] is None  # a hexapod slip: offline only
     printed = capsys.readouterr().out
-    # The shipped model has no engine data in its training (its manifest's provenance): a true hold-out.
+    # No engine data in the manifest's provenance: a true hold-out.
     assert report["engine_in_training"] is False
     for title in ("Engine held out", "Reverse: trained on the engine only"):
         assert title in printed and title in out.with_suffix(".md").read_text()
@@ -80,15 +95,14 @@ def test_engine_holdout_report_shape(tmp_path, capsys):
 def test_trained_sets_reads_the_manifest_provenance(tmp_path):
     from sliplab.robustness import trained_sets
 
-    manifest = json.loads(Path(MODEL).read_text())
-    assert {"robust", "transfer"} <= trained_sets(MODEL) and "engine" not in trained_sets(MODEL)
-    manifest["provenance"]["index"].append({"set": "engine", "split": "train", "count": 320})
-    with_engine = tmp_path / "with_engine.json"
-    with_engine.write_text(json.dumps(manifest))
-    assert "engine" in trained_sets(str(with_engine))
+    without = _manifest(tmp_path, "without.json", engine=False)
+    assert {"robust", "transfer"} <= trained_sets(without) and "engine" not in trained_sets(without)
+    with_engine = _manifest(tmp_path, "with_engine.json", engine=True)
+    assert "engine" in trained_sets(with_engine)
+    manifest = json.loads(Path(with_engine).read_text())
     del manifest["provenance"]
-    with_engine.write_text(json.dumps(manifest))
-    assert trained_sets(str(with_engine)) == set()
+    Path(with_engine).write_text(json.dumps(manifest))
+    assert trained_sets(with_engine) == set()
 
 
 def test_a_report_on_an_engine_in_training_says_so(tmp_path, capsys):
@@ -97,13 +111,9 @@ def test_a_report_on_an_engine_in_training_says_so(tmp_path, capsys):
 
     engine = tmp_path / "engine"
     write_dataset("engine", "test", engine, count=1)
-    manifest = json.loads(Path(MODEL).read_text())
-    manifest["provenance"]["index"].append({"set": "engine", "split": "train", "count": 320})
-    manifest["onnx_file"] = str(Path(MODEL).resolve().with_name(manifest["onnx_file"]))
-    model = tmp_path / "m.json"
-    model.write_text(json.dumps(manifest))
+    model = _manifest(tmp_path, "m.json", engine=True)
     out = tmp_path / "report"
-    assert main(["--model", str(model), "--engine", str(engine), "--engine-only", "--out", str(out)]) == 0
+    assert main(["--model", model, "--engine", str(engine), "--engine-only", "--out", str(out)]) == 0
     report = json.loads(out.with_suffix(".json").read_text())
     assert report["engine_in_training"] is True
     text = out.with_suffix(".md").read_text()
