@@ -51,6 +51,13 @@ def test_hot_path_reports_each_stage_and_restores_the_timed_code(sensors: int) -
     assert "contact state" in line and "instrumented total" in line and "untimed" in line
 
 
+def test_a_ratio_to_a_loop_that_read_no_cpu_time_is_not_printed_as_a_number() -> None:
+    # A two-second run of the bare event loop can read 0 % CPU (clock ticks of 10 ms); the summary must still print.
+    mod = _bench()
+    assert mod.times(6.0, 1.5) == "4.0x"
+    assert mod.times(6.0, 0.0).startswith("n/a")
+
+
 def test_the_instruction_counts_child_runs_each_kind_and_the_totals_parse() -> None:
     # ``--instructions`` runs this child under callgrind (not here: valgrind is slow and optional); each kind must run
     # on the same set-up, and a callgrind file's total must be read from its summary (or totals) line.

@@ -265,6 +265,12 @@ def cpu_share(model: Path, seconds: float, sensors: int, stride: int | None, tre
     return (c1 - c0) / (t1 - t0)
 
 
+def times(share: float, base: float) -> str:
+    """``share`` as a multiple of ``base`` for the printed ratios. A short run of a near-idle loop can read 0 % (the
+    process's CPU time counts in clock ticks of 10 ms): then there is no ratio to print."""
+    return f"{share / base:.1f}x" if base > 0 else "n/a (the baseline read 0 % CPU: under one clock tick) against"
+
+
 def _cpu_seconds(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
@@ -870,8 +876,8 @@ def main(argv: list[str] | None = None) -> int:
     for r in runs:
         if r["stride"] == 10:
             idle = float(np.median(idle_runs))
-            print(f"{r['sensors']:>7} sensor(s) stride 10: CPU {r['cpu_percent'] / idle:.1f}x the idle event loop, "
-                  f"{r['cpu_percent'] / step_loop[r['sensors']]:.1f}x the loop with the model's step alone")
+            print(f"{r['sensors']:>7} sensor(s) stride 10: CPU {times(r['cpu_percent'], idle)} the idle event loop, "
+                  f"{times(r['cpu_percent'], step_loop[r['sensors']])} the loop with the model's step alone")
     print(f"hot path per decision (decode `stride` frames, freshness, detector, decision, metrics; no event loop), "
           f"medians of {HOT_DECISIONS}, back to back / after {HOT_SLEEP_S * 1e3:g} ms asleep, against the model step "
           "alone (one onnxruntime call on the same batch); per stage: means, instrumented, with the recorder on")
