@@ -86,8 +86,9 @@ GUTIL_MIN_N = np.float32(0.05)
 """Lowest floor of ``gutil`` (about two samples of a pillar's normal-force noise): free air reads near 0."""
 CLIP_N = np.array([2 * FT_RANGE_N, 2 * FT_RANGE_N, 2 * FZ_RANGE_N], dtype=np.float32)
 """Bound on tared forces per axis (twice the sensor's range)."""
-ONE_RATIO = (("util",), ("gutil",))
-"""Channel lists of one utilisation alone: ``derive`` runs them as a few kept numpy calls (``FeatureSpec.util_ops``)."""
+KEPT_CHANNELS = (("util",), ("gutil",), ("gutil", "gfz"))
+"""Channel lists that ``derive`` runs as a few kept numpy calls (``FeatureSpec.util_ops``): one utilisation alone, or
+``gutil`` with the contact's spread beside it (the shipped model's layout)."""
 
 
 def channel_bound(channel: str) -> float:
@@ -177,12 +178,12 @@ class FeatureSpec:
                 return filtered
             out[...] = filtered
             return out
-        if self.channels in ONE_RATIO:
+        if self.channels in KEPT_CHANNELS:
             # (``out`` not one block of memory, a stream's columns of a group's rows: its reshape would be a copy)
             contiguous = out is not None and out.flags.c_contiguous
             res = out if out is not None and contiguous else np.empty((len(filtered), self.n_channels), filtered.dtype)
             run_ops(self.util_ops(filtered, res.reshape(-1), np.empty(res.size, filtered.dtype),
-                                  np.empty((2, filtered.size // self.n_base), filtered.dtype)))
+                                  np.empty((3, filtered.size // self.n_base), filtered.dtype)))
             if out is not None and not contiguous:
                 out[...] = res
                 return out
@@ -196,24 +197,33 @@ class FeatureSpec:
         return out
 
     def util_ops(self, filtered: np.ndarray, out: np.ndarray, fz: np.ndarray, grasp: np.ndarray) -> list[Op]:
-        """``derive``'s calls for a model on one utilisation channel (``channels`` util alone, the shipped model's
-        layout, or gutil alone) on [T, n_base] filtered samples (or [T, S * n_base], the rows of S sensors side by
-        side, each a row of its own), into ``out`` [T * S * n_channels] with ``fz`` of the same size for the floored
-        normal forces and, for gutil, ``grasp`` [2, T * S] for each row's load and floor (``out`` and, where the calls
-        are kept, ``filtered`` one block of memory each). The axes as one-dimensional views, one row per pillar and
-        sample: numpy's loop over a strided two-dimensional operand costs twice the arithmetic on a block's rows. The
-        same calls on the same values as ``_derive_parts``, so the same values bit for bit."""
+        """``derive``'s calls for a model on ``KEPT_CHANNELS`` (util alone, gutil alone, or gutil and gfz) on
+        [T, n_base] filtered samples (or [T, S * n_base], the rows of S sensors side by side, each a row of its own),
+        into ``out`` [T * S * n_channels] with ``fz`` of at least T * S * pillars values for the floored normal forces
+        and, for gutil, ``grasp`` [3, T * S] for each row's load, floor and (gfz) floored load (``out`` and, where the
+        calls are kept, ``filtered`` one block of memory each). The axes as one-dimensional views, one row per pillar
+        and sample: numpy's loop over a strided two-dimensional operand costs twice the arithmetic on a block's rows.
+        The same calls on the same values as ``_derive_parts``, so the same values bit for bit."""
         p = filtered.reshape(-1, 3)
-        ratio: list[Op] = [(np.hypot, p[:, 0], p[:, 1], out), (np.divide, out, fz, out)]
+        fz = fz[: len(p)]
         if self.channels == ("util",):
-            return [(np.maximum, p[:, 2], _UTIL_FLOOR_F32, fz), *ratio]
+            return [(np.maximum, p[:, 2], _UTIL_FLOOR_F32, fz), (np.hypot, p[:, 0], p[:, 1], out),
+                    (np.divide, out, fz, out)]
         # gutil: the floor is the grasp's mean pillar load within [GUTIL_MIN_N, the contact threshold]
-        pillars = len(self.pillars)
+        pillars, width = len(self.pillars), len(self.channels)
+        # (pillar-major: each pillar's channels side by side)
+        gutil = out if width == 1 else out.reshape(-1, width)[:, 0]
         pz = filtered.reshape(-1, pillars, 3)[:, :, 2]
         load, floor = grasp[0, : len(pz)], grasp[1, : len(pz)]
-        return [(np.add.reduce, pz, 1, load), (np.divide, load, np.float32(pillars), floor),
-                (np.maximum, floor, GUTIL_MIN_N, floor), (np.minimum, floor, _UTIL_FLOOR_F32, floor),
-                (np.maximum, pz, floor[:, None], fz.reshape(-1, pillars)), *ratio]
+        ops: list[Op] = [(np.add.reduce, pz, 1, load), (np.divide, load, np.float32(pillars), floor),
+                         (np.maximum, floor, GUTIL_MIN_N, floor), (np.minimum, floor, _UTIL_FLOOR_F32, floor),
+                         (np.maximum, pz, floor[:, None], fz.reshape(-1, pillars)),
+                         (np.hypot, p[:, 0], p[:, 1], gutil), (np.divide, gutil, fz, gutil)]
+        if width == 2:  # gfz: each pillar's share of the grasp's load, floored at the contact threshold
+            total = grasp[2, : len(pz)]
+            ops += [(np.maximum, load, _UTIL_FLOOR_F32, total),
+                    (np.divide, pz, total[:, None], out.reshape(-1, pillars, width)[:, :, 1])]
+        return ops
 
     def _derive_parts(self, f: np.ndarray, fz: np.ndarray) -> np.ndarray:
         """``derive`` of [T, P, 3] filtered forces and their floored normal forces, channel by channel."""
@@ -747,7 +757,7 @@ class RowPlans:
         self.buf, self.filt, self.der = buf, filt, der
         self._scratch = np.zeros((4, len(buf), buf.shape[1]), np.float32)  # (the median's intermediate values)
         self._fz = np.zeros(len(buf) * (0 if der is None else der.shape[1]), np.float32)  # (util's floored Fz)
-        self._grasp = np.zeros((2, buf.size // spec.n_base), np.float32)  # (gutil's load and floor per sample, sensor)
+        self._grasp = np.zeros((3, buf.size // spec.n_base), np.float32)  # (gutil's load, floor, gfz's load per row)
         self._ops: dict[tuple[int, int], list[Op]] = {}
         self._windows: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
@@ -770,7 +780,7 @@ class RowPlans:
                 ops.append((sliding_median, hist, width, filt[lo:e]))
         if der is not None and der is not filt:
             f, d = filt[lo:e], der[lo:e]
-            if spec.channels in ONE_RATIO and f.flags.c_contiguous and d.flags.c_contiguous:
+            if spec.channels in KEPT_CHANNELS and f.flags.c_contiguous and d.flags.c_contiguous:
                 ops += spec.util_ops(f, d.reshape(-1), self._fz[: d.size], self._grasp)
             else:
                 # (sample by sample: rows of several sensors side by side are rows of their own to ``derive``)

@@ -191,7 +191,8 @@ def test_spec_roundtrip_and_validation() -> None:
     median=st.sampled_from([1, 5, 11, 21]),
     seed=st.integers(0, 2**16),
     channels=st.sampled_from([("fx", "fy"), ("fx", "fy", "util"), ("util", "fz"), ("lutil",), ("ux", "uy", "util"),
-                              ("util", "rspeed"), ("rspeed",), ("util", "gft", "gfz"), ("gutil",)]),
+                              ("util", "rspeed"), ("rspeed",), ("util", "gft", "gfz"), ("gutil",),
+                              ("gutil", "gfz")]),
 )
 def test_stream_equals_batch_property(n: int, window: int, median: int, seed: int, channels: tuple) -> None:
     spec = FeatureSpec(window=window, median=median, channels=channels)
@@ -276,39 +277,49 @@ def _not_the_short_path(*_: object) -> None:
     raise AssertionError("the general per-channel path ran where the one-channel path should")
 
 
+KEPT = [("gutil",), ("gutil", "gfz")]
+"""The kept paths of ``gutil`` (alone, and with the contact's spread beside it), each checked against the general
+per-channel path on the same channels with ``fz`` after them."""
+
+
+@pytest.mark.parametrize("channels", KEPT)
 @pytest.mark.parametrize("rows", [1, 7, 40, 333])
-def test_gutil_alone_derives_the_same_values_as_beside_other_channels(rows: int, monkeypatch) -> None:
-    """``gutil`` alone takes the shorter path ``util`` alone takes: the same float32 values, bit for bit, as ``gutil``
-    computed beside another channel, on grasps from under the floor's minimum to firm ones."""
+def test_gutil_kept_path_derives_the_same_values_as_the_general_path(rows: int, channels: tuple, monkeypatch) -> None:
+    """``gutil`` alone, or with ``gfz``, takes the shorter path ``util`` alone takes: the same float32 values, bit for
+    bit, as the same channels computed beside another, on grasps from under the floor's minimum to firm ones."""
     rng = np.random.default_rng(rows)
     filtered = rng.normal(0, 0.2, (rows, 27)).astype(np.float32)
     filtered[:, 2::3] = np.abs(filtered[:, 2::3]) * rng.uniform(0.01, 20, (rows, 1)).astype(np.float32)
-    nine = tuple(range(9))
-    beside = FeatureSpec(window=40, stride=10, pillars=nine, channels=("gutil", "fz")).derive(filtered)
+    filtered[0, 2::3] = 0.0  # no normal load at all: every floor applies
+    nine, c = tuple(range(9)), len(channels)
+    beside = FeatureSpec(window=40, stride=10, pillars=nine, channels=(*channels, "fz")).derive(filtered)
     monkeypatch.setattr(FeatureSpec, "_derive_parts", _not_the_short_path)
-    alone = FeatureSpec(window=40, stride=10, pillars=nine, channels=("gutil",)).derive(filtered)
-    assert alone.dtype == np.float32 and alone.shape == (rows, 9)
-    assert np.array_equal(alone, beside.reshape(rows, 9, 2)[:, :, 0])
+    kept = FeatureSpec(window=40, stride=10, pillars=nine, channels=channels).derive(filtered)
+    assert kept.dtype == np.float32 and kept.shape == (rows, 9 * c)
+    assert np.array_equal(kept, beside.reshape(rows, 9, c + 1)[:, :, :c].reshape(rows, 9 * c))
 
 
-def test_gutil_alone_streams_the_windows_of_gutil_beside_other_channels(monkeypatch) -> None:
-    """The feature stream's prepared calls for ``gutil`` alone (one block position after another) give the windows
-    of the general path, bit for bit."""
+@pytest.mark.parametrize("channels", KEPT)
+def test_gutil_kept_path_streams_the_windows_of_the_general_path(channels: tuple, monkeypatch) -> None:
+    """The feature stream's prepared calls for ``gutil`` alone or with ``gfz`` (one block position after another)
+    give the windows of the general path, bit for bit."""
     force = _signal(900, seed=4) * np.geomspace(0.02, 8, 900, dtype=np.float32)[:, None, None]
-    nine = tuple(range(9))
-    beside = np.array(stream_windows(force, FeatureSpec(stride=10, pillars=nine, channels=("gutil", "fz"))))
+    nine, c = tuple(range(9)), len(channels)
+    beside = np.array(stream_windows(force, FeatureSpec(stride=10, pillars=nine, channels=(*channels, "fz"))))
     monkeypatch.setattr(FeatureSpec, "_derive_parts", _not_the_short_path)
-    alone = np.array(stream_windows(force, FeatureSpec(stride=10, pillars=nine, channels=("gutil",))))
-    assert len(alone) > 50
-    assert np.array_equal(alone, beside.reshape(len(beside), -1, 9, 2)[..., 0].reshape(len(beside), -1))
+    kept = np.array(stream_windows(force, FeatureSpec(stride=10, pillars=nine, channels=channels)))
+    assert len(kept) > 50
+    assert np.array_equal(kept, beside.reshape(len(beside), -1, 9, c + 1)[..., :c].reshape(len(beside), -1))
 
 
-def test_gutil_alone_for_two_fingers_at_once_gives_each_fingers_windows() -> None:
+@pytest.mark.parametrize("channels", KEPT)
+def test_gutil_kept_path_for_two_fingers_at_once_gives_each_fingers_windows(channels: tuple) -> None:
     """A gripper's two fingers through one ``StreamGroup`` (the rows of both side by side, one pass): on ``gutil``
-    alone each finger's floor comes from its own grasp, so the group's windows are each finger's own, bit for bit."""
+    (and ``gfz``) each finger's floor and load come from its own grasp, so the group's windows are each finger's own,
+    bit for bit."""
     from slipd.detect.features import StreamGroup
 
-    spec = FeatureSpec(stride=10, median=5, pillars=tuple(range(9)), channels=("gutil",))
+    spec = FeatureSpec(stride=10, median=5, pillars=tuple(range(9)), channels=channels)
     light = _signal(700, seed=1) * np.float32(0.05)  # a light grasp on one finger, a firm one on the other
     force = np.stack([light, _signal(700, seed=2) * np.float32(4.0)], axis=1)
     alone = [FeatureStream(spec, np.zeros((9, 3), np.float32)) for _ in range(2)]
