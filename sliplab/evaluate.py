@@ -476,7 +476,22 @@ def _parser() -> argparse.ArgumentParser:
                         "simulator's truth (sliplab.contact_eval; --sets, --split, --count, --model, --json)")
     p.add_argument("--record-manifest", action="store_true",
                    help="with --model: merge the summary into the manifest's metrics (key eval_<data folder>)")
+    p.add_argument("--by-motion", action="store_true",
+                   help="also one line per motion (lift, push, ...): online success and D_norm at detection")
     return p
+
+
+def print_by_motion(scenes: list[SceneResult]) -> None:
+    """One line per motion of the recordings: the online figures of its slip and stop trials, and how far the object
+    had travelled towards the late criterion when the alarm came (D_norm, caught slips)."""
+    print(f"{'motion':<16} {'slips in time':>14} {'stops alarmed':>14} {'D_norm median':>14} {'p90':>6}")
+    for motion in sorted({r.motion for r in scenes}):
+        sub = summarize([r for r in scenes if r.motion == motion])
+        on = sub.online
+        if on is None:
+            continue
+        print(f"{motion:<16} {f'{on.tp}/{on.tp + on.fn}':>14} {f'{on.fp}/{on.fp + on.tn}':>14} "
+              f"{_fmt(sub.d_norm.median, '', 1, 2):>14} {_fmt(sub.d_norm.p90, '', 1, 2):>6}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -518,6 +533,8 @@ def main(argv: list[str] | None = None) -> int:
     online = online or any(r[2].family == "gripper" for r in results)
     summary = summarize([r[0] for r in results])
     print_table(f"{label} on {folder} ({len(paths)} recordings, {elapsed:.1f} s)", report_rows(summary, online))
+    if args.by_motion and online:
+        print_by_motion([r[0] for r in results])
     if args.json:
         out = {
             "detector": label,

@@ -325,3 +325,21 @@ def test_noisy_displacements_touch_only_the_displacements(scenes: Path, tmp_path
         d = (b.disp - a.disp).ravel()
         assert 0.008 < d.std() < 0.012 and abs(d.mean()) < 0.001
         assert b.meta["disp_noise_mm"] == 0.01
+
+
+def test_by_motion_prints_each_motions_online_figures(capsys) -> None:
+    """``--by-motion``: one line per motion, its slips caught in time, its stops alarmed and D_norm over the slips
+    caught in time (a late alarm counts as a miss, not as a travel)."""
+    from sliplab.evaluate import print_by_motion
+
+    def scene(motion: str, kind: str, outcome: str, d: float | None) -> SceneResult:
+        alarmed = outcome in ("success", "late", "fp")
+        return SceneResult(name=f"{motion}_{kind}_{outcome}", kind=kind, motion=motion, duration_s=3.0,
+                           first_alarm_s=1.0 if alarmed else None, offline_outcome=None, latency_s=None,
+                           online_outcome=outcome, d_norm=d, rising_edges=int(alarmed))
+
+    print_by_motion([scene("lift", "slip", "success", 0.1), scene("lift", "slip", "success", 0.3),
+                     scene("lift", "stop", "tn", None), scene("push", "slip", "late", 1.2),
+                     scene("push", "slip", "success", 0.5), scene("push", "stop", "fp", None)])
+    lines = capsys.readouterr().out.splitlines()
+    assert [ln.split()[:4] for ln in lines[1:]] == [["lift", "2/2", "0/1", "0.20"], ["push", "1/2", "1/1", "0.50"]]
