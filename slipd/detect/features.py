@@ -206,9 +206,12 @@ class FeatureSpec:
         The same calls on the same values as ``_derive_parts``, so the same values bit for bit."""
         p = filtered.reshape(-1, 3)
         fz = fz[: len(p)]
+
+        def ratio(dst: np.ndarray) -> list[Op]:  # |Ft| over the floored Fz, one value per pillar and row
+            return [(np.hypot, p[:, 0], p[:, 1], dst), (np.divide, dst, fz, dst)]
+
         if self.channels == ("util",):
-            return [(np.maximum, p[:, 2], _UTIL_FLOOR_F32, fz), (np.hypot, p[:, 0], p[:, 1], out),
-                    (np.divide, out, fz, out)]
+            return [(np.maximum, p[:, 2], _UTIL_FLOOR_F32, fz), *ratio(out)]
         # gutil: the floor is the grasp's mean pillar load within [GUTIL_MIN_N, the contact threshold]
         pillars, width = len(self.pillars), len(self.channels)
         # (pillar-major: each pillar's channels side by side)
@@ -217,8 +220,7 @@ class FeatureSpec:
         load, floor = grasp[0, : len(pz)], grasp[1, : len(pz)]
         ops: list[Op] = [(np.add.reduce, pz, 1, load), (np.divide, load, np.float32(pillars), floor),
                          (np.maximum, floor, GUTIL_MIN_N, floor), (np.minimum, floor, _UTIL_FLOOR_F32, floor),
-                         (np.maximum, pz, floor[:, None], fz.reshape(-1, pillars)),
-                         (np.hypot, p[:, 0], p[:, 1], gutil), (np.divide, gutil, fz, gutil)]
+                         (np.maximum, pz, floor[:, None], fz.reshape(-1, pillars)), *ratio(gutil)]
         if width == 2:  # gfz: each pillar's share of the grasp's load, floored at the contact threshold
             total = grasp[2, : len(pz)]
             ops += [(np.maximum, load, _UTIL_FLOOR_F32, total),

@@ -274,7 +274,7 @@ def test_util_alone_derives_the_same_values_as_beside_other_channels() -> None:
 
 
 def _not_the_short_path(*_: object) -> None:
-    raise AssertionError("the general per-channel path ran where the one-channel path should")
+    raise AssertionError("the general per-channel path ran where the kept calls should")
 
 
 KEPT = [("gutil",), ("gutil", "gfz")]
