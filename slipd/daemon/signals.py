@@ -84,20 +84,49 @@ def while_closing() -> None:
     _install(_ignored_while_closing, (*STOP_SIGNALS, RELOAD_SIGNAL))
 
 
+class _Held:
+    """The handlers while the devices open: a signal is noted, not acted on (see ``held``)."""
+
+    stop: str | None = None
+
+    @classmethod
+    def note(cls, signum: int, _frame: object) -> None:
+        if signum == RELOAD_SIGNAL:
+            _StartUp.reload_pending = True
+        elif cls.stop is None:
+            cls.stop = signal.Signals(signum).name
+
+
 @contextlib.contextmanager
 def held() -> Iterator[None]:
     """Hold the stop and reload signals back while the devices open: a stop that lands inside a driver's connect
     (ur_rtde uploading its control script) would unwind before the driver object was kept, and nothing could end
-    that script. Delivered when the devices are open and known, so that ``prepare`` closes them."""
+    that script. Delivered when the devices are open and known, so that ``prepare`` closes them.
+
+    Blocking the signals on the main thread is not enough: the kernel hands a process-directed signal to any thread
+    that does not block it (the model's and the metrics server's threads were started before), and Python then
+    runs the handler on the main thread at its next bytecode, inside the driver's connect. So the handlers only
+    note the signal here; the stop is raised once the block ends."""
     main = _on_main_thread()
     blocked = (*STOP_SIGNALS, RELOAD_SIGNAL)
-    if main:
-        signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
+    if not main:  # only the main thread may install handlers or receives Python's signals (tests: nothing to do)
+        yield
+        return
+    previous = {sig: signal.getsignal(sig) for sig in blocked}
+    _Held.stop = None
+    _install(_Held.note, blocked)
+    signal.pthread_sigmask(signal.SIG_BLOCK, blocked)  # keeps the drivers' own system calls on this thread whole
     try:
         yield
     finally:
-        if main:
-            signal.pthread_sigmask(signal.SIG_UNBLOCK, blocked)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, blocked)  # what was pending runs ``_Held.note`` now
+        for sig, handler in previous.items():
+            if handler is not None:  # None: a handler not set from Python, which cannot be put back from here
+                signal.signal(sig, handler)
+        name, _Held.stop = _Held.stop, None
+    if name is not None:
+        log.warning("%s during start-up: closing what is open and stopping", name)
+        raise StopRequested(name)
 
 
 def while_running(loop: Any, stop: Callable[[], None], reload: Callable[[], None]) -> None:
