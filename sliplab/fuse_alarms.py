@@ -6,13 +6,19 @@
 Each model (``--model``) and the reference-pillar heuristic with its shipped parameters (``--baselines``, as
 ``tools/robustness.py`` uses) are streamed once through ``sliplab.evaluate.evaluate_paths``; their alarm streams
 are then fused per recording and every row is scored by the same ``sliplab.metrics.evaluate_scene`` and
-``sliplab.robustness.holdout_figures`` (no second scoring). Two fusions, neither with a parameter fitted to data:
+``sliplab.robustness.holdout_figures`` (no second scoring). Three fusions, none with a parameter fitted to the split
+it is scored on:
 
 either
     an alarm whenever either detector's alarm is raised: its first alarm is the earlier of the two.
 both within W
     an alarm when one detector's alarm is raised and the other's was raised at some moment in the last W
     (``--within-ms``, default 100 ms, set before any measurement): a confirmation in either order.
+rule confirmed at L
+    the model's own alarm, and also the rule's alarm while the model's P(slip) reached ``L`` (``--confirm-level``)
+    at some decision in the last W: the rule's speed where the members lean towards a slip without calling it.
+    The default level, 0.3, was chosen on MuJoCo's test split before Bullet was scored with it (``CONFIRM_LEVEL``,
+    ``docs/engine.md``).
 
 A detector's alarm state holds from one of its decisions to its next, so the fused stream has a decision at every
 moment either detector decides. Prints the hold-out table of ``tools/robustness.py`` (offline success, slips caught,
@@ -39,7 +45,10 @@ from sliplab.robustness import DEFAULT_BASELINES, categories, holdout_figures, t
 RULE = "reference_pillar"
 WITHIN_S = 0.1
 """Default confirmation window of the "both" fusion: set before measuring, never fitted to a split."""
-MODES = ("either", "both")
+MODES = ("either", "both", "confirmed")
+CONFIRM_LEVEL = 0.3
+"""Default level of the "confirmed" fusion: of 0.1-0.4, the one with the best offline success on MuJoCo's test split,
+chosen there before Bullet was scored with it (the transfer test alarms on a stop at every lower level tried)."""
 
 Result = tuple[SceneResult, Trace, SceneTruth]
 
@@ -63,8 +72,34 @@ def _raised_within(t: np.ndarray, alarm: np.ndarray, at: np.ndarray, within_s: f
     return (inside > 0) | _held(t, alarm, at - within_s)
 
 
-def fuse_traces(a: Trace, b: Trace, mode: str, within_s: float = WITHIN_S) -> Trace:
-    """One alarm stream from two detectors' decisions on one recording (``MODES``, see the module's docstring).
+def _peak_within(t: np.ndarray, values: np.ndarray, at: np.ndarray, within_s: float) -> np.ndarray:
+    """The largest of a detector's values over its decisions in (at - within_s, at]; where it made none there, the
+    value it holds (``_held``). A sparse table of range maxima: every window in a few array operations."""
+    held = _held(t, values, at)
+    if not len(t):
+        return held
+    lo = np.searchsorted(t, at - within_s, side="right")
+    hi = np.searchsorted(t, at, side="right")  # decisions lo .. hi - 1 lie in the window
+    table = [np.asarray(values, float)]  # table[j][i]: the largest of values[i : i + 2**j]
+    while (1 << len(table)) <= len(values):
+        prev = table[-1]
+        half = 1 << (len(table) - 1)
+        table.append(np.maximum(prev[:-half], prev[half:]))
+    n = hi - lo
+    some = n > 0
+    k = np.zeros(len(at), int)
+    k[some] = np.floor(np.log2(n[some])).astype(int)
+    out = held.astype(float)
+    for level in np.unique(k[some]):
+        sel = some & (k == level)
+        row = table[level]
+        out[sel] = np.maximum(row[lo[sel]], row[hi[sel] - (1 << level)])
+    return out
+
+
+def fuse_traces(a: Trace, b: Trace, mode: str, within_s: float = WITHIN_S, level: float = CONFIRM_LEVEL) -> Trace:
+    """One alarm stream from two detectors' decisions on one recording (``MODES``, see the module's docstring). For
+    "confirmed", ``a`` is the model and ``b`` the rule; ``level`` the model's P(slip) that confirms the rule.
 
     The fused p_slip is the larger held p_slip of the two (a heuristic's is its score); it is not thresholded again.
     """
@@ -76,6 +111,8 @@ def fuse_traces(a: Trace, b: Trace, mode: str, within_s: float = WITHIN_S) -> Tr
     on_a, on_b = _held(ta, aa, t), _held(tb, ab, t)
     if mode == "either":
         alarm = on_a | on_b
+    elif mode == "confirmed":
+        alarm = on_a | (on_b & (_peak_within(ta, pa, t, within_s) >= level))
     else:
         alarm = (on_a & _raised_within(tb, ab, t, within_s)) | (on_b & _raised_within(ta, aa, t, within_s))
     p = np.maximum(_held(ta, pa, t), _held(tb, pb, t))
@@ -83,13 +120,14 @@ def fuse_traces(a: Trace, b: Trace, mode: str, within_s: float = WITHIN_S) -> Tr
     return Trace([float(v) for v in t], [float(v) for v in p], [bool(v) for v in alarm], [bool(v) for v in rising])
 
 
-def fused_results(first: list[Result], second: list[Result], mode: str, within_s: float = WITHIN_S) -> list[Result]:
+def fused_results(first: list[Result], second: list[Result], mode: str, within_s: float = WITHIN_S,
+                  level: float = CONFIRM_LEVEL) -> list[Result]:
     """Two detectors' results on the same recordings (``evaluate_paths``), fused and scored again per recording."""
     out = []
     for (_, ta, truth), (_, tb, other) in zip(first, second, strict=True):
         if truth.name != other.name:
             raise ValueError(f"fusing results of different recordings: {truth.name} and {other.name}")
-        trace = fuse_traces(ta, tb, mode, within_s)
+        trace = fuse_traces(ta, tb, mode, within_s, level)
         out.append((evaluate_scene(truth, trace), trace, truth))
     return out
 
@@ -113,7 +151,7 @@ def model_name(manifest: str) -> str:
 
 
 def run(data: Path, models: list[str], baselines: Path = DEFAULT_BASELINES, within_s: float = WITHIN_S,
-        limit_guard: bool = True) -> dict:
+        limit_guard: bool = True, level: float = CONFIRM_LEVEL) -> dict:
     """Every model, the rule and both fusions of each model with the rule, as ``holdout_figures`` on ``data``
     (``limit_guard`` False: each model on its own decision rule, ``--no-limit-guard``)."""
     paths = list_recordings(data)
@@ -130,9 +168,12 @@ def run(data: Path, models: list[str], baselines: Path = DEFAULT_BASELINES, with
         rows[f"{name} or {RULE}"] = holdout_figures(fused_results(res, rule, "either"), cats)
         rows[f"{name} and {RULE} within {1000 * within_s:.0f} ms"] = holdout_figures(
             fused_results(res, rule, "both", within_s), cats)
+        rows[f"{RULE} confirmed by {name} at {level:g}"] = holdout_figures(
+            fused_results(res, rule, "confirmed", within_s, level), cats)
     src = Path(baselines).resolve()
     return {"data": str(data), "recordings": len(paths),
             "baselines": str(src.relative_to(ROOT) if src.is_relative_to(ROOT) else src), "within_s": within_s,
+            "confirm_level": level,
             "models": models, "detectors": rows,
             "slips_caught_by": caught}
 
@@ -143,7 +184,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", nargs="+", required=True, help="model manifests, each fused with the rule")
     p.add_argument("--baselines", type=Path, default=DEFAULT_BASELINES, help="the rule's shipped parameters JSON")
     p.add_argument("--within-ms", type=float, default=1000 * WITHIN_S,
-                   help="the 'both' fusion's confirmation window (default %(default)g ms)")
+                   help="the 'both' and 'confirmed' fusions' window (default %(default)g ms)")
+    p.add_argument("--confirm-level", type=float, default=CONFIRM_LEVEL,
+                   help="the model's P(slip) that confirms the rule's alarm (default %(default)g)")
     p.add_argument("--no-limit-guard", action="store_true", help=NO_LIMIT_GUARD_HELP)
     p.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = p.parse_args(argv)
@@ -159,7 +202,10 @@ def main(argv: list[str] | None = None) -> int:
         load_params(args.baselines, RULE)
     except ValueError as exc:
         raise SystemExit(f"--baselines {exc}") from None
-    report = run(args.data, args.model, args.baselines, args.within_ms / 1000, not args.no_limit_guard)
+    if not 0.0 < args.confirm_level <= 1.0:
+        p.error(f"--confirm-level: a probability in (0, 1], got {args.confirm_level}")
+    report = run(args.data, args.model, args.baselines, args.within_ms / 1000, not args.no_limit_guard,
+                 args.confirm_level)
     # The hold-out table of tools/robustness.py, one row per detector and fusion.
     _, head, rows = tables({"families": {}, "holds": {}, "engine_holdout": {
         k: {"source": "", **v} for k, v in report["detectors"].items()}})[0]
