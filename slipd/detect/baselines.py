@@ -30,7 +30,7 @@ Both raise the alarm after ``confirm`` consecutive flagged decisions and report 
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, TypeVar
@@ -233,20 +233,49 @@ class _HeuristicDetector:
 
     def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
         """Feed one raw sample ([9, 3] force, optional [9, 3] displacement); a Detection every ``stride`` samples."""
-        self.index += 1
-        sample = baseline_samples(np.asarray(force)[None], None if disp is None else np.asarray(disp)[None])[0]
-        out = self.frontend.push(sample)
-        if out is None:
-            return None
-        speed, fz = out
-        self._speeds[self._n % len(self._speeds)] = speed
-        self._n += 1
-        flag, score = self._rule(speed[None], fz[None], self._speeds)
-        self._run = self._run + 1 if flag else 0
-        alarm = self._run >= max(1, self._confirm)
-        rising = alarm and not self._alarm
-        self._alarm = alarm
-        return Detection(self.index, int(t_us), float(score), float(score), bool(alarm), bool(rising))
+        out = self.push_many(np.asarray(force)[None], [t_us], None if disp is None else np.asarray(disp)[None])
+        return out[0][1] if out else None
+
+    def push_many(self, force: np.ndarray, t_us: Sequence[int] | np.ndarray,
+                  disp: np.ndarray | None = None) -> list[tuple[int, Detection]]:
+        """A block of raw samples ([k, 9, 3] force, optional [k, 9, 3] displacement): ``(i, detection)`` for each
+        sample ``i`` that decides. The front end takes the block in one pass (``FeatureStream.push_many``: the same
+        windows, bit for bit, as one push per sample) and the rule runs on all of its decisions at once; only the
+        confirmation count goes decision by decision. A daemon reading 1 kHz then pays per block, not per sample."""
+        force = np.asarray(force)
+        k = len(force)
+        base = self.index + 1
+        self.index += k
+        if not k:
+            return []
+        wins = self.frontend.stream.push_many(baseline_samples(force, None if disp is None else np.asarray(disp)))
+        if not wins:
+            return []
+        speed, fz = self.frontend.speeds_from_windows(np.stack([w for _, w in wins]))
+        flags, scores = self._rows_rule(speed, fz)
+        out = []
+        confirm = max(1, self._confirm)
+        for (i, _), flag, score in zip(wins, flags.tolist(), scores.tolist(), strict=True):
+            self._run = self._run + 1 if flag else 0
+            alarm = self._run >= confirm
+            rising = alarm and not self._alarm
+            self._alarm = alarm
+            out.append((i, Detection(base + i, int(t_us[i]), float(score), float(score), bool(alarm), bool(rising))))
+        return out
+
+    def _rows_rule(self, speed: np.ndarray, fz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The rule on a block's decisions in order ([K, 9] speeds and normal forces), each with the speeds of the
+        decisions before it (the ring of the last ``history``, then the block's own rows): ([K] flag, [K] score).
+        Leaves the ring holding the last ``history`` speeds."""
+        ring = self._speeds
+        h, n, kk = len(ring), self._n, len(speed)
+        # The ring oldest first, then the block: decision j's history is the h rows that end with its own.
+        rows = np.concatenate([np.roll(ring, -(n % h), axis=0), speed])
+        flags, scores = self._rule_rows(speed, fz, rows)
+        tail = rows[-h:]  # the last h speeds, oldest first, back into the ring's slots
+        ring[(n + kk + np.arange(-h, 0)) % h] = tail
+        self._n = n + kk
+        return flags, scores
 
     def run(self, force: np.ndarray, disp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Batch path over a whole recording: ([K] sample index, [K] alarm, [K] score). Same result as ``push``."""
@@ -254,8 +283,9 @@ class _HeuristicDetector:
         flag, score = self._batch_rule(speed, fz)
         return ends, confirm_flags(flag, self._confirm), score
 
-    # Subclass hooks: the rule on one decision (with the ring of recent speeds) and on a whole recording.
-    def _rule(self, speed: np.ndarray, fz: np.ndarray, history: np.ndarray) -> tuple[bool, float]:
+    # Subclass hooks: the rule on a block's decisions (``history``: the ring's rows oldest first, then the block's
+    # own: decision j's recent speeds are rows j + 1 .. j + h) and on a whole recording.
+    def _rule_rows(self, speed: np.ndarray, fz: np.ndarray, history: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
     def _batch_rule(self, speed: np.ndarray, fz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -278,9 +308,8 @@ class ReferencePillarDetector(_HeuristicDetector):
         self.params = params or ReferencePillarParams()
         self._confirm = self.params.confirm
 
-    def _rule(self, speed: np.ndarray, fz: np.ndarray, history: np.ndarray) -> tuple[bool, float]:
-        flag, score = reference_pillar_flags(speed, fz, self.params, self.frontend.params.contact_n)
-        return bool(flag[0]), float(score[0])
+    def _rule_rows(self, speed: np.ndarray, fz: np.ndarray, history: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return reference_pillar_flags(speed, fz, self.params, self.frontend.params.contact_n)
 
     def _batch_rule(self, speed: np.ndarray, fz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return reference_pillar_flags(speed, fz, self.params, self.frontend.params.contact_n)
@@ -303,10 +332,12 @@ class DecelerationDetector(_HeuristicDetector):
         super().__init__(fe, offset, history=_memory_decisions(self.params, fe))
         self._confirm = self.params.confirm
 
-    def _rule(self, speed: np.ndarray, fz: np.ndarray, history: np.ndarray) -> tuple[bool, float]:
-        peak = history.max(axis=0, keepdims=True)
-        flag, score = deceleration_flags(speed, peak, fz, self.params, self.frontend.params.contact_n)
-        return bool(flag[0]), float(score[0])
+    def _rule_rows(self, speed: np.ndarray, fz: np.ndarray, history: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        h = len(self._speeds)
+        # Each decision's maximum over its last h speeds, its own included (a few decisions a block: one reduction
+        # each costs less than ``recent_max``'s h passes).
+        peak = np.stack([history[j + 1 : j + 1 + h].max(axis=0) for j in range(len(speed))])
+        return deceleration_flags(speed, peak, fz, self.params, self.frontend.params.contact_n)
 
     def _batch_rule(self, speed: np.ndarray, fz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         peak = recent_max(speed, _memory_decisions(self.params, self.frontend.params))

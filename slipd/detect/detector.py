@@ -531,22 +531,27 @@ class HeuristicDetector:
 
     def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
         """Feed one raw sample (forces and tip displacements); a Detection when the heuristic decides."""
-        self.contact.push(force)
-        d = self._det.push(force, t_us, disp)
-        if d is not None:
-            self.windows += 1
-            d = d.with_contact(self.contact.latest)
-        return d
+        out = self.push_many(np.asarray(force)[None], [t_us], None if disp is None else np.asarray(disp)[None])
+        return out[0][1] if out else None
 
     def push_many(
         self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: np.ndarray | Sequence[np.ndarray] | None = None
     ) -> list[tuple[int, Detection]]:
-        """``push`` for each sample of a block; ``(i, detection)`` for each that decided (see Detector)."""
+        """A block of raw samples: ``(i, detection)`` for each that decided (see Detector), the heuristic and the
+        contact state each taking the block in one pass; a detection carries the contact state of the latest contact
+        window at or before its sample, as a push per sample gives it."""
+        force = np.asarray(force)
+        latest = self.contact.latest
+        states = self.contact.push_many(force)
+        dets = self._det.push_many(force, t_us, None if disp is None else np.asarray(disp))
         out = []
-        for i in range(len(force)):
-            d = self.push(force[i], int(t_us[i]), None if disp is None else disp[i])
-            if d is not None:
-                out.append((i, d))
+        s = 0
+        for i, d in dets:
+            while s < len(states) and states[s][0] <= i:
+                latest = states[s][1]
+                s += 1
+            out.append((i, d.with_contact(latest)))
+        self.windows += len(out)
         self.step_seconds = [None] * len(out)
         return out
 

@@ -178,3 +178,28 @@ def test_replay_feeds_the_heuristics_the_recorded_displacements(name: str) -> No
     replayed = [(d.index, d.p_slip) for d in replay(rec, ens, cfg)]
     assert replayed == direct(rec.disp)
     assert replayed != direct(None)  # the displacements make a difference the test can see
+
+
+@pytest.mark.parametrize("name", ["reference_pillar", "deceleration"])
+def test_a_block_at_a_time_gives_the_detections_of_a_push_per_sample(slip_scene: Recording, name: str) -> None:
+    """The daemon hands the heuristic a block per read (``push_many``); evaluation pushes sample by sample. Blocks of
+    uneven lengths (1 to 37 samples: across decisions and the deceleration rule's memory) give the same detections,
+    contact states included, bit for bit."""
+    from slipd.detect.detector import HeuristicDetector
+    from sliplab.robustness import DEFAULT_BASELINES
+
+    rec = slip_scene
+    off = baseline_offset(rec.force, rec.disp, (0, 100))
+    one, blocks = HeuristicDetector(name, DEFAULT_BASELINES, off), HeuristicDetector(name, DEFAULT_BASELINES, off)
+    want = [(i, d) for i in range(len(rec)) if (d := one.push(rec.force[i], int(rec.t_us[i]), rec.disp[i])) is not None]
+    rng = np.random.default_rng(7)
+    got, start = [], 0
+    while start < len(rec):
+        end = min(len(rec), start + int(rng.integers(1, 38)))
+        got += [(start + i, d) for i, d in blocks.push_many(rec.force[start:end], rec.t_us[start:end],
+                                                            rec.disp[start:end])]
+        start = end
+    assert len(want) > 50 and any(d.alarm for _, d in want)
+    assert [(i, d.index, d.t_us, d.p_slip, d.alarm, d.rising_edge, d.contact) for i, d in got] == \
+        [(i, d.index, d.t_us, d.p_slip, d.alarm, d.rising_edge, d.contact) for i, d in want]
+    assert blocks.windows == one.windows == len(want)
