@@ -388,8 +388,10 @@ def sliding_median(hist: np.ndarray, width: int, out: np.ndarray | None = None) 
 
     An odd-width median is one of its inputs, so any exact method gives the same bits. Widths 3 and 5
     (the shipped model's) use min/max selection networks over shifted views (``median_ops``): about a hundred times
-    faster than ``np.median`` over a sliding view, which dominated the cost of a training epoch; other widths
-    use ``np.median``.
+    faster than ``np.median`` over a sliding view, which dominated the cost of a training epoch; other odd widths (the
+    heuristics' 21) a partial sort that puts the middle value in place (``np.partition``: ``np.median``'s selection
+    without its generic reductions, 2 to 7 times faster); even widths ``np.median`` (the mean of the middle two).
+    The rows are finite here: the pipeline bridges non-finite values before it filters.
     """
     n = len(hist) - width + 1
     if width == 1:
@@ -401,7 +403,12 @@ def sliding_median(hist: np.ndarray, width: int, out: np.ndarray | None = None) 
         res = np.empty((n, *hist.shape[1:]), hist.dtype) if out is None else out
         run_ops(median_ops(hist, width, res, np.empty((4, n + 2, *hist.shape[1:]), hist.dtype)))
         return res.astype(np.float32, copy=False)
-    med: np.ndarray = np.median(sliding_window_view(hist, width, axis=0), axis=-1).astype(np.float32)
+    runs = sliding_window_view(hist, width, axis=0)
+    if width % 2:
+        mid = width // 2
+        med: np.ndarray = np.partition(runs, mid, axis=-1)[..., mid].astype(np.float32, copy=False)
+    else:
+        med = np.median(runs, axis=-1).astype(np.float32)
     if out is None:
         return med
     out[...] = med
