@@ -215,10 +215,9 @@ class _HeuristicDetector:
     def __init__(self, frontend: FrontEndParams | None, offset: np.ndarray | None, history: int) -> None:
         self.frontend = SpeedFrontEnd(frontend, offset)
         self.index = -1
-        # Ring of the last ``history`` speed rows. Speeds are >= 0 and the ring starts at 0, so the maximum
-        # over the whole ring is the maximum over the rows seen so far (order does not matter for a max).
-        self._speeds = np.zeros((history, N_PILLARS), np.float32)
-        self._n = 0
+        # The last ``history`` speed rows, oldest first. Speeds are >= 0 and the rows start at 0, so a maximum over
+        # them is the maximum over the rows seen so far.
+        self._recent = np.zeros((history, N_PILLARS), np.float32)
         self._run = 0
         self._alarm = False
         self._confirm = 1
@@ -226,8 +225,7 @@ class _HeuristicDetector:
     def restart(self, retare: bool = False) -> None:
         """Forget all history (``retare`` is accepted for interface parity; the offset is kept)."""
         self.frontend.reset()
-        self._speeds[:] = 0
-        self._n = 0
+        self._recent[:] = 0
         self._run = 0
         self._alarm = False
 
@@ -252,7 +250,7 @@ class _HeuristicDetector:
         if not wins:
             return []
         speed, fz = self.frontend.speeds_from_windows(np.stack([w for _, w in wins]))
-        flags, scores = self._rows_rule(speed, fz)
+        flags, scores = self._rule_on_block(speed, fz)
         out = []
         confirm = max(1, self._confirm)
         for (i, _), flag, score in zip(wins, flags.tolist(), scores.tolist(), strict=True):
@@ -263,18 +261,13 @@ class _HeuristicDetector:
             out.append((i, Detection(base + i, int(t_us[i]), float(score), float(score), bool(alarm), bool(rising))))
         return out
 
-    def _rows_rule(self, speed: np.ndarray, fz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _rule_on_block(self, speed: np.ndarray, fz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The rule on a block's decisions in order ([K, 9] speeds and normal forces), each with the speeds of the
-        decisions before it (the ring of the last ``history``, then the block's own rows): ([K] flag, [K] score).
-        Leaves the ring holding the last ``history`` speeds."""
-        ring = self._speeds
-        h, n, kk = len(ring), self._n, len(speed)
-        # The ring oldest first, then the block: decision j's history is the h rows that end with its own.
-        rows = np.concatenate([np.roll(ring, -(n % h), axis=0), speed])
+        decisions before it: ([K] flag, [K] score). Keeps the last ``history`` speeds for the next block."""
+        h = len(self._recent)
+        rows = np.concatenate([self._recent, speed])  # decision j's history: the h rows that end with its own
         flags, scores = self._rule_rows(speed, fz, rows)
-        tail = rows[-h:]  # the last h speeds, oldest first, back into the ring's slots
-        ring[(n + kk + np.arange(-h, 0)) % h] = tail
-        self._n = n + kk
+        self._recent = rows[-h:].copy()
         return flags, scores
 
     def run(self, force: np.ndarray, disp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -283,8 +276,8 @@ class _HeuristicDetector:
         flag, score = self._batch_rule(speed, fz)
         return ends, confirm_flags(flag, self._confirm), score
 
-    # Subclass hooks: the rule on a block's decisions (``history``: the ring's rows oldest first, then the block's
-    # own: decision j's recent speeds are rows j + 1 .. j + h) and on a whole recording.
+    # Subclass hooks: the rule on a block's decisions (``history``: the speeds kept from before, oldest first, then the
+    # block's own: decision j's recent speeds are rows j + 1 .. j + h) and on a whole recording.
     def _rule_rows(self, speed: np.ndarray, fz: np.ndarray, history: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
@@ -333,7 +326,7 @@ class DecelerationDetector(_HeuristicDetector):
         self._confirm = self.params.confirm
 
     def _rule_rows(self, speed: np.ndarray, fz: np.ndarray, history: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        h = len(self._speeds)
+        h = len(self._recent)
         # Each decision's maximum over its last h speeds, its own included (a few decisions a block: one reduction
         # each costs less than ``recent_max``'s h passes).
         peak = np.stack([history[j + 1 : j + 1 + h].max(axis=0) for j in range(len(speed))])
