@@ -72,29 +72,16 @@ def _raised_within(t: np.ndarray, alarm: np.ndarray, at: np.ndarray, within_s: f
     return (inside > 0) | _held(t, alarm, at - within_s)
 
 
-def _peak_within(t: np.ndarray, values: np.ndarray, at: np.ndarray, within_s: float) -> np.ndarray:
-    """The largest of a detector's values over its decisions in (at - within_s, at]; where it made none there, the
-    value it holds (``_held``). A sparse table of range maxima: every window in a few array operations."""
-    held = _held(t, values, at)
+def _reached_within(t: np.ndarray, values: np.ndarray, at: np.ndarray, within_s: float, level: float) -> np.ndarray:
+    """Whether a detector's value reached ``level`` at one of its decisions in (at - within_s, at]; where it made none
+    there, whether the value it holds does (``_held``)."""
+    flag = np.asarray(values) >= level
     if not len(t):
-        return held
+        return np.zeros(len(at), bool)
     lo = np.searchsorted(t, at - within_s, side="right")
     hi = np.searchsorted(t, at, side="right")  # decisions lo .. hi - 1 lie in the window
-    table = [np.asarray(values, float)]  # table[j][i]: the largest of values[i : i + 2**j]
-    while (1 << len(table)) <= len(values):
-        prev = table[-1]
-        half = 1 << (len(table) - 1)
-        table.append(np.maximum(prev[:-half], prev[half:]))
-    n = hi - lo
-    some = n > 0
-    k = np.zeros(len(at), int)
-    k[some] = np.floor(np.log2(n[some])).astype(int)
-    out = held.astype(float)
-    for level in np.unique(k[some]):
-        sel = some & (k == level)
-        row = table[level]
-        out[sel] = np.maximum(row[lo[sel]], row[hi[sel] - (1 << level)])
-    return out
+    reached = np.concatenate([[0], np.cumsum(flag)])
+    return np.where(hi > lo, reached[hi] > reached[lo], _held(t, flag, at))
 
 
 def fuse_traces(a: Trace, b: Trace, mode: str, within_s: float = WITHIN_S, level: float = CONFIRM_LEVEL) -> Trace:
@@ -112,7 +99,7 @@ def fuse_traces(a: Trace, b: Trace, mode: str, within_s: float = WITHIN_S, level
     if mode == "either":
         alarm = on_a | on_b
     elif mode == "confirmed":
-        alarm = on_a | (on_b & (_peak_within(ta, pa, t, within_s) >= level))
+        alarm = on_a | (on_b & _reached_within(ta, pa, t, within_s, level))
     else:
         alarm = (on_a & _raised_within(tb, ab, t, within_s)) | (on_b & _raised_within(ta, aa, t, within_s))
     p = np.maximum(_held(ta, pa, t), _held(tb, pb, t))

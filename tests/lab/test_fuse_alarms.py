@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from sliplab.fuse_alarms import _peak_within, caught_by, fuse_traces, fused_results, main
+from sliplab.fuse_alarms import _reached_within, caught_by, fuse_traces, fused_results, main
 from sliplab.metrics import Trace
 
 MODEL = "slipd/models/slip_ensemble_int8.json"
@@ -57,17 +57,18 @@ def test_confirmed_takes_the_rules_alarm_only_while_the_models_p_reached_the_lev
     assert fuse_traces(alarmed, _trace(0.004, 1.0, []), "confirmed", 0.1, 0.3).first_alarm_s() == pytest.approx(0.8)
 
 
-def test_the_window_peak_is_the_brute_force_maximum() -> None:
+def test_the_window_check_is_the_brute_force_maximum_against_the_level() -> None:
     rng = np.random.default_rng(3)
     t = np.sort(rng.uniform(0, 2, 300))
     v = rng.uniform(0, 1, 300)
     at = np.sort(rng.uniform(-0.1, 2.1, 500))
-    got = _peak_within(t, v, at, 0.05)
-    for x, g in zip(at, got, strict=True):
-        inside = v[(t > x - 0.05) & (t <= x)]
-        held = v[t <= x]
-        want = inside.max() if len(inside) else (held[-1] if len(held) else 0.0)
-        assert g == pytest.approx(want)
+    for level in (0.3, 0.9, 0.99):
+        got = _reached_within(t, v, at, 0.05, level)
+        for x, g in zip(at, got, strict=True):
+            inside = v[(t > x - 0.05) & (t <= x)]
+            held = v[t <= x]
+            peak = inside.max() if len(inside) else (held[-1] if len(held) else 0.0)
+            assert g == (peak >= level)
 
 
 def test_the_tool_scores_fusions_with_the_parts_first_alarms(tmp_path, capsys) -> None:
