@@ -29,6 +29,7 @@ import numpy as np
 
 from slipd.detect.baselines import (
     BASELINES,
+    CONFIRMED_RULE,
     DecelerationParams,
     FrontEndParams,
     ReferencePillarParams,
@@ -142,6 +143,42 @@ class ModelRunner:
         return Trace.from_detections(run_recording(det, force, rec.t_us), rec.t_us)
 
 
+class ConfirmedRunner(ModelRunner):
+    """Streams recordings through ``ConfirmedDetector``: the model's decisions and the reference-pillar rule (the
+    shipped parameters of ``params``, ``frontend``) confirmed at ``level`` within ``within_s`` (the daemon's
+    ``decision.confirm_rule``); each part tared on the recording's unloaded stretch as when evaluated alone."""
+
+    def __init__(self, manifest: str, level: float, within_s: float, params: dict, frontend: dict,
+                 limit_guard: bool = True) -> None:
+        super().__init__(manifest, limit_guard=limit_guard)
+        make_baseline(CONFIRMED_RULE, params, frontend)  # validates the parameters up front
+        self.level, self.within_us = float(level), round(within_s * 1e6)
+        self.params, self.frontend = params, frontend
+        self.label = f"reference_pillar confirmed by {self.label} at {level:g}"
+
+    def trace(self, rec: Recording, zero_error: np.ndarray | None = None) -> Trace:
+        """Decisions of one recording (``zero_error`` is not supported: the rule has no such input)."""
+        from slipd.detect.baselines import ReferencePillarDetector
+        from slipd.detect.confirmed import ConfirmedDetector
+        from slipd.detect.detector import Detector
+
+        if zero_error is not None:
+            raise ValueError("ConfirmedRunner: zero_error is not supported")
+        self.ensemble.reset()
+        self.decision.reset()
+        model = Detector(self.ensemble, self.decision, self.spec, press_rise=self.press_rise,
+                         **tare_args(rec, self.spec))
+        offset = baseline_offset(rec.force, rec.disp, tare_stretch(rec))
+        rule = make_baseline(CONFIRMED_RULE, self.params, self.frontend, offset)
+        assert isinstance(rule, ReferencePillarDetector)
+        det = ConfirmedDetector(model, rule, self.level, self.within_us)
+        dets = []
+        for start in range(0, len(rec), TRACE_BLOCK):
+            end = start + TRACE_BLOCK
+            dets += [d for _, d in det.push_many(rec.force[start:end], rec.t_us[start:end], rec.disp[start:end])]
+        return Trace.from_detections(dets, rec.t_us)
+
+
 TRACE_BLOCK = 1000
 """Samples a heuristic takes per call when a recording is streamed through it (``_HeuristicDetector.push_many``)."""
 
@@ -166,12 +203,14 @@ class BaselineRunner:
         return Trace.from_detections(dets, rec.t_us)
 
 
+RUNNERS = {"model": ModelRunner, "baseline": BaselineRunner, "confirmed": ConfirmedRunner}
+"""``evaluate_paths``' kinds of detector."""
 _RUNNER = None
 
 
 def _init_worker(kind: str, args: tuple) -> None:
     global _RUNNER
-    _RUNNER = ModelRunner(*args) if kind == "model" else BaselineRunner(*args)
+    _RUNNER = RUNNERS[kind](*args)
 
 
 def _eval_one(path: str) -> tuple[SceneResult, Trace, SceneTruth]:
@@ -184,7 +223,8 @@ def _eval_one(path: str) -> tuple[SceneResult, Trace, SceneTruth]:
 def evaluate_paths(
     paths: list[Path], kind: str, args: tuple, workers: int = 1, progress: bool = True
 ) -> list[tuple[SceneResult, Trace, SceneTruth]]:
-    """Evaluate every recording; ``kind`` "model" (args: manifest, hysteresis, threshold) or "baseline"."""
+    """Evaluate every recording; ``kind`` one of ``RUNNERS`` ("model": manifest, hysteresis, threshold, stride,
+    limit guard; "baseline": name, params, frontend; "confirmed": ``ConfirmedRunner``'s)."""
     strs = [str(p) for p in paths]
     if workers <= 1:
         _init_worker(kind, args)

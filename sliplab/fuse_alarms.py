@@ -35,14 +35,14 @@ from pathlib import Path
 
 import numpy as np
 
-from slipd.detect.baselines import load_params
+from slipd.detect.baselines import CONFIRMED_RULE, load_params
 from slipd.recording import list_recordings
 from sliplab.evaluate import NO_LIMIT_GUARD_HELP, evaluate_paths
 from sliplab.metrics import SceneResult, SceneTruth, Trace, evaluate_scene
 from sliplab.paths import ROOT
 from sliplab.robustness import DEFAULT_BASELINES, categories, holdout_figures, tables, tags
 
-RULE = "reference_pillar"
+RULE = CONFIRMED_RULE
 WITHIN_S = 0.1
 """Default confirmation window of the "both" fusion: set before measuring, never fitted to a split."""
 MODES = ("either", "both", "confirmed")

@@ -267,6 +267,16 @@ class DecisionConfig(_Section):
         3, ge=1, le=100, description="decisions in a row at or above limit_guard before it raises the alarm (3 at "
         "stride 10: 30 ms; a sliding contact's risk dips below 0.9 for a decision now and then)",
     )
+    confirm_rule: float | None = Field(
+        None, gt=0.0, le=1.0,
+        description="also raise the alarm on the reference-pillar heuristic's alarm (model.baseline_params) while "
+        "the model's p_slip reached this level at one of its decisions in the last confirm_within_ms: the rule's "
+        "speed where the model leans towards a slip, the model's quiet elsewhere (0.3: docs/engine.md); null: off, "
+        "the model alone. One sensor, tip displacements read",
+    )
+    confirm_within_ms: float = Field(
+        100.0, gt=0.0, le=1000.0, description="how far back a decision at confirm_rule's level confirms the rule",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> DecisionConfig:
@@ -702,12 +712,26 @@ class SlipdConfig(_Section):
         if self.sensor.sensors > 1 and self.model.detector != "onnx":
             raise _SectionProblem(("model", "detector"), f"{self.model.detector} reads one sensor; sensor.sensors "
                                   f"is {self.sensor.sensors} (the onnx detector decides per finger)")
+        if self.decision.confirm_rule is not None:
+            # The rule tares nothing itself and keeps one sensor's history (as the heuristic detectors).
+            if self.model.detector != "onnx":
+                raise _SectionProblem(("decision", "confirm_rule"), f"confirms the onnx detector's decisions; "
+                                      f"model.detector is {self.model.detector}")
+            if self.sensor.tare == "startup":
+                raise _SectionProblem(("sensor", "tare"), "startup: decision.confirm_rule's heuristic has no "
+                                      "start-up tare; use bias_command (or none for a sensor that is zeroed)")
+            if self.sensor.sensors > 1:
+                raise _SectionProblem(("decision", "confirm_rule"), f"reads one sensor; sensor.sensors is "
+                                      f"{self.sensor.sensors}")
+        elif self.decision.changed(("confirm_within_ms",)) is not None:
+            raise _SectionProblem(("decision", "confirm_within_ms"), "has no effect without decision.confirm_rule")
         if self.model.detector != "onnx":
             # A heuristic decides on every sample with its own tuned rule: these keys would be read by nothing, and an
             # engineer who sets them expects an effect (unread options are refused, as unknown keys are).
             for section, keys in (("model", ("stride",)),
                                   ("decision", ("threshold", "hysteresis", "min_consecutive", "press_rise",
-                                                "limit_guard", "limit_guard_decisions"))):
+                                                "limit_guard", "limit_guard_decisions", "confirm_rule",
+                                                "confirm_within_ms"))):
                 unread = getattr(self, section).changed(keys)
                 if unread is not None:
                     key, value, default = unread

@@ -181,7 +181,9 @@ class Daemon:
         self._nonfinite_sensor = 0  # the sensor of the latest such run (the log line names it)
         self._nonfinite_open = False  # some sensor's run of non-finite samples is under way
         self._prev_bits: bytes | None = None  # the latest frame's values read, sensor by sensor (27 or 54 float32)
-        self._reads_disp = cfg.model.detector != "onnx"  # the ensemble reads forces only
+        # The ensemble reads forces only; the heuristics (alone, or the rule confirmed by the model) read the tip
+        # displacements too.
+        self._reads_disp = cfg.model.detector != "onnx" or cfg.decision.confirm_rule is not None
         now = time.monotonic()
         self._fresh_ts = np.full(ns, now)  # per sensor: when its latest fresh sample was handled
         self._fresh_t = now  # the oldest of them (re-based when the loop starts)

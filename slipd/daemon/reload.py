@@ -26,6 +26,8 @@ log = logging.getLogger("slipd.reload")
 
 LIVE_KEYS = ("decision.", "control.log_level", "recorder.", "sensor.rate_tolerance")
 """Keys (a trailing dot: the whole section) applied by a reload."""
+RESTART_KEYS = ("decision.confirm_rule", "decision.confirm_within_ms")
+"""Keys of a live section that still take a restart: the rule beside the model is built with the detector."""
 
 
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -45,7 +47,7 @@ def changed_keys(old: SlipdConfig, new: SlipdConfig) -> list[str]:
 
 
 def is_live(key: str) -> bool:
-    return any(key == k or (k.endswith(".") and key.startswith(k)) for k in LIVE_KEYS)
+    return key not in RESTART_KEYS and any(key == k or (k.endswith(".") and key.startswith(k)) for k in LIVE_KEYS)
 
 
 def _one_line(exc: Exception) -> str:
@@ -117,7 +119,8 @@ class Reloader:
                 # Its writes may take a while: on a thread of its own, not the loop's.
                 threading.Thread(target=before.close, name="slipd-recorder-close", daemon=True).start()
         d.cfg = old.model_copy(update={
-            "decision": new.decision,
+            "decision": new.decision.model_copy(update={  # (the keys that wait for a restart keep what is in force)
+                k.removeprefix("decision."): getattr(old.decision, k.removeprefix("decision.")) for k in RESTART_KEYS}),
             "recorder": new.recorder,
             "control": old.control.model_copy(update={"log_level": new.control.log_level}),
             "sensor": old.sensor.model_copy(update={"rate_tolerance": new.sensor.rate_tolerance}),

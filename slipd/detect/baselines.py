@@ -339,6 +339,8 @@ class DecelerationDetector(_HeuristicDetector):
 
 BASELINES = {"reference_pillar": (ReferencePillarDetector, ReferencePillarParams),
              "deceleration": (DecelerationDetector, DecelerationParams)}
+CONFIRMED_RULE = "reference_pillar"
+"""The heuristic the model confirms (``slipd.detect.confirmed``, ``decision.confirm_rule``)."""
 
 
 def make_baseline(

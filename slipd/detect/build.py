@@ -12,6 +12,8 @@ import numpy as np
 
 from slipd.config.load import check_against_manifest
 from slipd.config.schema import DecisionConfig
+from slipd.detect.baselines import CONFIRMED_RULE, ReferencePillarDetector
+from slipd.detect.confirmed import ConfirmedDetector
 from slipd.detect.decision import Decision
 from slipd.detect.detector import Detector, HeuristicDetector, SlipDetector
 from slipd.detect.multisensor import MultiDetector
@@ -58,6 +60,8 @@ def build_detector(
     if sensors is None:
         sensors = cfg.sensor.sensors if cfg is not None else 1
     if sensors > 1:
+        if rule.confirm_rule is not None:
+            raise ValueError(f"decision.confirm_rule reads one sensor; sensor.sensors is {sensors}")
         offsets = None if offset is None else np.broadcast_to(np.asarray(offset, np.float32), (sensors, 9, 3))
         return MultiDetector([
             Detector(ensemble, build_decision(rule, ensemble.threshold), spec,
@@ -65,8 +69,26 @@ def build_detector(
                      row=s, rows=sensors, press_rise=rule.press_rise)
             for s in range(sensors)
         ])
-    return Detector(ensemble, build_decision(rule, ensemble.threshold), spec, offset=offset,
-                    tare_samples=tare_samples or 0, press_rise=rule.press_rise)
+    det = Detector(ensemble, build_decision(rule, ensemble.threshold), spec, offset=offset,
+                   tare_samples=tare_samples or 0, press_rise=rule.press_rise)
+    if cfg is not None and rule.confirm_rule is not None:
+        return confirmed_detector(det, baseline_params_path(cfg), rule.confirm_rule, rule.confirm_within_ms, offset)
+    return det
+
+
+def confirmed_detector(model: Detector, params_path: Path, level: float, within_ms: float,
+                       offset: np.ndarray | None = None) -> ConfirmedDetector:
+    """``model`` with the reference-pillar rule of ``params_path`` confirmed at ``level`` (``decision.confirm_rule``);
+    ``offset`` the forces' tare ([9, 3]; the rule's normal forces take it, its displacements none)."""
+    from slipd.detect.baselines import load_params, make_baseline
+
+    params, frontend = load_params(params_path, CONFIRMED_RULE)
+    rule = make_baseline(CONFIRMED_RULE, params, frontend)
+    assert isinstance(rule, ReferencePillarDetector)
+    det = ConfirmedDetector(model, rule, level, round(within_ms * 1000))
+    if offset is not None:
+        det.set_offset(offset)
+    return det
 
 
 def config_problems(cfg: SlipdConfig, manifest: Any, source: str) -> list[str]:
@@ -74,11 +96,12 @@ def config_problems(cfg: SlipdConfig, manifest: Any, source: str) -> list[str]:
     run``, ``slipd replay``): the config against the manifest, and a heuristic detector's parameters readable (the
     daemon loads them when it builds its detector, which is after the devices were opened and told to hold)."""
     problems = check_against_manifest(cfg, manifest, source)
-    if cfg.model.detector != "onnx":
+    rule = cfg.model.detector if cfg.model.detector != "onnx" else CONFIRMED_RULE if cfg.decision.confirm_rule else None
+    if rule is not None:
         from slipd.detect.baselines import load_params
 
         try:
-            load_params(baseline_params_path(cfg), cfg.model.detector)
+            load_params(baseline_params_path(cfg), rule)
         except ValueError as exc:
             problems.append(f"{source}: model.baseline_params: {exc}")
     return problems
