@@ -122,3 +122,36 @@ def test_the_loop_feeds_a_heuristic_detector_the_tip_displacements(base_cfg) -> 
     offline = replay(rec, ens, cfg)
     assert decided == [(d.index, d.p_slip) for d in offline]
     assert [a[0] for a in daemon.stats.alarms] == [d.index for d in offline if d.rising_edge]
+
+
+def test_the_rule_confirmed_by_the_model_alarms_in_the_loop_as_in_replay_and_sooner_than_the_model_alone() -> None:
+    """``decision.confirm_rule`` in the daemon: the loop hands the confirmed detector the tip displacements, its
+    decisions and alarms are replay's, and on a slip where the model leans early the alarm comes sooner."""
+    from slipd.detect.confirmed import ConfirmedDetector
+
+    scene, seed = list(dataset_scenes("transfer", "test", 2, seed=7))[1]
+    rec = generate(parse_scene(scene) if isinstance(scene, dict) else scene, seed)
+    cfg = override(load_config(ROOT / "config" / "sim.yaml"), {"recorder.enabled": False})
+    ens = Ensemble.load(cfg.model.manifest)
+    alone = [d.index for d in replay(rec, ens, cfg) if d.rising_edge]
+    cfg = override(cfg, {"decision.confirm_rule": 0.3})
+    offline = replay(rec, ens, cfg)
+    daemon = Daemon(cfg, ens, metrics=Metrics())
+    assert isinstance(daemon.detector, ConfirmedDetector)
+    decided: list[tuple[int, float, bool]] = []
+    push_many = daemon.detector.push_many
+
+    def watched(force, t_us, disp):  # every decision the loop gets from the detector
+        assert disp is not None and np.array_equal(disp, rec.disp[t_us[0] // 1000 :][: len(disp)])
+        out = push_many(force, t_us, disp)
+        decided.extend((d.index, d.p_slip, d.alarm) for _, d in out)
+        return out
+
+    daemon.detector.push_many = watched  # type: ignore[method-assign]
+    for k in range(0, len(rec), 10):
+        daemon._on_block(rec.t_us[k : k + 10], rec.force[k : k + 10, None], rec.disp[k : k + 10, None])
+    assert decided == [(d.index, d.p_slip, d.alarm) for d in offline]
+    live = [a[0] for a in daemon.stats.alarms]
+    assert live == [d.index for d in offline if d.rising_edge]
+    onset = rec.meta["events"]["onset"]
+    assert onset - 0.3 <= live[0] / 1000 and live[0] < alone[0]
