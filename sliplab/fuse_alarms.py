@@ -16,15 +16,16 @@ both within W
     (``--within-ms``, default 100 ms, set before any measurement): a confirmation in either order.
 rule confirmed at L
     the model's own alarm, and also the rule's alarm while the model's P(slip) reached ``L`` (``--confirm-level``)
-    at some decision in the last W: the rule's speed where the members lean towards a slip without calling it.
-    The default level, 0.3, was chosen on MuJoCo's test split before Bullet was scored with it (``CONFIRM_LEVEL``,
-    ``docs/engine.md``).
+    at some decision in the last W: the rule's speed where the members lean towards a slip without calling it. This
+    row is the daemon's own detector (``decision.confirm_rule``: ``slipd.detect.confirmed``), streamed through
+    ``sliplab.evaluate.ConfirmedRunner``, not a fusion of the two parts' traces. The default level, 0.3, was chosen on
+    MuJoCo's test split before Bullet was scored with it (``CONFIRM_LEVEL``, ``docs/engine.md``).
 
-A detector's alarm state holds from one of its decisions to its next, so the fused stream has a decision at every
-moment either detector decides. Prints the hold-out table of ``tools/robustness.py`` (offline success, slips caught,
-online success on the lifts, no-slip recordings alarmed, partial slips, latency, light grasps, slow loads, the
-scenario categories) with each model, the rule and both fusions, then per model the scored slips caught in time by
-both parts, by one only and by neither; ``--json`` writes the figures.
+A detector's alarm state holds from one of its decisions to its next, so the fused stream of the first two has a
+decision at every moment either detector decides. Prints the hold-out table of ``tools/robustness.py`` (offline
+success, slips caught, online success on the lifts, no-slip recordings alarmed, partial slips, latency, light grasps,
+slow loads, the scenario categories) with each model, the rule and the three fusions, then per model the scored slips
+caught in time by both parts, by one only and by neither; ``--json`` writes the figures.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from sliplab.robustness import DEFAULT_BASELINES, categories, holdout_figures, t
 RULE = CONFIRMED_RULE
 WITHIN_S = 0.1
 """Default confirmation window of the "both" fusion: set before measuring, never fitted to a split."""
-MODES = ("either", "both", "confirmed")
+MODES = ("either", "both")
 CONFIRM_LEVEL = 0.3
 """Default level of the "confirmed" fusion: of 0.1-0.4, the one with the best offline success on MuJoCo's test split,
 chosen there before Bullet was scored with it (the transfer test alarms on a stop at every lower level tried)."""
@@ -72,21 +73,8 @@ def _raised_within(t: np.ndarray, alarm: np.ndarray, at: np.ndarray, within_s: f
     return (inside > 0) | _held(t, alarm, at - within_s)
 
 
-def _reached_within(t: np.ndarray, values: np.ndarray, at: np.ndarray, within_s: float, level: float) -> np.ndarray:
-    """Whether a detector's value reached ``level`` at one of its decisions in (at - within_s, at]; where it made none
-    there, whether the value it holds does (``_held``)."""
-    flag = np.asarray(values) >= level
-    if not len(t):
-        return np.zeros(len(at), bool)
-    lo = np.searchsorted(t, at - within_s, side="right")
-    hi = np.searchsorted(t, at, side="right")  # decisions lo .. hi - 1 lie in the window
-    reached = np.concatenate([[0], np.cumsum(flag)])
-    return np.where(hi > lo, reached[hi] > reached[lo], _held(t, flag, at))
-
-
-def fuse_traces(a: Trace, b: Trace, mode: str, within_s: float = WITHIN_S, level: float = CONFIRM_LEVEL) -> Trace:
-    """One alarm stream from two detectors' decisions on one recording (``MODES``, see the module's docstring). For
-    "confirmed", ``a`` is the model and ``b`` the rule; ``level`` the model's P(slip) that confirms the rule.
+def fuse_traces(a: Trace, b: Trace, mode: str, within_s: float = WITHIN_S) -> Trace:
+    """One alarm stream from two detectors' decisions on one recording (``MODES``, see the module's docstring).
 
     The fused p_slip is the larger held p_slip of the two (a heuristic's is its score); it is not thresholded again.
     """
@@ -98,8 +86,6 @@ def fuse_traces(a: Trace, b: Trace, mode: str, within_s: float = WITHIN_S, level
     on_a, on_b = _held(ta, aa, t), _held(tb, ab, t)
     if mode == "either":
         alarm = on_a | on_b
-    elif mode == "confirmed":
-        alarm = on_a | (on_b & _reached_within(ta, pa, t, within_s, level))
     else:
         alarm = (on_a & _raised_within(tb, ab, t, within_s)) | (on_b & _raised_within(ta, aa, t, within_s))
     p = np.maximum(_held(ta, pa, t), _held(tb, pb, t))
@@ -107,14 +93,13 @@ def fuse_traces(a: Trace, b: Trace, mode: str, within_s: float = WITHIN_S, level
     return Trace([float(v) for v in t], [float(v) for v in p], [bool(v) for v in alarm], [bool(v) for v in rising])
 
 
-def fused_results(first: list[Result], second: list[Result], mode: str, within_s: float = WITHIN_S,
-                  level: float = CONFIRM_LEVEL) -> list[Result]:
+def fused_results(first: list[Result], second: list[Result], mode: str, within_s: float = WITHIN_S) -> list[Result]:
     """Two detectors' results on the same recordings (``evaluate_paths``), fused and scored again per recording."""
     out = []
     for (_, ta, truth), (_, tb, other) in zip(first, second, strict=True):
         if truth.name != other.name:
             raise ValueError(f"fusing results of different recordings: {truth.name} and {other.name}")
-        trace = fuse_traces(ta, tb, mode, within_s, level)
+        trace = fuse_traces(ta, tb, mode, within_s)
         out.append((evaluate_scene(truth, trace), trace, truth))
     return out
 
@@ -155,8 +140,9 @@ def run(data: Path, models: list[str], baselines: Path = DEFAULT_BASELINES, with
         rows[f"{name} or {RULE}"] = holdout_figures(fused_results(res, rule, "either"), cats)
         rows[f"{name} and {RULE} within {1000 * within_s:.0f} ms"] = holdout_figures(
             fused_results(res, rule, "both", within_s), cats)
-        rows[f"{RULE} confirmed by {name} at {level:g}"] = holdout_figures(
-            fused_results(res, rule, "confirmed", within_s, level), cats)
+        confirmed = evaluate_paths(paths, "confirmed", (m, level, within_s, params, frontend, limit_guard),
+                                   progress=False)
+        rows[f"{RULE} confirmed by {name} at {level:g}"] = holdout_figures(confirmed, cats)
     src = Path(baselines).resolve()
     return {"data": str(data), "recordings": len(paths),
             "baselines": str(src.relative_to(ROOT) if src.is_relative_to(ROOT) else src), "within_s": within_s,

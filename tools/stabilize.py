@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from slipd.sim.rig import DEFAULT_CONFIG, run_rig
+from sliplab.fuse_alarms import CONFIRM_LEVEL
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -39,6 +40,10 @@ PAPER = {  # method.md: translation mm / rotation deg when the grip was correcte
     "hard_paper_box": (4.5, 1.9), "wooden_box": (2.4, 1.5), "shampoo_bottle": (2.8, 2.1),
     "coffee_jar": (2.1, 1.6), "pringles_can": (1.4, 1.1), "thermos_flask": (2.1, 1.2),
 }
+
+
+DETECTORS: dict[str, tuple[str, dict[str, Any]]] = {"confirmed": ("onnx", {"decision.confirm_rule": CONFIRM_LEVEL})}
+"""``--detectors`` names that are a config of another detector: (model.detector, the other keys)."""
 
 
 def _ms(values: list[float]) -> str:
@@ -57,7 +62,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--objects", default=",".join(OBJECTS))
     p.add_argument("--no-control", action="store_true", help="skip the runs with the reaction disabled")
     p.add_argument("--detectors", default="onnx",
-                   help="comma list among onnx, deceleration, reference_pillar (each one a full set of runs)")
+                   help="comma list among onnx, deceleration, reference_pillar and confirmed (the onnx detector "
+                   f"with decision.confirm_rule: {CONFIRM_LEVEL}) (each one a full set of runs)")
     p.add_argument("--policy", choices=("stop_and_secure", "grip_control"), default=None,
                    help="run grip_control beside stop_and_secure (plus the filling cup and the fragile "
                    "object) and write reports/grip_control.md")
@@ -85,8 +91,9 @@ def main(argv: list[str] | None = None) -> int:
             scene = ROOT / "config" / "scenes" / f"{obj}_{scen}.yaml"
             for rep in range(args.reps):
                 for detector, react in conditions:
-                    res, _ = run_rig(scene, args.config, react=react, seed=args.seed + rep, detector=detector,
-                                     log=lambda *a: None)
+                    name, overrides = DETECTORS.get(detector, (detector, None))
+                    res, _ = run_rig(scene, args.config, react=react, seed=args.seed + rep, detector=name,
+                                     log=lambda *a: None, overrides=overrides)
                     row = {"object": obj, "scenario": scen, "rep": rep, "detector": detector, **asdict(res)}
                     runs.append(row)
                     print(f"{obj:15s} {scen:9s} rep {rep} {detector:16s} reaction {'on ' if react else 'off'}: "

@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from sliplab.fuse_alarms import _reached_within, caught_by, fuse_traces, fused_results, main
+from sliplab.fuse_alarms import caught_by, fuse_traces, fused_results, main
 from sliplab.metrics import Trace
 
 MODEL = "slipd/models/slip_ensemble_int8.json"
@@ -43,32 +43,6 @@ def test_both_needs_the_other_alarm_within_the_window_in_either_order() -> None:
     assert fuse_traces(model, _trace(0.004, 1.0, []), "both", 0.1).first_alarm_s() is None
     with pytest.raises(ValueError, match="fusion mode 'and'"):
         fuse_traces(model, model, "and")
-
-
-def test_confirmed_takes_the_rules_alarm_only_while_the_models_p_reached_the_level_in_the_window() -> None:
-    t = [round(i * 0.01, 6) for i in range(101)]
-    p = [0.35 if 0.40 <= v < 0.43 else 0.1 for v in t]  # the members lean towards a slip for three decisions
-    model = Trace(t, p, [False] * len(t), [False] * len(t))
-    rule = _trace(0.004, 1.0, [(0.46, 0.5)])
-    assert fuse_traces(model, rule, "confirmed", 0.1, 0.3).first_alarm_s() == pytest.approx(0.46)
-    assert fuse_traces(model, rule, "confirmed", 0.1, 0.4).first_alarm_s() is None  # the level never reached
-    assert fuse_traces(model, _trace(0.004, 1.0, [(0.6, 0.7)]), "confirmed", 0.1, 0.3).first_alarm_s() is None  # late
-    alarmed = Trace(t, p, [v >= 0.8 for v in t], [v == 0.8 for v in t])  # the model's own alarm always counts
-    assert fuse_traces(alarmed, _trace(0.004, 1.0, []), "confirmed", 0.1, 0.3).first_alarm_s() == pytest.approx(0.8)
-
-
-def test_the_window_check_is_the_brute_force_maximum_against_the_level() -> None:
-    rng = np.random.default_rng(3)
-    t = np.sort(rng.uniform(0, 2, 300))
-    v = rng.uniform(0, 1, 300)
-    at = np.sort(rng.uniform(-0.1, 2.1, 500))
-    for level in (0.3, 0.9, 0.99):
-        got = _reached_within(t, v, at, 0.05, level)
-        for x, g in zip(at, got, strict=True):
-            inside = v[(t > x - 0.05) & (t <= x)]
-            held = v[t <= x]
-            peak = inside.max() if len(inside) else (held[-1] if len(held) else 0.0)
-            assert g == (peak >= level)
 
 
 def test_the_tool_scores_fusions_with_the_parts_first_alarms(tmp_path, capsys) -> None:
