@@ -42,7 +42,7 @@ def test_hot_path_reports_each_stage_and_restores_the_timed_code(sensors: int) -
                 "python_back_to_back_p10_us"):
         assert h[key] > 0
     stages = h["stages_us"]
-    assert list(stages) == [name for name, _ in mod.STAGES] + ["total", "untimed"]
+    assert list(stages) == [name for name, _ in mod.STAGES if name != "confirmed rule"] + ["total", "untimed"]
     # Every stage runs on each decision of a quiet hold (the recorder keeps the frames; no alarm, no file).
     assert all(v > 0 for v in stages.values()), stages
     # Exclusive times: the stages share out the instrumented total, nothing counted twice.
@@ -86,3 +86,13 @@ def test_the_full_run_measures_reaction_latency_and_cpu(tmp_path) -> None:
     assert 0.0 < run["decision_p50_ms"] <= run["latency_p50_ms"] <= run["latency_max_ms"]
     assert run["frames_lost"] == 0 and run["frames_sent"] >= 2000
     assert run["cpu_percent"] > 0.0 and set(run["hot_path_us"]) >= {"back_to_back", "after_sleep"}
+
+
+def test_the_hot_path_with_the_confirmed_rule_running_shows_its_stage() -> None:
+    # A level the still hold's P(slip) reaches: the rule runs on every read, and its stage is timed.
+    mod = _bench()
+    h = mod.hot_path_cost(MODEL, 1, decisions=12, sleep_s=0.0, confirm_rule=1e-6)
+    stages = h["stages_us"]
+    assert list(stages) == [name for name, _ in mod.STAGES] + ["total", "untimed"]
+    assert stages["confirmed rule"] > 0
+

@@ -104,10 +104,13 @@ def _free_port() -> int:
 
 
 def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str, sensors: int, stride: int,
-            policy: str = "stop_and_secure", viz_port: int | None = None) -> Path:
+            policy: str = "stop_and_secure", viz_port: int | None = None, confirm_rule: float | None = None) -> Path:
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
     cfg["model"].update(manifest=str(model.resolve()), detector="onnx", stride=stride)
     cfg["sensor"].update(port=sensor_port, tare="startup", tare_samples=300, stall_timeout_ms=1000, sensors=sensors)
+    if confirm_rule is not None:  # (the rule has no start-up tare: the bench's hold starts at zero)
+        cfg["decision"]["confirm_rule"] = confirm_rule
+        cfg["sensor"]["tare"] = "none"
     cfg["gripper"]["port"] = servo_port
     cfg["arm"]["enabled"] = False
     cfg["reaction"].update(actions=["tighten_gripper"], on_failsafe="log_only", rearm_after_s=0.0, policy=policy)
@@ -339,10 +342,11 @@ def _encoded(counter: int, t_us: int, force: np.ndarray) -> bytes:
 
 
 def _hot_path_setup(model: Path, sensors: int, stride: int, decisions: int, tmp: Path,
-                    recorder: bool = False) -> tuple[Any, Any, list[bytes]]:
+                    recorder: bool = False, confirm_rule: float | None = None) -> tuple[Any, Any, list[bytes]]:
     """A daemon (the bench's config at ``stride``, not running: no event loop, no devices) past its tare and first
     windows, its decoder, and ``2 * decisions`` reads of ``stride`` encoded frames each, the first read ending on a
-    deciding frame. ``recorder``: with the recorder the default config runs (``recorder.enabled``)."""
+    deciding frame. ``recorder``: with the recorder the default config runs (``recorder.enabled``); ``confirm_rule``:
+    ``decision.confirm_rule`` at that level."""
     from slipd.config import load_config
     from slipd.daemon.loop import Daemon
     from slipd.daemon.recorder import Recorder
@@ -353,14 +357,15 @@ def _hot_path_setup(model: Path, sensors: int, stride: int, decisions: int, tmp:
     n = 400 + stride * (2 * decisions + 20) + 40
     force = quiet_hold(n, sensors).force.reshape(n, sensors, 9, 3)
     data = [_encoded(i + 1, i * 1000, force[i]) for i in range(n)]
-    cfg = load_config(_config(tmp, model, "/dev/null", "/dev/null", sensors, stride))
+    cfg = load_config(_config(tmp, model, "/dev/null", "/dev/null", sensors, stride, confirm_rule=confirm_rule))
     daemon = Daemon(cfg, Ensemble.load(cfg.model.manifest), metrics=Metrics())
+    members = getattr(daemon.detector, "model", daemon.detector)  # (the confirmed rule decides on any sample)
     if recorder:
         daemon.recorder = Recorder(tmp / "recordings", cfg.sensor.rate_hz, sensors=sensors)
     dec = FrameDecoder(sensors)
     daemon._on_frames(dec.feed_block(b"".join(data[:400])))  # the tare and the first windows
     i = 400
-    while daemon.detector.samples_to_decision() != stride:
+    while members.samples_to_decision() != stride:
         daemon._on_frames(dec.feed_block(data[i]))
         i += 1
     chunks = [b"".join(data[i + stride * k : i + stride * k + stride]) for k in range(2 * decisions)]
@@ -368,26 +373,29 @@ def _hot_path_setup(model: Path, sensors: int, stride: int, decisions: int, tmp:
 
 
 def hot_path_cost(model: Path, sensors: int, decisions: int = HOT_DECISIONS, sleep_s: float = HOT_SLEEP_S,
-                  stride: int = 10) -> dict[str, Any]:
+                  stride: int = 10, confirm_rule: float | None = None) -> dict[str, Any]:
     """The daemon's work per decision without the event loop: ``stride`` encoded frames decoded
     (``FrameDecoder.feed_block``) and handed to ``Daemon._on_frames`` (freshness, detector, decision, metrics),
     in this process. Timed back to back and after ``sleep_s`` asleep, as the daemon is between decisions: what
     the code costs, and what the same code costs once the machine has let its caches go cold. Beside it the model
     step alone (one onnxruntime call on the daemon's batch, a stream of its own) and ``stages_us``, the hot path
-    per stage (``stage_breakdown``)."""
+    per stage (``stage_breakdown``). ``confirm_rule``: with ``decision.confirm_rule`` at that level (a level the hold's
+    P(slip) reaches keeps the rule running throughout)."""
     with tempfile.TemporaryDirectory() as tmp:
-        daemon, dec, chunks = _hot_path_setup(model, sensors, stride, decisions, Path(tmp))
+        daemon, dec, chunks = _hot_path_setup(model, sensors, stride, decisions, Path(tmp), confirm_rule=confirm_rule)
         hot = _warm_and_cold(lambda k: daemon._on_frames(dec.feed_block(chunks[k])), decisions, sleep_s)
         ens = daemon.ensemble
         window = np.zeros((sensors, ens.feature_spec.input_size), np.float32)
         step = _warm_and_cold(lambda k: ens.step(window, stream=1_000), decisions, sleep_s)
         daemon.close()
     with tempfile.TemporaryDirectory() as tmp:
-        daemon, dec, chunks = _hot_path_setup(model, sensors, stride, decisions, Path(tmp), recorder=True)
+        daemon, dec, chunks = _hot_path_setup(model, sensors, stride, decisions, Path(tmp), recorder=True,
+                                              confirm_rule=confirm_rule)
         stages = stage_breakdown(daemon, dec, chunks)
         daemon.close()
     with tempfile.TemporaryDirectory() as tmp:
-        daemon, dec, chunks = _hot_path_setup(model, sensors, stride, decisions // 2, Path(tmp))
+        daemon, dec, chunks = _hot_path_setup(model, sensors, stride, decisions // 2, Path(tmp),
+                                              confirm_rule=confirm_rule)
         python = _python_alone(daemon, dec, chunks)
         daemon.close()
     return {"back_to_back_us": hot[0], "after_sleep_us": hot[1], "back_to_back_p10_us": hot[2],
@@ -427,6 +435,9 @@ STAGES: tuple[tuple[str, tuple[tuple[str, str, str], ...]], ...] = (
     ("decision", (("slipd.detect.detector", "Detector", "push_many"), ("slipd.detect.multisensor", "MultiDetector",
                   "push_many"), ("slipd.detect.detector", "Detector", "_decide"),
                   ("slipd.detect.detector", "Detector", "_gate"), ("slipd.detect.detector", "Detector", "_finish"))),
+    ("confirmed rule", tuple(("slipd.detect.confirmed", "ConfirmedDetector", f) for f in
+                             ("push_many", "_keep", "_start_rule")) + tuple(
+        ("slipd.detect.baselines", "_HeuristicDetector", f) for f in ("push_many", "_rule_on_block"))),
     ("contact state", (("slipd.detect.detector", "Detector", "contact_state"),
                        ("slipd.detect.contact", "ContactStream", "state"))),
     ("reaction check", (("slipd.daemon.loop", "Daemon", "_on_frames"), ("slipd.daemon.loop", "Daemon", "_on_block"),
@@ -440,7 +451,9 @@ STAGES: tuple[tuple[str, tuple[tuple[str, str, str], ...]], ...] = (
 """The hot path's stages and the functions each one's time is spent in. Time is exclusive: a function's nested calls
 of another stage count there: "decision" is the detector's own work around the features, the step and the contact
 state (contact gate, press hold, alarm rule, the detections); "reaction check" what the loop does around the detector
-(per-decision bookkeeping, the rising-edge check that hands an alarm to the reaction, the read coalescing)."""
+(per-decision bookkeeping, the rising-edge check that hands an alarm to the reaction, the read coalescing);
+"confirmed rule" the fusion and the rule's speeds and flags (``decision.confirm_rule``; its median filter counts in
+"features"; 0 without the key)."""
 
 
 def stage_breakdown(daemon: Any, dec: Any, chunks: list[bytes]) -> dict[str, float]:
@@ -502,7 +515,8 @@ def stage_breakdown(daemon: Any, dec: Any, chunks: list[bytes]) -> dict[str, flo
             setattr(cls, attr, f)
     keep = total <= np.percentile(total, 90)
     means = parts[keep].mean(axis=0)
-    return {**{k: float(v) for k, v in zip(acc, means)}, "total": float(total[keep].mean()),
+    unused = () if hasattr(daemon.detector, "rule") else ("confirmed rule",)  # (no rule confirmed: not a stage)
+    return {**{k: float(v) for k, v in zip(acc, means) if k not in unused}, "total": float(total[keep].mean()),
             "untimed": float(untimed[untimed <= np.percentile(untimed, 90)].mean())}
 
 
@@ -753,6 +767,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="CPU share: interleaved rounds of --seconds / cpu-runs each; the median is the figure")
     p.add_argument("--hot-path", type=float, nargs="+", metavar="SLEEP_MS",
                    help="only the hot-path line, after each of these sleeps (ms): its cost against the idle time")
+    p.add_argument("--confirm-rule", type=float, metavar="LEVEL",
+                   help="with --hot-path: the daemon with decision.confirm_rule at LEVEL, one sensor (0.3: the rule "
+                   "at rest on the bench's still hold; 1e-6: the hold's P(slip) reaches it, the rule runs throughout)")
     p.add_argument("--viz", action="store_true",
                    help="the live view off and on (a Foxglove viewer that never reads): p99, frames lost, CPU")
     p.add_argument("--instructions", action="store_true",
@@ -781,7 +798,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.hot_path:
         for s in args.sensors:
             for ms in args.hot_path:
-                h = hot_path_cost(args.model, s, sleep_s=ms / 1e3)
+                h = hot_path_cost(args.model, s, sleep_s=ms / 1e3, confirm_rule=args.confirm_rule)
                 print(f"{s} sensor(s): hot path per decision {h['back_to_back_us']:.0f} us back to back, "
                       f"{h['after_sleep_us']:.0f} us after {ms:g} ms asleep; the model step alone "
                       f"{h['model_back_to_back_us']:.0f} / {h['model_after_sleep_us']:.0f} us (medians of "

@@ -111,8 +111,13 @@ class ConfirmedDetector:
         self._alarm = False
 
     def samples_to_decision(self) -> int:
-        """The members' next decision; every sample while the rule runs (its alarm may come between theirs)."""
-        return 1 if self._running else self.model.samples_to_decision()
+        """The members' next decision, or the rule's while it runs (its alarm may come between theirs)."""
+        due = self.model.samples_to_decision()
+        if self._running:
+            spec, n = self.rule.frontend.spec, self.rule.frontend.stream.samples_seen
+            rule_due = spec.window - n if n < spec.window else spec.step - (n - spec.window) % spec.step
+            due = min(due, rule_due)
+        return due
 
     def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
         """One raw sample [9, 3]; the latest decision it made, if any (``push_many`` returns all)."""

@@ -200,3 +200,18 @@ def test_a_reload_leaves_the_confirmed_rule_for_a_restart() -> None:
     keys = changed_keys(old, new)
     assert [k for k in keys if is_live(k)] == ["decision.threshold"]
     assert [k for k in keys if not is_live(k)] == ["decision.confirm_rule"]
+
+
+def test_samples_to_decision_is_the_members_next_or_the_running_rules(slip: Recording) -> None:
+    # The loop holds reads back until the next deciding sample: the rule's too while it runs (its decisions fall on
+    # every fifth sample from the tenth, as a rule that ran from the start).
+    det = _confirmed(slip, _leaning(400, 700))
+    stride = det.rule.frontend.spec.step
+    ran = 0
+    for i in range(1000):
+        due = det.samples_to_decision()
+        nxt = [j for j in range(i, i + 20) if (j + 1) % STRIDE == 0 or (det._running and j >= 10 and j % stride == 0)]
+        assert due == nxt[0] - i + 1, i
+        ran += det._running
+        det.push_many(slip.force[i : i + 1], slip.t_us[i : i + 1], slip.disp[i : i + 1])
+    assert ran > 300
