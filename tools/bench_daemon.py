@@ -111,6 +111,7 @@ def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str, sensors: 
     if confirm_rule is not None:  # (the rule has no start-up tare: the bench's hold starts at zero)
         cfg["decision"]["confirm_rule"] = confirm_rule
         cfg["sensor"]["tare"] = "none"
+        cfg["model"]["baseline_params"] = None  # (the parameters beside the manifest: sim.yaml's path is relative)
     cfg["gripper"]["port"] = servo_port
     cfg["arm"]["enabled"] = False
     cfg["reaction"].update(actions=["tighten_gripper"], on_failsafe="log_only", rearm_after_s=0.0, policy=policy)

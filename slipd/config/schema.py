@@ -209,7 +209,8 @@ class ModelConfig(_Section):
         "defaults"
     )
     baseline_params: Path | None = Field(
-        None, description="tuned heuristic parameters (JSON); null: baselines.json beside the manifest"
+        None, description="tuned heuristic parameters (JSON); null: those tuned on gripper lifts beside the manifest "
+        "(baselines_transfer.json, as the packaged models have), else baselines.json there"
     )
     stride: int = Field(
         0, ge=0, le=10_000,

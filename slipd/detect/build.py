@@ -108,9 +108,13 @@ def config_problems(cfg: SlipdConfig, manifest: Any, source: str) -> list[str]:
 
 
 def baseline_params_path(cfg: SlipdConfig) -> Path:
-    """The tuned parameters a heuristic detector reads: ``model.baseline_params``, else baselines.json beside the
-    manifest."""
-    return cfg.model.baseline_params or cfg.model.manifest.parent / "baselines.json"
+    """The tuned parameters a heuristic detector (and ``decision.confirm_rule``'s rule) reads:
+    ``model.baseline_params``, else those tuned on gripper lifts beside the manifest (``baselines_transfer.json``: the
+    rig, the evaluation's hold-out tables and the confirmed rule's figures use them), else ``baselines.json`` there."""
+    if cfg.model.baseline_params is not None:
+        return cfg.model.baseline_params
+    lifts = cfg.model.manifest.parent / "baselines_transfer.json"
+    return lifts if lifts.is_file() else cfg.model.manifest.parent / "baselines.json"
 
 
 def build_decision(rule: DecisionConfig, model_threshold: float) -> Decision:

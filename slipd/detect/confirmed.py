@@ -32,6 +32,8 @@ from slipd.geometry import N_PILLARS
 
 HISTORY = 64
 """Raw samples kept for the rule's restart: its median (21), speed lag (10) and stride (5) reach back 36."""
+RING = 16 * HISTORY
+"""The ring's buffer, in samples."""
 
 
 class ConfirmedDetector:
@@ -47,8 +49,11 @@ class ConfirmedDetector:
         self.level = float(level)
         self.within_us = int(within_us)
         self._stride = rule.frontend.spec.step
-        self._ring_f = np.zeros((HISTORY, N_PILLARS, 3), np.float32)
-        self._ring_d = np.zeros((HISTORY, N_PILLARS, 3), np.float32)
+        # The ring: a linear buffer of many histories, the newest samples at ``_end`` (a block's samples are one copy;
+        # the last history moves to the front once the buffer is full).
+        self._ring_f = np.zeros((RING, N_PILLARS, 3), np.float32)
+        self._ring_d = np.zeros((RING, N_PILLARS, 3), np.float32)
+        self._end = 0
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
         self.clean_block = False
@@ -102,6 +107,7 @@ class ConfirmedDetector:
         self.rule.restart()
         self._seen = 0  # samples since the start: the rule's decisions fall on multiples of its stride from here
         self._filled = 0  # samples in the ring
+        self._end = 0
         self._running = False
         self._armed_until = -1  # t_us before which the members' level confirms the rule (exclusive)
         self._m_alarm = False
@@ -137,12 +143,31 @@ class ConfirmedDetector:
         self.clean_block = self.model.clean_block
         msteps = self.model.step_seconds
         level = self.level
-        rdets: list[tuple[int, Detection]] = []
-        if self._running or any(d.valid and d.p_slip >= level for _, d in mdets):
-            if not self._running:
-                self._start_rule(moved is not None)
-            rdets = self.rule.push_many(force, t_us, moved)
-            self.rule_blocks += 1
+        start = self._running
+        if not start:
+            for _, d in mdets:  # (NaN, an invalid decision's p_slip, is below any level)
+                if d.p_slip >= level:
+                    start = True
+                    break
+        if not start:
+            # The common case, the rule at rest: the fused alarm is the members' (the rule's counts only while it
+            # runs), and a detection changes only where the fused rising edge is not the members' own.
+            self._keep(force, moved)
+            self._seen += k
+            for j, (_, md) in enumerate(mdets):
+                if md.valid:
+                    self._m_alarm, self._m_p, self._m_risk = md.alarm, md.p_slip, md.risk
+                    rising = md.alarm and not self._alarm
+                    if rising != md.rising_edge:
+                        mdets[j] = (mdets[j][0], md._replace(rising_edge=rising))
+                    self._alarm = md.alarm
+            self.step_seconds = msteps
+            self.last_step_s = self.model.last_step_s
+            return mdets
+        if not self._running:
+            self._start_rule(moved is not None)
+        rdets = self.rule.push_many(force, t_us, moved)
+        self.rule_blocks += 1
         self._keep(force, moved)
         out: list[tuple[int, Detection]] = []
         steps: list[float | None] = []
@@ -188,8 +213,9 @@ class ConfirmedDetector:
         start = self._seen - self._filled
         skip = (-start) % self._stride
         n = self._filled - skip
-        replayed = self.rule.push_many(self._ring_f[HISTORY - n :], np.zeros(n, np.int64),
-                                       self._ring_d[HISTORY - n :] if with_disp else None) if n > 0 else []
+        end = self._end
+        replayed = self.rule.push_many(self._ring_f[end - n : end], np.zeros(n, np.int64),
+                                       self._ring_d[end - n : end] if with_disp else None) if n > 0 else []
         self._running = True
         self._r_alarm = bool(replayed and replayed[-1][1].alarm)  # its latest decision's alarm holds until its next
 
@@ -198,9 +224,14 @@ class ConfirmedDetector:
         k = min(len(force), HISTORY)
         if not k:
             return
-        self._ring_f[: HISTORY - k] = self._ring_f[k:]
-        self._ring_f[HISTORY - k :] = force[-k:]
+        end = self._end
+        if end + k > RING:
+            keep = min(end, HISTORY - k)
+            self._ring_f[:keep] = self._ring_f[end - keep : end]
+            self._ring_d[:keep] = self._ring_d[end - keep : end]
+            end = keep
+        self._ring_f[end : end + k] = force[-k:]
         if disp is not None:
-            self._ring_d[: HISTORY - k] = self._ring_d[k:]
-            self._ring_d[HISTORY - k :] = disp[-k:]
+            self._ring_d[end : end + k] = disp[-k:]
+        self._end = end + k
         self._filled = min(HISTORY, self._filled + k)
