@@ -171,7 +171,7 @@ class ConfirmedRunner(ModelRunner):
         offset = baseline_offset(rec.force, rec.disp, tare_stretch(rec))
         rule = make_baseline(CONFIRMED_RULE, self.params, self.frontend, offset)
         assert isinstance(rule, ReferencePillarDetector)
-        det = ConfirmedDetector(model, rule, self.level, self.within_us)
+        det = ConfirmedDetector(model, [rule], self.level, self.within_us)
         dets = []
         for start in range(0, len(rec), TRACE_BLOCK):
             end = start + TRACE_BLOCK

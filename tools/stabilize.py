@@ -63,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-control", action="store_true", help="skip the runs with the reaction disabled")
     p.add_argument("--detectors", default="onnx",
                    help="comma list among onnx, deceleration, reference_pillar and confirmed (the onnx detector "
-                   f"with decision.confirm_rule: {CONFIRM_LEVEL}) (each one a full set of runs)")
+                   f"with decision.confirm_rule: {CONFIRM_LEVEL}) (each one a full set of runs); with --policy one of "
+                   "onnx and confirmed")
     p.add_argument("--policy", choices=("stop_and_secure", "grip_control"), default=None,
                    help="run grip_control beside stop_and_secure (plus the filling cup and the fragile "
                    "object) and write reports/grip_control.md")
@@ -229,6 +230,9 @@ def grip_main(args: argparse.Namespace) -> int:
         md.write_text(grip_report(rows, args, args.from_json))
         print(f"wrote {md} from {args.from_json}")
         return 0
+    if args.detectors not in ("onnx", *DETECTORS):
+        raise SystemExit(f"--policy runs one detector of the model: --detectors onnx or {', '.join(DETECTORS)}")
+    detector, confirm = DETECTORS.get(args.detectors, ("onnx", {}))
     plan = [(f"{o}_{sc}", o, sc, {}, None) for o in objects for sc in SCENARIOS]
     plan += [(name, name, "extra", extra, fill) for name, extra, fill in EXTRAS if name in extras]
     for scene, obj, scen, extra, fill in plan:
@@ -236,7 +240,7 @@ def grip_main(args: argparse.Namespace) -> int:
             for policy in ("stop_and_secure", args.policy) if args.policy != "stop_and_secure" else (args.policy,):
                 over = {**GRIP, **extra} if policy == "grip_control" else {}
                 res, _ = run_rig(ROOT / "config" / "scenes" / f"{scene}.yaml", args.config, seed=args.seed + rep,
-                                 detector=None, log=lambda *a: None, overrides=over, fill=fill)
+                                 detector=detector, log=lambda *a: None, overrides={**over, **confirm}, fill=fill)
                 limit = over.get("reaction.grip_max_force_n")
                 row = {"policy": policy, "object": obj, "scenario": scen, "rep": rep,
                        "translation_mm": round(res.final_translation_mm, 4),
@@ -283,6 +287,8 @@ def _subset(args: argparse.Namespace) -> str:
         out += f" --extras '{args.extras}'"
     if args.seed != DEFAULT_SEED:
         out += f" --seed {args.seed}"
+    if args.detectors != "onnx":
+        out += f" --detectors {args.detectors}"
     return out
 
 

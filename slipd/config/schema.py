@@ -273,7 +273,7 @@ class DecisionConfig(_Section):
         description="also raise the alarm on the reference-pillar heuristic's alarm (model.baseline_params) while "
         "the model's p_slip reached this level at one of its decisions in the last confirm_within_ms: the rule's "
         "speed where the model leans towards a slip, the model's quiet elsewhere (0.3: docs/engine.md); null: off, "
-        "the model alone. One sensor, tip displacements read",
+        "the model alone. The heuristic reads the tip displacements",
     )
     confirm_within_ms: float = Field(
         100.0, gt=0.0, le=1000.0, description="how far back a decision at confirm_rule's level confirms the rule",
@@ -714,16 +714,9 @@ class SlipdConfig(_Section):
             raise _SectionProblem(("model", "detector"), f"{self.model.detector} reads one sensor; sensor.sensors "
                                   f"is {self.sensor.sensors} (the onnx detector decides per finger)")
         if self.decision.confirm_rule is not None:
-            # The rule tares nothing itself and keeps one sensor's history (as the heuristic detectors).
             if self.model.detector != "onnx":
                 raise _SectionProblem(("decision", "confirm_rule"), f"confirms the onnx detector's decisions; "
                                       f"model.detector is {self.model.detector}")
-            if self.sensor.tare == "startup":
-                raise _SectionProblem(("sensor", "tare"), "startup: decision.confirm_rule's heuristic has no "
-                                      "start-up tare; use bias_command (or none for a sensor that is zeroed)")
-            if self.sensor.sensors > 1:
-                raise _SectionProblem(("decision", "confirm_rule"), f"reads one sensor; sensor.sensors is "
-                                      f"{self.sensor.sensors}")
         elif self.decision.changed(("confirm_within_ms",)) is not None:
             raise _SectionProblem(("decision", "confirm_within_ms"), "has no effect without decision.confirm_rule")
         if self.model.detector != "onnx":

@@ -60,15 +60,17 @@ def build_detector(
     if sensors is None:
         sensors = cfg.sensor.sensors if cfg is not None else 1
     if sensors > 1:
-        if rule.confirm_rule is not None:
-            raise ValueError(f"decision.confirm_rule reads one sensor; sensor.sensors is {sensors}")
         offsets = None if offset is None else np.broadcast_to(np.asarray(offset, np.float32), (sensors, 9, 3))
-        return MultiDetector([
+        multi = MultiDetector([
             Detector(ensemble, build_decision(rule, ensemble.threshold), spec,
                      offset=None if offsets is None else offsets[s], tare_samples=tare_samples or 0,
                      row=s, rows=sensors, press_rise=rule.press_rise)
             for s in range(sensors)
         ])
+        if cfg is not None and rule.confirm_rule is not None:
+            return confirmed_detector(multi, baseline_params_path(cfg), rule.confirm_rule, rule.confirm_within_ms,
+                                      offsets)
+        return multi
     det = Detector(ensemble, build_decision(rule, ensemble.threshold), spec, offset=offset,
                    tare_samples=tare_samples or 0, press_rise=rule.press_rise)
     if cfg is not None and rule.confirm_rule is not None:
@@ -76,16 +78,20 @@ def build_detector(
     return det
 
 
-def confirmed_detector(model: Detector, params_path: Path, level: float, within_ms: float,
+def confirmed_detector(model: Detector | MultiDetector, params_path: Path, level: float, within_ms: float,
                        offset: np.ndarray | None = None) -> ConfirmedDetector:
-    """``model`` with the reference-pillar rule of ``params_path`` confirmed at ``level`` (``decision.confirm_rule``);
-    ``offset`` the forces' tare ([9, 3]; the rule's normal forces take it, its displacements none)."""
+    """``model`` (one sensor's or several) with the reference-pillar rule of ``params_path``, one per sensor,
+    confirmed at ``level`` (``decision.confirm_rule``); ``offset`` the forces' tare ([9, 3] or [S, 9, 3]; the rules'
+    normal forces take it, their displacements none), else the members' start-up tare or zero."""
     from slipd.detect.baselines import load_params, make_baseline
 
     params, frontend = load_params(params_path, CONFIRMED_RULE)
-    rule = make_baseline(CONFIRMED_RULE, params, frontend)
-    assert isinstance(rule, ReferencePillarDetector)
-    det = ConfirmedDetector(model, rule, level, round(within_ms * 1000))
+    rules = []
+    for _ in getattr(model, "detectors", [model]):
+        rule = make_baseline(CONFIRMED_RULE, params, frontend)
+        assert isinstance(rule, ReferencePillarDetector)
+        rules.append(rule)
+    det = ConfirmedDetector(model, rules, level, round(within_ms * 1000))
     if offset is not None:
         det.set_offset(offset)
     return det

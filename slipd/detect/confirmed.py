@@ -15,7 +15,11 @@ still hold with the members near 0 costs the members' path and the ring alone.
 
 Decisions: the members' own (each with the fused alarm), and a decision of the rule's between two of theirs only where
 it changes the fused alarm (a contact state, p_slip and risk are the members': such a decision carries the members'
-latest p_slip and risk and no contact state). One sensor; the rule reads the recorded tip displacements where given.
+latest p_slip and risk and no contact state). The rule reads the recorded tip displacements where given.
+
+Several sensors (``slipd.detect.multisensor.MultiDetector``): a rule per sensor, each confirmed by that sensor's
+members, as each finger decides on its own. The tare: the rule takes the members' start-up tare stretch (its own
+inputs averaged over the same samples), or the offset it was built with (the sensor's bias command: zero).
 """
 
 from __future__ import annotations
@@ -24,10 +28,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from slipd.detect.baselines import ReferencePillarDetector
-from slipd.detect.decision import Decision, Detection
+from slipd.detect.baselines import ReferencePillarDetector, baseline_samples
+from slipd.detect.decision import Detection
 from slipd.detect.detector import Detector
-from slipd.detect.features import FeatureStream
+from slipd.detect.features import FeatureStream, tare_offset
+from slipd.detect.multisensor import MultiDetector
 from slipd.geometry import N_PILLARS
 
 HISTORY = 64
@@ -37,47 +42,55 @@ RING = 16 * HISTORY
 
 
 class ConfirmedDetector:
-    """``model`` (one sensor's ``Detector``) and ``rule`` behind the ``SlipDetector`` interface (see the module)."""
+    """``model`` (a ``Detector``, or a ``MultiDetector`` of S sensors) and one ``rules[s]`` per sensor behind the
+    ``SlipDetector`` interface (see the module)."""
 
-    def __init__(self, model: Detector, rule: ReferencePillarDetector, level: float, within_us: int) -> None:
+    def __init__(self, model: Detector | MultiDetector, rules: Sequence[ReferencePillarDetector], level: float,
+                 within_us: int) -> None:
         if not 0.0 < level <= 1.0:
             raise ValueError(f"confirm level must be in (0, 1], got {level}")
         if within_us <= 0:
             raise ValueError(f"confirm window must be positive, got {within_us} us")
         self.model = model
-        self.rule = rule
+        self._members: list[Detector] = list(getattr(model, "detectors", [model]))
+        self.sensors = len(self._members)
+        if len(rules) != self.sensors:
+            raise ValueError(f"{len(rules)} rules for {self.sensors} sensors")
+        self.rules = list(rules)
         self.level = float(level)
         self.within_us = int(within_us)
-        self._stride = rule.frontend.spec.step
+        self._stride = rules[0].frontend.spec.step
+        s = self.sensors
         # The ring: a linear buffer of many histories, the newest samples at ``_end`` (a block's samples are one copy;
         # the last history moves to the front once the buffer is full).
-        self._ring_f = np.zeros((RING, N_PILLARS, 3), np.float32)
-        self._ring_d = np.zeros((RING, N_PILLARS, 3), np.float32)
-        self._end = 0
+        self._ring_f = np.zeros((RING, s, N_PILLARS, 3), np.float32)
+        self._ring_d = np.zeros((RING, s, N_PILLARS, 3), np.float32)
+        # The members' start-up tare stretch, kept for the rules' own offsets (``_tare_rules``).
+        self._tare_n = self._members[0].tare_samples
+        self._tare_f = np.zeros((max(self._tare_n, 1), s, N_PILLARS, 3), np.float32)
+        self._tare_d = np.zeros((max(self._tare_n, 1), s, N_PILLARS, 3), np.float32)
+        self._tare_k = 0
+        self._tare_disp = False
         self.last_step_s: float | None = None
         self.step_seconds: list[float | None] = []
         self.clean_block = False
         self.rule_blocks = 0
-        """Blocks the rule ran on since the start: a still hold keeps it near 0 (the rule costs nothing there)."""
-        self.restart()
+        """Blocks a rule ran on since the start: a still hold keeps it near 0 (the rule costs nothing there)."""
+        self._reset()
 
-    # The members' pipeline stands for the detector where the loop asks (non-finite counters, the tare offset).
+    # Where the loop asks about the detector, the members answer (non-finite counters, the tare offset, the decision
+    # rule a reload changes in place).
     @property
     def features(self) -> FeatureStream:
-        return self.model.features
+        return self._members[0].features
 
     @property
-    def decision(self) -> Decision:
-        """The members' decision rule (a reload changes it in place)."""
-        return self.model.decision
+    def feature_streams(self) -> list[FeatureStream]:
+        return [d.features for d in self._members]
 
     @property
-    def press_rise(self) -> float | None:
-        return self.model.press_rise
-
-    @press_rise.setter
-    def press_rise(self, value: float | None) -> None:
-        self.model.press_rise = value
+    def detectors(self) -> list[Detector]:
+        return self._members
 
     @property
     def windows(self) -> int:
@@ -92,136 +105,177 @@ class ConfirmedDetector:
         return self.model.offset
 
     def set_offset(self, offset: np.ndarray) -> None:
-        """The members' tare offset ([9, 3] forces), and the rule's normal forces' (its tangential inputs are the
-        tip displacements, which a force offset does not describe)."""
+        """The members' tare offset (forces: [9, 3], or [S, 9, 3]), and the rules' normal forces' (their tangential
+        inputs are the tip displacements, which a force offset does not describe)."""
         self.model.set_offset(offset)
-        rule_offset = self.rule.frontend.offset.copy()
-        rule_offset[:, 2] = np.asarray(offset, np.float32).reshape(N_PILLARS, 3)[:, 2]
-        self.rule.frontend.offset = rule_offset
-        self.rule.frontend.stream.set_offset(rule_offset)
+        forces = np.asarray(offset, np.float32).reshape(self.sensors, N_PILLARS, 3)
+        for rule, f in zip(self.rules, forces, strict=True):
+            rule_offset = rule.frontend.offset.copy()
+            rule_offset[:, 2] = f[:, 2]
+            _set_rule_offset(rule, rule_offset)
 
     def restart(self, retare: bool = False) -> None:
-        """Forget both parts' history and state (reconnect, counter discontinuity)."""
-        if hasattr(self, "_seen"):  # (the model starts fresh when built)
-            self.model.restart(retare)
-        self.rule.restart()
+        """Forget both parts' history and state (reconnect, counter discontinuity); ``retare`` as the members'."""
+        self.model.restart(retare)
+        for rule in self.rules:
+            rule.restart()
+        if not self._model_tared():
+            self._tare_k = 0  # the members' tare starts again: so does the rules'
+        self._reset()
+
+    def _reset(self) -> None:
+        s = self.sensors
         self._seen = 0  # samples since the start: the rule's decisions fall on multiples of its stride from here
         self._filled = 0  # samples in the ring
         self._end = 0
-        self._running = False
-        self._armed_until = -1  # t_us before which the members' level confirms the rule (exclusive)
-        self._m_alarm = False
-        self._m_p = 0.0
-        self._m_risk = 0.0
-        self._r_alarm = False
-        self._alarm = False
+        self._running = [False] * s
+        self._armed_until = [-1] * s  # t_us before which the members' level confirms the rule (exclusive)
+        self._m_alarm = [False] * s
+        self._m_p = [0.0] * s
+        self._m_risk = [0.0] * s
+        self._r_alarm = [False] * s
+        self._alarm = [False] * s
 
     def samples_to_decision(self) -> int:
-        """The members' next decision, or the rule's while it runs (its alarm may come between theirs)."""
+        """The members' next decision, or a running rule's (its alarm may come between theirs)."""
         due = self.model.samples_to_decision()
-        if self._running:
-            spec, n = self.rule.frontend.spec, self.rule.frontend.stream.samples_seen
-            rule_due = spec.window - n if n < spec.window else spec.step - (n - spec.window) % spec.step
-            due = min(due, rule_due)
+        for rule, running in zip(self.rules, self._running, strict=True):
+            if running:
+                spec, n = rule.frontend.spec, rule.frontend.stream.samples_seen
+                due = min(due, spec.window - n if n < spec.window else spec.step - (n - spec.window) % spec.step)
         return due
 
     def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
-        """One raw sample [9, 3]; the latest decision it made, if any (``push_many`` returns all)."""
+        """One raw sample ([9, 3], or [S, 9, 3]); the latest decision it made, if any (``push_many`` returns all)."""
         out = self.push_many(np.asarray(force)[None], [t_us], None if disp is None else np.asarray(disp)[None])
         return out[-1][1] if out else None
 
     def push_many(
         self, force: np.ndarray, t_us: Sequence[int] | np.ndarray, disp: np.ndarray | Sequence[np.ndarray] | None = None
     ) -> list[tuple[int, Detection]]:
-        """A block [k, 9, 3] (``disp`` the tip displacements, for the rule): ``(i, detection)`` per decision, in
-        sample order (see the module)."""
+        """A block ([k, 9, 3], or [k, S, 9, 3]; ``disp`` the tip displacements, for the rules): ``(i, detection)`` per
+        decision, in sample then sensor order (see the module)."""
         force = np.asarray(force, np.float32)
-        moved = None if disp is None else np.asarray(disp, np.float32)
         k = len(force)
-        base = self.model.index + 1
+        x = force.reshape(k, self.sensors, N_PILLARS, 3)
+        moved = None if disp is None else np.asarray(disp, np.float32).reshape(k, self.sensors, N_PILLARS, 3)
+        tared = self._model_tared()
+        if not tared:
+            self._keep_tare(x, moved)
+        base = self._members[0].index + 1
         mdets = self.model.push_many(force, t_us)
+        if not tared and self._model_tared():
+            self._tare_rules()
         self.clean_block = self.model.clean_block
         msteps = self.model.step_seconds
+        self.last_step_s = self.model.last_step_s
         level = self.level
-        start = self._running
-        if not start:
-            for _, d in mdets:  # (NaN, an invalid decision's p_slip, is below any level)
-                if d.p_slip >= level:
-                    start = True
-                    break
-        if not start:
-            # The common case, the rule at rest: the fused alarm is the members' (the rule's counts only while it
+        starting: list[int] = []
+        for _, d in mdets:  # (NaN, an invalid decision's p_slip, is below any level)
+            if d.p_slip >= level and not self._running[d.sensor] and d.sensor not in starting:
+                starting.append(d.sensor)
+        if not starting and not any(self._running):
+            # The common case, every rule at rest: the fused alarm is the members' (a rule's counts only while it
             # runs), and a detection changes only where the fused rising edge is not the members' own.
-            self._keep(force, moved)
+            self._keep(x, moved)
             self._seen += k
+            m_alarm, fused = self._m_alarm, self._alarm
             for j, (_, md) in enumerate(mdets):
                 if md.valid:
-                    self._m_alarm, self._m_p, self._m_risk = md.alarm, md.p_slip, md.risk
-                    rising = md.alarm and not self._alarm
+                    s = md.sensor
+                    m_alarm[s], self._m_p[s], self._m_risk[s] = md.alarm, md.p_slip, md.risk
+                    rising = md.alarm and not fused[s]
                     if rising != md.rising_edge:
                         mdets[j] = (mdets[j][0], md._replace(rising_edge=rising))
-                    self._alarm = md.alarm
+                    fused[s] = md.alarm
             self.step_seconds = msteps
-            self.last_step_s = self.model.last_step_s
             return mdets
-        if not self._running:
-            self._start_rule(moved is not None)
-        rdets = self.rule.push_many(force, t_us, moved)
+        for s in starting:
+            self._start_rule(s, moved is not None)
+        m_at = {(i, md.sensor): a for a, (i, md) in enumerate(mdets)}  # (sample, sensor) -> members' decision
+        r_at: dict[tuple[int, int], Detection] = {}  # (sample, sensor) -> the rule's
+        for s, rule in enumerate(self.rules):
+            if self._running[s]:
+                for i, rd in rule.push_many(x[:, s], t_us, None if moved is None else moved[:, s]):
+                    r_at[(i, s)] = rd
         self.rule_blocks += 1
-        self._keep(force, moved)
+        self._keep(x, moved)
         out: list[tuple[int, Detection]] = []
         steps: list[float | None] = []
-        a = r = 0
-        while a < len(mdets) or r < len(rdets):
-            i = min(mdets[a][0] if a < len(mdets) else k, rdets[r][0] if r < len(rdets) else k)
+        for key in sorted(m_at.keys() | r_at.keys()):
+            i, s = key
             t = int(t_us[i])
-            det: Detection | None = None
-            if a < len(mdets) and mdets[a][0] == i:
-                det, step = mdets[a][1], msteps[a]
-                a += 1
-                if det.valid:
-                    self._m_alarm, self._m_p, self._m_risk = det.alarm, det.p_slip, det.risk
-                    if det.p_slip >= level:
-                        self._armed_until = t + self.within_us
-            if r < len(rdets) and rdets[r][0] == i:
-                self._r_alarm = rdets[r][1].alarm
-                r += 1
-            alarm = self._m_alarm or (self._r_alarm and t < self._armed_until)
-            rising = alarm and not self._alarm
-            changed = alarm != self._alarm
-            self._alarm = alarm
+            a = m_at.get(key)
+            det = None if a is None else mdets[a][1]
+            if det is not None and det.valid:
+                self._m_alarm[s], self._m_p[s], self._m_risk[s] = det.alarm, det.p_slip, det.risk
+                if det.p_slip >= level:
+                    self._armed_until[s] = t + self.within_us
+            ruled = r_at.get(key)
+            if ruled is not None:
+                self._r_alarm[s] = ruled.alarm
+            alarm = self._m_alarm[s] or (self._r_alarm[s] and t < self._armed_until[s])
+            rising = alarm and not self._alarm[s]
+            changed = alarm != self._alarm[s]
+            self._alarm[s] = alarm
             if det is not None:
-                if det.valid:
+                if det.valid and (det.alarm != alarm or det.rising_edge != rising):
                     det = det._replace(alarm=alarm, rising_edge=rising)
                 out.append((i, det))
-                steps.append(step)
+                steps.append(None if a is None else msteps[a])
             elif changed:  # a rule decision between the members' that moves the alarm
-                out.append((i, Detection(base + i, t, self._m_p, self._m_risk, alarm, rising)))
+                out.append((i, Detection(base + i, t, self._m_p[s], self._m_risk[s], alarm, rising, True, s)))
                 steps.append(None)
-        if self._running and k and int(t_us[-1]) >= self._armed_until:
-            self._running = False  # the window has passed: the rule rests until the members reach the level again
-            self._r_alarm = False
+        last = int(t_us[-1]) if k else None
+        for s in range(self.sensors):
+            if self._running[s] and last is not None and last >= self._armed_until[s]:
+                self._running[s] = False  # the window has passed: the rule rests until the members reach the level
+                self._r_alarm[s] = False
         self._seen += k
         self.step_seconds = steps
-        self.last_step_s = self.model.last_step_s
         return out
 
-    def _start_rule(self, with_disp: bool) -> None:
-        """Restart the rule on the ring's samples, from the oldest at a multiple of its stride (its decisions on the
-        samples of a rule that ran since the start)."""
-        self.rule.restart()
+    def _model_tared(self) -> bool:
+        for d in self._members:  # noqa: SIM110 -- (a loop: all() over a generator costs more, once per block)
+            if not d._tared:
+                return False
+        return True
+
+    def _keep_tare(self, x: np.ndarray, disp: np.ndarray | None) -> None:
+        """Samples of the members' start-up tare stretch, for the rules' own offsets."""
+        take = min(len(x), self._tare_n - self._tare_k)
+        if take > 0:
+            self._tare_f[self._tare_k : self._tare_k + take] = x[:take]
+            if disp is not None:
+                self._tare_d[self._tare_k : self._tare_k + take] = disp[:take]
+                self._tare_disp = True
+            self._tare_k += take
+
+    def _tare_rules(self) -> None:
+        """The members tared on their stretch: each rule's offset from the same samples (its inputs, as the evaluation
+        tares a heuristic on a recording's unloaded stretch)."""
+        n = self._tare_k
+        for s, rule in enumerate(self.rules):
+            samples = baseline_samples(self._tare_f[:n, s], self._tare_d[:n, s] if self._tare_disp else None)
+            _set_rule_offset(rule, tare_offset(samples, 0, n))
+
+    def _start_rule(self, s: int, with_disp: bool) -> None:
+        """Restart sensor ``s``'s rule on the ring's samples, from the oldest at a multiple of its stride (its decisions
+        on the samples of a rule that ran since the start)."""
+        rule = self.rules[s]
+        rule.restart()
         start = self._seen - self._filled
         skip = (-start) % self._stride
         n = self._filled - skip
         end = self._end
-        replayed = self.rule.push_many(self._ring_f[end - n : end], np.zeros(n, np.int64),
-                                       self._ring_d[end - n : end] if with_disp else None) if n > 0 else []
-        self._running = True
-        self._r_alarm = bool(replayed and replayed[-1][1].alarm)  # its latest decision's alarm holds until its next
+        replayed = rule.push_many(self._ring_f[end - n : end, s], np.zeros(n, np.int64),
+                                  self._ring_d[end - n : end, s] if with_disp else None) if n > 0 else []
+        self._running[s] = True
+        self._r_alarm[s] = bool(replayed and replayed[-1][1].alarm)  # its latest decision's alarm holds until its next
 
-    def _keep(self, force: np.ndarray, disp: np.ndarray | None) -> None:
+    def _keep(self, x: np.ndarray, disp: np.ndarray | None) -> None:
         """The block's last samples into the ring (oldest first)."""
-        k = min(len(force), HISTORY)
+        k = min(len(x), HISTORY)
         if not k:
             return
         end = self._end
@@ -230,8 +284,13 @@ class ConfirmedDetector:
             self._ring_f[:keep] = self._ring_f[end - keep : end]
             self._ring_d[:keep] = self._ring_d[end - keep : end]
             end = keep
-        self._ring_f[end : end + k] = force[-k:]
+        self._ring_f[end : end + k] = x[-k:]
         if disp is not None:
             self._ring_d[end : end + k] = disp[-k:]
         self._end = end + k
         self._filled = min(HISTORY, self._filled + k)
+
+
+def _set_rule_offset(rule: ReferencePillarDetector, offset: np.ndarray) -> None:
+    rule.frontend.offset = np.asarray(offset, np.float32)
+    rule.frontend.stream.set_offset(rule.frontend.offset)
