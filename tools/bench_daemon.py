@@ -108,10 +108,8 @@ def _config(tmp: Path, model: Path, sensor_port: str, servo_port: str, sensors: 
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
     cfg["model"].update(manifest=str(model.resolve()), detector="onnx", stride=stride)
     cfg["sensor"].update(port=sensor_port, tare="startup", tare_samples=300, stall_timeout_ms=1000, sensors=sensors)
-    if confirm_rule is not None:  # (the rule has no start-up tare: the bench's hold starts at zero)
+    if confirm_rule:
         cfg["decision"]["confirm_rule"] = confirm_rule
-        cfg["sensor"]["tare"] = "none"
-        cfg["model"]["baseline_params"] = None  # (the parameters beside the manifest: sim.yaml's path is relative)
     cfg["gripper"]["port"] = servo_port
     cfg["arm"]["enabled"] = False
     cfg["reaction"].update(actions=["tighten_gripper"], on_failsafe="log_only", rearm_after_s=0.0, policy=policy)
@@ -516,7 +514,7 @@ def stage_breakdown(daemon: Any, dec: Any, chunks: list[bytes]) -> dict[str, flo
             setattr(cls, attr, f)
     keep = total <= np.percentile(total, 90)
     means = parts[keep].mean(axis=0)
-    unused = () if hasattr(daemon.detector, "rule") else ("confirmed rule",)  # (no rule confirmed: not a stage)
+    unused = () if hasattr(daemon.detector, "rules") else ("confirmed rule",)  # (no rule confirmed: not a stage)
     return {**{k: float(v) for k, v in zip(acc, means) if k not in unused}, "total": float(total[keep].mean()),
             "untimed": float(untimed[untimed <= np.percentile(untimed, 90)].mean())}
 
@@ -769,8 +767,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hot-path", type=float, nargs="+", metavar="SLEEP_MS",
                    help="only the hot-path line, after each of these sleeps (ms): its cost against the idle time")
     p.add_argument("--confirm-rule", type=float, metavar="LEVEL",
-                   help="with --hot-path: the daemon with decision.confirm_rule at LEVEL, one sensor (0.3: the rule "
-                   "at rest on the bench's still hold; 1e-6: the hold's P(slip) reaches it, the rule runs throughout)")
+                   help="with --hot-path: the daemon with decision.confirm_rule at LEVEL (0.3: the rule at rest on the "
+                   "bench's still hold; 1e-6: the hold's P(slip) reaches it, the rule runs throughout)")
     p.add_argument("--viz", action="store_true",
                    help="the live view off and on (a Foxglove viewer that never reads): p99, frames lost, CPU")
     p.add_argument("--instructions", action="store_true",

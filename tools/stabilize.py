@@ -62,9 +62,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--objects", default=",".join(OBJECTS))
     p.add_argument("--no-control", action="store_true", help="skip the runs with the reaction disabled")
     p.add_argument("--detectors", default="onnx",
-                   help="comma list among onnx, deceleration, reference_pillar and confirmed (the onnx detector "
-                   f"with decision.confirm_rule: {CONFIRM_LEVEL}) (each one a full set of runs); with --policy one of "
-                   "onnx and confirmed")
+                   help="comma list among onnx, confirmed (onnx with decision.confirm_rule: "
+                   f"{CONFIRM_LEVEL}), deceleration and reference_pillar (each one a full set of runs); with --policy "
+                   "onnx or confirmed")
     p.add_argument("--policy", choices=("stop_and_secure", "grip_control"), default=None,
                    help="run grip_control beside stop_and_secure (plus the filling cup and the fragile "
                    "object) and write reports/grip_control.md")
@@ -231,7 +231,7 @@ def grip_main(args: argparse.Namespace) -> int:
         print(f"wrote {md} from {args.from_json}")
         return 0
     if args.detectors not in ("onnx", *DETECTORS):
-        raise SystemExit(f"--policy runs one detector of the model: --detectors onnx or {', '.join(DETECTORS)}")
+        raise SystemExit(f"--policy runs one detector of the model: --detectors onnx, {', '.join(DETECTORS)}")
     detector, confirm = DETECTORS.get(args.detectors, ("onnx", {}))
     plan = [(f"{o}_{sc}", o, sc, {}, None) for o in objects for sc in SCENARIOS]
     plan += [(name, name, "extra", extra, fill) for name, extra, fill in EXTRAS if name in extras]

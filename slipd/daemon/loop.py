@@ -184,6 +184,9 @@ class Daemon:
         # The ensemble reads forces only; the heuristics (alone, or the rule confirmed by the model) read the tip
         # displacements too.
         self._reads_disp = cfg.model.detector != "onnx" or cfg.decision.confirm_rule is not None
+        # Fresh data is what decides: the forces, and the displacements where a heuristic alone decides (the rule the
+        # model confirms counts only where the model's forces lean towards a slip).
+        self._fresh_disp = cfg.model.detector != "onnx"
         now = time.monotonic()
         self._fresh_ts = np.full(ns, now)  # per sensor: when its latest fresh sample was handled
         self._fresh_t = now  # the oldest of them (re-based when the loop starts)
@@ -401,7 +404,7 @@ class Daemon:
         n = len(force)
         ns = self.sensors
         vals = force.reshape(n, ns, -1)
-        if self._reads_disp:
+        if self._fresh_disp:
             vals = np.concatenate([vals, disp.reshape(n, ns, -1)], axis=2)
         prev = self._prev_bits
         tail = vals[-1].tobytes()  # every sensor's latest values, one after the other (one call, sliced per sensor)

@@ -17,6 +17,7 @@ from slipd.detect.confirmed import ConfirmedDetector
 from slipd.detect.decision import Decision
 from slipd.detect.detector import Detector, HeuristicDetector, SlipDetector
 from slipd.detect.multisensor import MultiDetector
+from slipd.models import PACKAGE_DIR as PACKAGED
 
 if TYPE_CHECKING:
     from slipd.config import SlipdConfig
@@ -116,11 +117,15 @@ def config_problems(cfg: SlipdConfig, manifest: Any, source: str) -> list[str]:
 def baseline_params_path(cfg: SlipdConfig) -> Path:
     """The tuned parameters a heuristic detector (and ``decision.confirm_rule``'s rule) reads:
     ``model.baseline_params``, else those tuned on gripper lifts beside the manifest (``baselines_transfer.json``: the
-    rig, the evaluation's hold-out tables and the confirmed rule's figures use them), else ``baselines.json`` there."""
+    rig, the evaluation's hold-out tables and the confirmed rule's figures use them), else ``baselines.json`` there;
+    a model without either (one trained here) takes the packaged models' tuned parameters."""
     if cfg.model.baseline_params is not None:
         return cfg.model.baseline_params
-    lifts = cfg.model.manifest.parent / "baselines_transfer.json"
-    return lifts if lifts.is_file() else cfg.model.manifest.parent / "baselines.json"
+    for folder in (cfg.model.manifest.parent, PACKAGED):
+        for name in ("baselines_transfer.json", "baselines.json"):
+            if (folder / name).is_file():
+                return folder / name
+    return cfg.model.manifest.parent / "baselines.json"  # (none anywhere: the error names the usual place)
 
 
 def build_decision(rule: DecisionConfig, model_threshold: float) -> Decision:

@@ -65,6 +65,8 @@ class ConfirmedDetector:
         # the last history moves to the front once the buffer is full).
         self._ring_f = np.zeros((RING, s, N_PILLARS, 3), np.float32)
         self._ring_d = np.zeros((RING, s, N_PILLARS, 3), np.float32)
+        self._flat_f = self._ring_f.reshape(RING, -1)  # (the same memory, a sample a row: a block is one copy)
+        self._flat_d = self._ring_d.reshape(RING, -1)
         # The members' start-up tare stretch, kept for the rules' own offsets (``_tare_rules``).
         self._tare_n = self._members[0].tare_samples
         self._tare_f = np.zeros((max(self._tare_n, 1), s, N_PILLARS, 3), np.float32)
@@ -119,11 +121,12 @@ class ConfirmedDetector:
         self.model.restart(retare)
         for rule in self.rules:
             rule.restart()
-        if not self._model_tared():
-            self._tare_k = 0  # the members' tare starts again: so does the rules'
         self._reset()
 
     def _reset(self) -> None:
+        self._tared = self._model_tared()
+        if not self._tared:
+            self._tare_k = 0  # the members' tare starts (again): so does the rules'
         s = self.sensors
         self._seen = 0  # samples since the start: the rule's decisions fall on multiples of its stride from here
         self._filled = 0  # samples in the ring
@@ -159,13 +162,13 @@ class ConfirmedDetector:
         k = len(force)
         x = force.reshape(k, self.sensors, N_PILLARS, 3)
         moved = None if disp is None else np.asarray(disp, np.float32).reshape(k, self.sensors, N_PILLARS, 3)
-        tared = self._model_tared()
-        if not tared:
+        if not self._tared:
             self._keep_tare(x, moved)
         base = self._members[0].index + 1
         mdets = self.model.push_many(force, t_us)
-        if not tared and self._model_tared():
+        if not self._tared and self._model_tared():
             self._tare_rules()
+            self._tared = True
         self.clean_block = self.model.clean_block
         msteps = self.model.step_seconds
         self.last_step_s = self.model.last_step_s
@@ -174,7 +177,7 @@ class ConfirmedDetector:
         for _, d in mdets:  # (NaN, an invalid decision's p_slip, is below any level)
             if d.p_slip >= level and not self._running[d.sensor] and d.sensor not in starting:
                 starting.append(d.sensor)
-        if not starting and not any(self._running):
+        if not starting and True not in self._running:
             # The common case, every rule at rest: the fused alarm is the members' (a rule's counts only while it
             # runs), and a detection changes only where the fused rising edge is not the members' own.
             self._keep(x, moved)
@@ -275,20 +278,24 @@ class ConfirmedDetector:
 
     def _keep(self, x: np.ndarray, disp: np.ndarray | None) -> None:
         """The block's last samples into the ring (oldest first)."""
-        k = min(len(x), HISTORY)
-        if not k:
+        k = len(x)
+        if k > HISTORY:
+            x, k = x[-HISTORY:], HISTORY
+            disp = None if disp is None else disp[-HISTORY:]
+        elif not k:
             return
         end = self._end
         if end + k > RING:
             keep = min(end, HISTORY - k)
-            self._ring_f[:keep] = self._ring_f[end - keep : end]
-            self._ring_d[:keep] = self._ring_d[end - keep : end]
+            self._flat_f[:keep] = self._flat_f[end - keep : end]
+            self._flat_d[:keep] = self._flat_d[end - keep : end]
             end = keep
-        self._ring_f[end : end + k] = x[-k:]
+        self._flat_f[end : end + k] = x.reshape(k, -1)
         if disp is not None:
-            self._ring_d[end : end + k] = disp[-k:]
+            self._flat_d[end : end + k] = disp.reshape(k, -1)
         self._end = end + k
-        self._filled = min(HISTORY, self._filled + k)
+        filled = self._filled + k
+        self._filled = filled if filled < HISTORY else HISTORY
 
 
 def _set_rule_offset(rule: ReferencePillarDetector, offset: np.ndarray) -> None:
