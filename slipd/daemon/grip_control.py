@@ -181,9 +181,14 @@ class GripController:
         if self.target is not None:
             self.target = self._sent = float(newtons)
 
-    def update(self, state: ContactState | None, now: float, *, alarm: bool = False) -> None:
+    def update(self, state: ContactState | None, now: float, *, alarm: bool = False,
+               sampled: bool | None = None) -> None:
         """One decision's contact state at monotonic time ``now``; ``alarm``: the detector's alarm is up
-        (the contact slips, whatever the risk)."""
+        (the contact slips, whatever the risk); ``sampled``: the alarm may give a friction sample (None: as
+        ``alarm``). The model's alarm comes once the contact slides on its limit; the confirmed heuristic's
+        (``decision.confirm_rule``) while some pillars still stick, where the contact's shear / grip is below its
+        friction: taken as a sample, it asked for more grip than the object needs (on the rig, heavy objects went to
+        the 40 N limit and the arm stopped)."""
         s = self.s
         if state is None or state.grip_n <= CONTACT_THRESHOLD_N:
             if self.target is not None or self.arm_stopped or self.alarm_friction.samples:
@@ -226,7 +231,8 @@ class GripController:
             self._slip_grip = grip
             self._caught = False
         ratio = shear / grip
-        if (alarm and state.friction is None and grip <= self._slip_grip * ALARM_SAMPLE_RISE
+        sample = alarm if sampled is None else sampled
+        if (sample and state.friction is None and grip <= self._slip_grip * ALARM_SAMPLE_RISE
                 and (state.top_util is None or state.top_util <= ALARM_SAMPLE_SLACK * ratio)):
             # The alarm says the contact slides: a sliding contact sits on its friction limit (unless a pillar
             # already uses more of its cone than that: ``ALARM_SAMPLE_SLACK``).

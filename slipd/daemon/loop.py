@@ -379,7 +379,11 @@ class Daemon:
         """One decision's contact states, one per sensor, to the grip controller (``policy: grip_control``): a gripper
         has one grip, so the fingers' states become the grasp's (``grasp_state``), and an alarm on either finger is an
         alarm of the grasp. One sensor: its state as it is."""
-        self.reaction.on_detection(grasp_state([d.contact for d in dets]), any(d.alarm for d in dets), time.monotonic())
+        alarm = sampled = False
+        for d in dets:  # (an alarm of the confirmed heuristic alone is no friction sample: ``Detection.rule_only``)
+            alarm = alarm or d.alarm
+            sampled = sampled or (d.alarm and not d.rule_only)
+        self.reaction.on_detection(grasp_state([d.contact for d in dets]), alarm, time.monotonic(), sampled)
 
     # Scrape-time readers of the per-decision gauges (called from the metrics server's thread: each reads
     # one reference the loop replaces whole, never a half-written value).

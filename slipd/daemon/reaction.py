@@ -164,10 +164,12 @@ class Reaction:
         self._last_t, self._last_level = t0, max(level, self._last_level if recent else 0.0)
         return futures
 
-    def on_detection(self, contact: ContactState | None, alarm: bool, t_decision: float) -> None:
-        """``policy: grip_control``: every valid decision's contact state goes to the grip controller."""
+    def on_detection(self, contact: ContactState | None, alarm: bool, t_decision: float,
+                     sampled: bool | None = None) -> None:
+        """``policy: grip_control``: every valid decision's contact state goes to the grip controller; ``sampled``:
+        the alarm may give a friction sample (not one of the confirmed heuristic alone; None: as ``alarm``)."""
         if self.grip_control is not None and self.enabled:
-            self.grip_control.update(contact, t_decision, alarm=alarm)
+            self.grip_control.update(contact, t_decision, alarm=alarm, sampled=sampled)
 
     def _grip_stop(self, why: str) -> None:
         if "stop_arm" not in self.actions or self.arm is None:

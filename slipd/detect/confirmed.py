@@ -221,13 +221,15 @@ class ConfirmedDetector:
             rising = alarm and not self._alarm[s]
             changed = alarm != self._alarm[s]
             self._alarm[s] = alarm
+            rule_only = alarm and not self._m_alarm[s]
             if det is not None:
-                if det.valid and (det.alarm != alarm or det.rising_edge != rising):
-                    det = det._replace(alarm=alarm, rising_edge=rising)
+                if det.valid and (det.alarm != alarm or det.rising_edge != rising or rule_only):
+                    det = det._replace(alarm=alarm, rising_edge=rising, rule_only=rule_only)
                 out.append((i, det))
                 steps.append(None if a is None else msteps[a])
             elif changed:  # a rule decision between the members' that moves the alarm
-                out.append((i, Detection(base + i, t, self._m_p[s], self._m_risk[s], alarm, rising, True, s)))
+                out.append((i, Detection(base + i, t, self._m_p[s], self._m_risk[s], alarm, rising, True, s, None,
+                                         rule_only)))
                 steps.append(None)
         last = int(t_us[-1]) if k else None
         for s in range(self.sensors):

@@ -145,6 +145,9 @@ class Detection(NamedTuple):
     contact: ContactState | None = None
     """Per-pillar slip, friction estimate, continuous contact risk (``slipd.detect.contact``); None where the
     detector keeps no contact state."""
+    rule_only: bool = False
+    """The alarm stands on the heuristic the model confirms alone (``decision.confirm_rule``): the model's own alarm
+    is down. Grip control takes no friction sample from such an alarm (it comes while some pillars still stick)."""
 
     def with_contact(self, contact: ContactState | None) -> Detection:
         """This decision with its contact state."""

@@ -287,6 +287,19 @@ def test_an_alarm_on_one_pillar_sliding_at_its_cone_is_a_friction_sample() -> No
     assert est is not None and abs(est.mu - 0.52 / 2.1) < 1e-9
 
 
+def test_an_alarm_of_the_confirmed_heuristic_alone_is_caught_but_no_friction_sample() -> None:
+    """The same sliding contact, its alarm raised by the heuristic the model confirms (``decision.confirm_rule``),
+    which comes while some pillars still stick: the catch answers it, the contact's ratio is no sample."""
+    jaw = Jaw()
+    c, _, _ = _ctl(jaw, catch=2.0, margin=0.85, max_force_n=30.0)
+    t = _held_cup(c)
+    for _ in range(3):
+        t += DT
+        c.update(_cup(2.1, 0.52, top_util=0.3), t, alarm=True, sampled=False)
+    assert c.alarm_friction.estimate() is None
+    assert c.target is not None and abs(c.target - 2.0 * 2.1) < 1e-9  # the catch
+
+
 def test_a_twist_never_sets_a_grip_beyond_the_force_limit() -> None:
     """At a twist the target becomes the net load's requirement: with little friction known that is far above the
     object's limit, and the limit still holds."""

@@ -280,3 +280,16 @@ def test_the_start_up_tare_tares_the_rule_on_the_same_stretch(lift: Recording) -
     after = [d for d in got if d[0] >= 300]
     assert after == [d for d in _decide(explicit, force, lift, disp, block=37) if d[0] >= 300]
     assert any(r for *_, r in after)
+
+
+def test_an_alarm_on_the_rule_alone_says_so_and_the_models_own_does_not(slip: Recording) -> None:
+    # The model leaning below its threshold: every alarm is the rule's alone (grip control takes no friction sample
+    # from it); the model alarmed: its own.
+    leaning = _confirmed(slip, _leaning(0, len(slip)))
+    dets = [d for k in range(0, len(slip), 10)
+            for _, d in leaning.push_many(slip.force[k : k + 10], slip.t_us[k : k + 10], slip.disp[k : k + 10])]
+    assert any(d.alarm for d in dets) and all(d.rule_only == d.alarm for d in dets)
+    alarmed = _confirmed(slip, lambda i: 0.9)
+    dets = [d for _, d in alarmed.push_many(slip.force, slip.t_us, slip.disp)]
+    assert any(d.alarm for d in dets) and not any(d.rule_only for d in dets)
+
