@@ -12,7 +12,7 @@ import numpy as np
 
 from slipd.config.load import check_against_manifest
 from slipd.config.schema import DecisionConfig
-from slipd.detect.baselines import CONFIRMED_RULE, ReferencePillarDetector
+from slipd.detect.baselines import CONFIRMED_RULE, ReferencePillarDetector, load_params, make_baseline
 from slipd.detect.confirmed import ConfirmedDetector
 from slipd.detect.decision import Decision
 from slipd.detect.detector import Detector, HeuristicDetector, SlipDetector
@@ -60,20 +60,18 @@ def build_detector(
         return HeuristicDetector(cfg.model.detector, baseline_params_path(cfg), offset)
     if sensors is None:
         sensors = cfg.sensor.sensors if cfg is not None else 1
+    det: Detector | MultiDetector
     if sensors > 1:
-        offsets = None if offset is None else np.broadcast_to(np.asarray(offset, np.float32), (sensors, 9, 3))
-        multi = MultiDetector([
+        offset = None if offset is None else np.broadcast_to(np.asarray(offset, np.float32), (sensors, 9, 3))
+        det = MultiDetector([
             Detector(ensemble, build_decision(rule, ensemble.threshold), spec,
-                     offset=None if offsets is None else offsets[s], tare_samples=tare_samples or 0,
+                     offset=None if offset is None else offset[s], tare_samples=tare_samples or 0,
                      row=s, rows=sensors, press_rise=rule.press_rise)
             for s in range(sensors)
         ])
-        if cfg is not None and rule.confirm_rule is not None:
-            return confirmed_detector(multi, baseline_params_path(cfg), rule.confirm_rule, rule.confirm_within_ms,
-                                      offsets)
-        return multi
-    det = Detector(ensemble, build_decision(rule, ensemble.threshold), spec, offset=offset,
-                   tare_samples=tare_samples or 0, press_rise=rule.press_rise)
+    else:
+        det = Detector(ensemble, build_decision(rule, ensemble.threshold), spec, offset=offset,
+                       tare_samples=tare_samples or 0, press_rise=rule.press_rise)
     if cfg is not None and rule.confirm_rule is not None:
         return confirmed_detector(det, baseline_params_path(cfg), rule.confirm_rule, rule.confirm_within_ms, offset)
     return det
@@ -84,8 +82,6 @@ def confirmed_detector(model: Detector | MultiDetector, params_path: Path, level
     """``model`` (one sensor's or several) with the reference-pillar rule of ``params_path``, one per sensor,
     confirmed at ``level`` (``decision.confirm_rule``); ``offset`` the forces' tare ([9, 3] or [S, 9, 3]; the rules'
     normal forces take it, their displacements none), else the members' start-up tare or zero."""
-    from slipd.detect.baselines import load_params, make_baseline
-
     params, frontend = load_params(params_path, CONFIRMED_RULE)
     rules = []
     for _ in getattr(model, "detectors", [model]):
@@ -105,8 +101,6 @@ def config_problems(cfg: SlipdConfig, manifest: Any, source: str) -> list[str]:
     problems = check_against_manifest(cfg, manifest, source)
     rule = cfg.model.detector if cfg.model.detector != "onnx" else CONFIRMED_RULE if cfg.decision.confirm_rule else None
     if rule is not None:
-        from slipd.detect.baselines import load_params
-
         try:
             load_params(baseline_params_path(cfg), rule)
         except ValueError as exc:

@@ -149,7 +149,8 @@ def test_grip_control_takes_one_grasp_state_per_decision_from_both_fingers(cfg) 
     assert controller is not None
     updates = []
     update = controller.update
-    controller.update = lambda state, now, alarm=False: (updates.append(state), update(state, now, alarm=alarm))
+    controller.update = lambda state, now, alarm=False, sampled=None: (
+        updates.append(state), update(state, now, alarm=alarm, sampled=sampled))
     rng = np.random.default_rng(1)
     n = TARE + 1500
     force = rng.normal(0, 0.01, (n, 2, 9, 3)).astype(np.float32)
@@ -185,8 +186,8 @@ def test_grip_control_on_two_fingers_end_to_end_catches_the_slip_of_finger_1(cfg
         targets: list[tuple[float, float | None]] = []  # (time, target) after every update
         update = controller.update
 
-        def watched(state, now, alarm=False):
-            update(state, now, alarm=alarm)
+        def watched(state, now, alarm=False, sampled=None):
+            update(state, now, alarm=alarm, sampled=sampled)
             targets.append((now, controller.target))
 
         controller.update = watched  # type: ignore[method-assign]
