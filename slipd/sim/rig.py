@@ -320,6 +320,8 @@ def _daemon_config(base: Path, dev: EmulatedDevices, metrics_port: int, react: b
         updates["reaction.actions"] = []
     if detector is not None:
         updates["model.detector"] = detector
+        if detector != "onnx":
+            updates["decision.confirm_rule"] = None  # (a heuristic alone: no model to confirm it)
     updates.update(extra or {})
     cfg = override(cfg, updates)
     path = out_dir / "daemon.yaml"

@@ -75,3 +75,25 @@ def test_it_gives_up_and_never_retries_other_failures():
 
 def test_run_rig_is_the_retried_run():
     assert rig.run_rig.__wrapped__.__name__ == "run_rig"  # functools.wraps: the decorated function, its signature
+
+
+def test_a_heuristic_on_the_rig_runs_alone_whatever_the_config_confirms(tmp_path):
+    """``slipd sim --detector reference_pillar`` on a config with ``decision.confirm_rule`` set: the heuristic decides
+    alone (the key confirms the onnx detector, and the config would be refused with it)."""
+    import yaml
+
+    base = yaml.safe_load(rig.DEFAULT_CONFIG.read_text())
+    base["decision"]["confirm_rule"] = 0.3
+    path = tmp_path / "base.yaml"
+    path.write_text(yaml.safe_dump(base))
+
+    class Devices:
+        def overrides(self) -> dict:
+            return {}
+
+    for detector, level in (("reference_pillar", None), ("onnx", 0.3), (None, 0.3)):
+        out = tmp_path / str(detector)
+        out.mkdir()
+        written = yaml.safe_load(rig._daemon_config(path, Devices(), 9999, True, out, detector).read_text())
+        assert written["decision"]["confirm_rule"] == level
+        assert written["model"]["detector"] == (detector or "onnx")
