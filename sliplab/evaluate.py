@@ -171,16 +171,21 @@ class ConfirmedRunner(ModelRunner):
         offset = baseline_offset(rec.force, rec.disp, tare_stretch(rec))
         rule = make_baseline(CONFIRMED_RULE, self.params, self.frontend, offset)
         assert isinstance(rule, ReferencePillarDetector)
-        det = ConfirmedDetector(model, [rule], self.level, self.within_us)
-        dets = []
-        for start in range(0, len(rec), TRACE_BLOCK):
-            end = start + TRACE_BLOCK
-            dets += [d for _, d in det.push_many(rec.force[start:end], rec.t_us[start:end], rec.disp[start:end])]
-        return Trace.from_detections(dets, rec.t_us)
+        return _trace_in_blocks(ConfirmedDetector(model, [rule], self.level, self.within_us), rec)
 
 
 TRACE_BLOCK = 1000
 """Samples a heuristic takes per call when a recording is streamed through it (``_HeuristicDetector.push_many``)."""
+
+
+def _trace_in_blocks(det, rec: Recording) -> Trace:
+    """A recording through a detector with the tip displacements, ``TRACE_BLOCK`` samples a call (the same detections
+    as a push per sample)."""
+    dets = []
+    for start in range(0, len(rec), TRACE_BLOCK):
+        end = start + TRACE_BLOCK
+        dets += [d for _, d in det.push_many(rec.force[start:end], rec.t_us[start:end], rec.disp[start:end])]
+    return Trace.from_detections(dets, rec.t_us)
 
 
 class BaselineRunner:
@@ -195,12 +200,7 @@ class BaselineRunner:
     def trace(self, rec: Recording) -> Trace:
         """Decisions of one recording."""
         offset = baseline_offset(rec.force, rec.disp, tare_stretch(rec))
-        det = make_baseline(self.name, self.params, self.frontend, offset)
-        dets = []
-        for start in range(0, len(rec), TRACE_BLOCK):  # (blocks: the same detections as a push per sample)
-            end = start + TRACE_BLOCK
-            dets += [d for _, d in det.push_many(rec.force[start:end], rec.t_us[start:end], rec.disp[start:end])]
-        return Trace.from_detections(dets, rec.t_us)
+        return _trace_in_blocks(make_baseline(self.name, self.params, self.frontend, offset), rec)
 
 
 RUNNERS = {"model": ModelRunner, "baseline": BaselineRunner, "confirmed": ConfirmedRunner}

@@ -123,6 +123,11 @@ class SpeedFrontEnd:
         self.offset = np.zeros((N_PILLARS, 3), np.float32) if offset is None else np.asarray(offset, np.float32)
         self.stream = FeatureStream(self.spec, self.offset)
 
+    def set_offset(self, offset: np.ndarray) -> None:
+        """The tare offset ([9, 3] of ``baseline_samples``) from the next sample on."""
+        self.offset = np.asarray(offset, np.float32)
+        self.stream.set_offset(self.offset)
+
     def reset(self) -> None:
         """Forget the history (a new recording or reconnect)."""
         self.stream.reset()

@@ -83,10 +83,6 @@ class ConfirmedDetector:
     # Where the loop asks about the detector, the members answer (non-finite counters, the tare offset, the decision
     # rule a reload changes in place).
     @property
-    def features(self) -> FeatureStream:
-        return self._members[0].features
-
-    @property
     def feature_streams(self) -> list[FeatureStream]:
         return [d.features for d in self._members]
 
@@ -114,7 +110,7 @@ class ConfirmedDetector:
         for rule, f in zip(self.rules, forces, strict=True):
             rule_offset = rule.frontend.offset.copy()
             rule_offset[:, 2] = f[:, 2]
-            _set_rule_offset(rule, rule_offset)
+            rule.frontend.set_offset(rule_offset)
 
     def restart(self, retare: bool = False) -> None:
         """Forget both parts' history and state (reconnect, counter discontinuity); ``retare`` as the members'."""
@@ -144,8 +140,7 @@ class ConfirmedDetector:
         due = self.model.samples_to_decision()
         for rule, running in zip(self.rules, self._running, strict=True):
             if running:
-                spec, n = rule.frontend.spec, rule.frontend.stream.samples_seen
-                due = min(due, spec.window - n if n < spec.window else spec.step - (n - spec.window) % spec.step)
+                due = min(due, rule.frontend.stream.samples_to_window())
         return due
 
     def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
@@ -262,7 +257,7 @@ class ConfirmedDetector:
         n = self._tare_k
         for s, rule in enumerate(self.rules):
             samples = baseline_samples(self._tare_f[:n, s], self._tare_d[:n, s] if self._tare_disp else None)
-            _set_rule_offset(rule, tare_offset(samples, 0, n))
+            rule.frontend.set_offset(tare_offset(samples, 0, n))
 
     def _start_rule(self, s: int, with_disp: bool) -> None:
         """Restart sensor ``s``'s rule on the ring's samples, from the oldest at a multiple of its stride (its decisions
@@ -298,8 +293,3 @@ class ConfirmedDetector:
         self._end = end + k
         filled = self._filled + k
         self._filled = filled if filled < HISTORY else HISTORY
-
-
-def _set_rule_offset(rule: ReferencePillarDetector, offset: np.ndarray) -> None:
-    rule.frontend.offset = np.asarray(offset, np.float32)
-    rule.frontend.stream.set_offset(rule.frontend.offset)

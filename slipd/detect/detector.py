@@ -302,10 +302,7 @@ class Detector:
         """
         if not self._tared:
             return max(1, self.tare_samples - self._n_tare)
-        n, w, step = self.features.samples_seen, self.spec.window, self.spec.step
-        if n < w:
-            return w - n
-        return step - (n - w) % step
+        return self.features.samples_to_window()
 
     def push(self, force: np.ndarray, t_us: int = 0, disp: np.ndarray | None = None) -> Detection | None:
         """Feed one raw sample; returns a Detection when a window completes, else None (``disp`` unused:

@@ -559,6 +559,11 @@ class FeatureStream:
         """Samples pushed since the last reset."""
         return self._n
 
+    def samples_to_window(self) -> int:
+        """Samples still to push until the next one that completes a window (1: the very next one)."""
+        n, w, step = self._n, self.spec.window, self.spec.step
+        return w - n if n < w else step - (n - w) % step
+
     def push(self, force: np.ndarray) -> np.ndarray | None:
         """Add one raw sample ([9, 3] or [27]); return the flattened window if one ends here, else None.
 

@@ -274,8 +274,7 @@ def test_the_start_up_tare_tares_the_rule_on_the_same_stretch(lift: Recording) -
     model = Detector(ens, det.model.decision, det.model.spec, offset=tare_offset(force, 0, 300),  # type: ignore[union-attr]
                      press_rise=det.model.press_rise)  # type: ignore[union-attr]
     explicit = confirmed_detector(model, baseline_params_path(cfg), 0.3, 100.0)
-    explicit.rules[0].frontend.offset = rule_offset
-    explicit.rules[0].frontend.stream.set_offset(rule_offset)
+    explicit.rules[0].frontend.set_offset(rule_offset)
     # (the start-up tare reports one decision for its stretch, the explicit offset every one: compare after it)
     after = [d for d in got if d[0] >= 300]
     assert after == [d for d in _decide(explicit, force, lift, disp, block=37) if d[0] >= 300]
